@@ -1,0 +1,203 @@
+"""The configuration tree: validated pydantic models, one sub-model per stage.
+
+`configs/default.yaml` is the single source of the default values (the paper's hyperparameters);
+the models here say what each field means and check it. Presets are YAML files that override part
+of the default; `--set a.b=value` on the command line overrides single fields.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from bimfactor.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
+
+
+class _Strict(BaseModel):
+    """Unknown keys are errors, never silently dropped."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class IfcReadConfig(_Strict):
+    geometry_threads: int = Field(ge=1, description="Threads for ifcopenshell's geometry iterator.")
+    cache_dir: str = Field(
+        description="Folder for the per-file geometry cache (keyed by the IFC's SHA-256); '' disables it."
+    )
+
+
+class GridConfig(_Strict):
+    resolution_m: float = Field(gt=0.0, le=1.0, description="Occupancy grid cell size.")
+    band_min_m: float = Field(description="Lower edge of the obstacle band, above the storey elevation.")
+    band_max_m: float = Field(description="Upper edge of the obstacle band (robot sensing height).")
+    robot_radius_m: float = Field(ge=0.0, description="Robot footprint radius; free space is eroded by it.")
+    padding_m: float = Field(ge=0.0, description="Margin added around the building's footprint.")
+    obstacle_exclude_classes: list[str] = Field(
+        description="IFC classes never rasterised as obstacles (open doors, slabs, spaces, annotations)."
+    )
+
+
+class RoomsConfig(_Strict):
+    source: Literal["floodfill", "ifcspace", "auto"] = Field(
+        description="Where rooms come from: the paper's flood fill, the model's IfcSpace, or IfcSpace when present."
+    )
+    min_room_area_m2: float = Field(gt=0.0, description="Free-space components smaller than this are no room.")
+    door_seal_margin_m: float = Field(
+        ge=0.0, description="How far a door's footprint is grown when it is closed for the flood fill."
+    )
+    door_probe_m: float = Field(gt=0.0, description="How far beyond the wall a door looks for its rooms.")
+    iou_match_threshold: float = Field(gt=0.0, le=1.0, description="IoU at which a flood-fill room matches an IfcSpace.")
+
+
+class ObjectsConfig(_Strict):
+    classes: list[str] = Field(description="IFC classes (and their subclasses) that become object nodes.")
+    proximity_edge_m: float = Field(gt=0.0, description="Objects closer than this are joined by an edge.")
+    vocabulary_file: str = Field(description="Label table, relative to configs/.")
+    embedding_fallback_min_sim: float = Field(
+        description="Minimum cosine similarity for the nearest-embedding label fallback."
+    )
+
+
+class ClassifyConfig(_Strict):
+    room_categories_file: str = Field(description="Room-category pool, relative to configs/.")
+    min_objects: int = Field(ge=0, description="Rooms with fewer labelled objects are typed 'unknown'.")
+
+
+class BimConfig(_Strict):
+    ifc: IfcReadConfig
+    grid: GridConfig
+    rooms: RoomsConfig
+    objects: ObjectsConfig
+    classify: ClassifyConfig
+
+
+class EmbedConfig(_Strict):
+    text_model: Literal["minilm", "clip"] = Field(
+        description="Text embedder: the bundled all-MiniLM-L6-v2, or CLIP's text tower (needs weights)."
+    )
+    clip_model: str = Field(description="open_clip architecture name, e.g. ViT-L-14.")
+    clip_weights: str = Field(description="Local path of the CLIP checkpoint; '' when not available.")
+
+
+class PerceptionConfig(_Strict):
+    box_threshold: float = Field(ge=0.0, le=1.0, description="Detector box score threshold (paper: 0.25).")
+    text_threshold: float = Field(ge=0.0, le=1.0, description="Detector text score threshold (paper: 0.25).")
+    sim_threshold: float = Field(ge=-1.0, le=1.0, description="δ_sim, cosine similarity to fuse (paper: 0.7).")
+    iou_threshold: float = Field(ge=0.0, le=1.0, description="δ_IoU, 3D overlap to fuse (paper: 0.7).")
+
+
+class SmclConfig(_Strict):
+    num_particles: int = Field(ge=1, description="M (paper: 1000).")
+    fov_deg: float = Field(gt=0.0, le=360.0, description="Visibility sector field of view (paper: 90°).")
+    visible_radius_m: float = Field(gt=0.0, description="Visibility sector radius r.")
+    ess_threshold: float = Field(gt=0.0, le=1.0, description="δ_ess, resample when ESS < δ_ess·M (paper: 0.5).")
+    sigma_trans_m: float = Field(ge=0.0, description="σ_trans, motion noise (paper: 0.2 m).")
+    sigma_rot_deg: float = Field(ge=0.0, description="σ_rot, motion noise (paper: 10°).")
+    sigma_d_m: float = Field(gt=0.0, description="σ_d, distance similarity scale (paper: 1.2).")
+    kappa_alpha: float = Field(ge=0.0, description="κ_α, bearing similarity concentration (paper: 5).")
+
+
+class EvaluationConfig(_Strict):
+    num_trajectories: int = Field(ge=1, description="Trajectories per building (paper: 6).")
+    trajectory_length: int = Field(ge=1, description="T, steps per trajectory (paper: 50).")
+    repeats: int = Field(ge=1, description="Runs per trajectory with different seeds (paper: 3).")
+
+
+class Config(_Strict):
+    seed: int = Field(description="Seed of every random generator in a run.")
+    bim: BimConfig
+    embed: EmbedConfig
+    perception: PerceptionConfig
+    smcl: SmclConfig
+    evaluation: EvaluationConfig
+
+    def dump_yaml(self) -> str:
+        """The resolved configuration as YAML, written next to every output."""
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc.__class__.__name__})") from exc
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: top level must be a mapping")
+    return data
+
+
+def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _apply_override(data: dict[str, Any], assignment: str) -> None:
+    """Apply one `dotted.key=value` override; the value is parsed as YAML (numbers, lists, booleans)."""
+    if "=" not in assignment:
+        raise ConfigError(f"override '{assignment}' is not of the form key.path=value")
+    dotted, raw = assignment.split("=", 1)
+    keys = dotted.strip().split(".")
+    node = data
+    for key in keys[:-1]:
+        if not isinstance(node.get(key), dict):
+            raise ConfigError(f"unknown config key '{dotted}'")
+        node = node[key]
+    if keys[-1] not in node:
+        raise ConfigError(f"unknown config key '{dotted}'")
+    try:
+        node[keys[-1]] = yaml.safe_load(raw)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"override '{assignment}': value is not valid YAML") from exc
+
+
+def _first_error(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    where = ".".join(str(p) for p in err["loc"])
+    if err["type"] == "extra_forbidden":
+        return f"unknown config key '{where}'"
+    if err["type"] == "missing":
+        return f"missing config key '{where}'"
+    return f"config key '{where}': {err['msg']}"
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """Load `configs/default.yaml`, then a preset or user file on top, then `key=value` overrides.
+
+    A preset can be named by file path or by its name in `configs/` (e.g. "fast").
+    """
+    data = _read_yaml(DEFAULT_CONFIG)
+    if path is not None:
+        candidate = Path(path)
+        if not candidate.exists() and not candidate.suffix:
+            candidate = CONFIG_DIR / f"{path}.yaml"
+        data = _merge(data, _read_yaml(candidate))
+    for assignment in overrides:
+        _apply_override(data, assignment)
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_first_error(exc)) from None
+
+
+def config_file(name: str) -> Path:
+    """Path of a data table shipped in configs/ (vocabulary, room categories)."""
+    path = CONFIG_DIR / name
+    if not path.is_file():
+        raise ConfigError(f"config table not found: {path}")
+    return path
