@@ -53,7 +53,9 @@ class RoomsConfig(_Strict):
         ge=0.0, description="How far a door's footprint is grown when it is closed for the flood fill."
     )
     door_probe_m: float = Field(gt=0.0, description="How far beyond the wall a door looks for its rooms.")
-    iou_match_threshold: float = Field(gt=0.0, le=1.0, description="IoU at which a flood-fill room matches an IfcSpace.")
+    iou_match_threshold: float = Field(
+        gt=0.0, le=1.0, description="IoU at which a flood-fill room matches an IfcSpace."
+    )
 
 
 class ObjectsConfig(_Strict):
@@ -68,6 +70,9 @@ class ObjectsConfig(_Strict):
 class ClassifyConfig(_Strict):
     room_categories_file: str = Field(description="Room-category pool, relative to configs/.")
     min_objects: int = Field(ge=0, description="Rooms with fewer labelled objects are typed 'unknown'.")
+    ignore_labels: list[str] = Field(
+        description="Object labels left out of a room's sentence because every room has them (door, window)."
+    )
 
 
 class BimConfig(_Strict):

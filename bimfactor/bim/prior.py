@@ -1,0 +1,477 @@
+"""The BimPrior: the building as a Building → Storey → Room → Object graph, with grids and room masks.
+
+`build_prior` runs the offline stage (paper Sec. II.A) on an IFC file; `BimPrior.save` / `BimPrior.load`
+keep it on disk in a versioned folder format (see `PRIOR_FORMAT`):
+
+    prior.json   metadata, storeys, rooms, doors, objects, edges, room-match statistics
+    arrays.npz   grid layers per storey (structure, furniture, clearance_m, room_labels, navigable)
+                 and the object text embeddings (N, D) float32
+    config.yaml  the resolved configuration that built it
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from bimfactor.bim import rooms as room_ops
+from bimfactor.bim.classify import classify_rooms, load_room_category_pool
+from bimfactor.bim.grid import GridSpec, build_storey_grid, grid_spec_for, rasterise_polygons
+from bimfactor.bim.ifc import IfcElement, Storey, load_ifc
+from bimfactor.bim.vocabulary import Vocabulary, label_elements
+from bimfactor.config import Config, config_file
+from bimfactor.embed.text import TextEmbedder, make_text_embedder
+from bimfactor.errors import FormatError, InputError
+from bimfactor.io.atomic import atomic_dir
+from bimfactor.progress import progress
+
+log = logging.getLogger(__name__)
+
+PRIOR_FORMAT = "bimfactor-prior"
+PRIOR_VERSION = 1
+_LAYERS = ("structure", "furniture", "clearance_m", "room_labels", "navigable")
+
+
+@dataclass
+class BimObject:
+    """An object node: a labelled BIM element with its place; `room_id` is OUTSIDE/NO_ROOM when not in a room."""
+
+    id: int
+    guid: str
+    ifc_class: str
+    label: str
+    label_source: str
+    raw_text: str
+    storey_index: int
+    room_id: int
+    position_m: tuple[float, float, float]
+    size_m: tuple[float, float, float]
+
+
+@dataclass
+class Room:
+    """A room node: where it is, where it came from, and its language-encoded type."""
+
+    id: int
+    storey_index: int
+    source: str
+    area_m2: float
+    centroid_xy: tuple[float, float]
+    space_guid: str | None
+    space_name: str
+    category: str
+    category_score: float
+    sentence: str
+    object_ids: list[int]
+
+
+@dataclass
+class Door:
+    """A door and the two rooms it joins (OUTSIDE for the exterior, NO_ROOM when a side is unknown)."""
+
+    id: int
+    guid: str
+    storey_index: int
+    object_id: int
+    center_xy: tuple[float, float]
+    axis_xy: tuple[float, float]
+    width_m: float
+    depth_m: float
+    room_a: int
+    room_b: int
+
+    @property
+    def connects(self) -> bool:
+        """True when the door joins two different known places (two rooms, or a room and outside)."""
+        return self.room_a != self.room_b and room_ops.NO_ROOM not in (self.room_a, self.room_b)
+
+
+@dataclass
+class StoreyLayers:
+    """Per-storey rasters, all (rows, cols) on the prior's shared grid."""
+
+    storey: Storey
+    structure: np.ndarray
+    furniture: np.ndarray
+    clearance_m: np.ndarray
+    room_labels: np.ndarray
+    navigable: np.ndarray
+
+    @property
+    def occupied(self) -> np.ndarray:
+        return self.structure | self.furniture
+
+
+@dataclass
+class RoomMatch:
+    """Agreement of flood-fill rooms with the model's IfcSpace rooms on one storey."""
+
+    storey_index: int
+    spaces_compared: int
+    ious: list[float]
+    threshold: float
+
+    @property
+    def matched_share(self) -> float:
+        return float(np.mean([iou >= self.threshold for iou in self.ious])) if self.ious else float("nan")
+
+
+@dataclass
+class BimPrior:
+    """The offline prior the localizer runs against."""
+
+    source_file: str
+    source_sha256: str
+    schema: str
+    embedding_model: str
+    grid: GridSpec
+    storeys: list[StoreyLayers]
+    rooms: list[Room]
+    doors: list[Door]
+    objects: list[BimObject]
+    object_embeddings: np.ndarray
+    room_edges: list[tuple[int, int, int]]
+    object_edges: list[tuple[int, int]]
+    room_matches: list[RoomMatch] = field(default_factory=list)
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    # -------------------------------------------------------------------------------- queries
+
+    def object_positions(self) -> np.ndarray:
+        """(N, 3) object centres in the world frame."""
+        return np.asarray([o.position_m for o in self.objects], dtype=np.float64).reshape(-1, 3)
+
+    def room_at(self, xy: np.ndarray, storey_index: int = 0) -> np.ndarray:
+        """(N,) room id at each world point of (N, 2) xy (OUTSIDE / NO_ROOM off the rooms)."""
+        rc = self.grid.world_to_cell(xy)
+        out = np.full(len(rc), room_ops.OUTSIDE, np.int32)
+        ok = self.grid.contains(rc)
+        out[ok] = self.storeys[storey_index].room_labels[rc[ok, 0], rc[ok, 1]]
+        return out
+
+    def summary(self) -> dict[str, object]:
+        """Counts for people: storeys, rooms, doors, objects per category."""
+        return {
+            "source": Path(self.source_file).name,
+            "schema": self.schema,
+            "storeys": [
+                {
+                    "name": s.storey.name,
+                    "elevation_m": round(s.storey.elevation_m, 3),
+                    "rooms": sum(r.storey_index == s.storey.index for r in self.rooms),
+                    "doors": sum(d.storey_index == s.storey.index for d in self.doors),
+                    "objects": sum(o.storey_index == s.storey.index for o in self.objects),
+                }
+                for s in self.storeys
+            ],
+            "rooms": len(self.rooms),
+            "doors": len(self.doors),
+            "doors_connecting": sum(d.connects for d in self.doors),
+            "objects": len(self.objects),
+            "objects_per_category": dict(Counter(o.label for o in self.objects).most_common()),
+            "room_types": dict(Counter(r.category for r in self.rooms).most_common()),
+            "ifcspace_match": [
+                {"storey": m.storey_index, "spaces": len(m.ious), "matched_share": m.matched_share}
+                for m in self.room_matches
+                if m.ious
+            ],
+            "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
+        }
+
+    # -------------------------------------------------------------------------------- disk
+
+    def save(self, out_dir: str | Path, config_yaml: str = "") -> None:
+        """Write the prior folder atomically (a half-written prior never appears under `out_dir`)."""
+        meta = {
+            "format": PRIOR_FORMAT,
+            "version": PRIOR_VERSION,
+            "source_file": self.source_file,
+            "source_sha256": self.source_sha256,
+            "schema": self.schema,
+            "embedding_model": self.embedding_model,
+            "grid": self.grid.to_dict(),
+            "storeys": [asdict(s.storey) for s in self.storeys],
+            "rooms": [asdict(r) for r in self.rooms],
+            "doors": [asdict(d) for d in self.doors],
+            "objects": [asdict(o) for o in self.objects],
+            "room_edges": self.room_edges,
+            "object_edges": self.object_edges,
+            "room_matches": [asdict(m) for m in self.room_matches],
+            "timings_s": self.timings_s,
+        }
+        arrays = {"object_embeddings": self.object_embeddings.astype(np.float32)}
+        for layers in self.storeys:
+            for name in _LAYERS:
+                arrays[f"storey{layers.storey.index}_{name}"] = getattr(layers, name)
+        with atomic_dir(out_dir) as tmp:
+            (tmp / "prior.json").write_text(json.dumps(meta, indent=1))
+            np.savez_compressed(tmp / "arrays.npz", **arrays)
+            if config_yaml:
+                (tmp / "config.yaml").write_text(config_yaml)
+            _save_extra_files(self, tmp)
+
+    @classmethod
+    def load(cls, prior_dir: str | Path) -> BimPrior:
+        prior_dir = Path(prior_dir)
+        meta_file, array_file = prior_dir / "prior.json", prior_dir / "arrays.npz"
+        if not meta_file.is_file() or not array_file.is_file():
+            raise FormatError(f"{prior_dir}: not a bimfactor prior (prior.json / arrays.npz missing)")
+        try:
+            meta = json.loads(meta_file.read_text())
+        except json.JSONDecodeError as exc:
+            raise FormatError(f"{meta_file}: corrupt JSON ({exc.msg})") from exc
+        if meta.get("format") != PRIOR_FORMAT or meta.get("version") != PRIOR_VERSION:
+            raise FormatError(
+                f"{prior_dir}: prior format {meta.get('format')} v{meta.get('version')}, "
+                f"this bimfactor reads {PRIOR_FORMAT} v{PRIOR_VERSION}; rebuild it with `bimfactor prior`"
+            )
+        try:
+            with np.load(array_file) as arrays:
+                storeys = [
+                    StoreyLayers(Storey(**s), *(arrays[f"storey{s['index']}_{n}"] for n in _LAYERS))
+                    for s in meta["storeys"]
+                ]
+                embeddings = arrays["object_embeddings"]
+        except (KeyError, ValueError, OSError) as exc:
+            raise FormatError(f"{array_file}: unreadable or incomplete ({exc})") from exc
+        return cls(
+            source_file=meta["source_file"],
+            source_sha256=meta["source_sha256"],
+            schema=meta["schema"],
+            embedding_model=meta["embedding_model"],
+            grid=GridSpec(**meta["grid"]),
+            storeys=storeys,
+            rooms=[Room(**{**r, "centroid_xy": tuple(r["centroid_xy"])}) for r in meta["rooms"]],
+            doors=[
+                Door(**{**d, "center_xy": tuple(d["center_xy"]), "axis_xy": tuple(d["axis_xy"])}) for d in meta["doors"]
+            ],
+            objects=[
+                BimObject(**{**o, "position_m": tuple(o["position_m"]), "size_m": tuple(o["size_m"])})
+                for o in meta["objects"]
+            ],
+            object_embeddings=embeddings,
+            room_edges=[tuple(e) for e in meta["room_edges"]],
+            object_edges=[tuple(e) for e in meta["object_edges"]],
+            room_matches=[RoomMatch(**m) for m in meta["room_matches"]],
+            timings_s=meta.get("timings_s", {}),
+        )
+
+
+def _save_extra_files(prior: BimPrior, folder: Path) -> None:
+    from bimfactor.evaluation.plots import save_floorplans
+
+    save_floorplans(prior, folder)
+
+
+# ------------------------------------------------------------------------------------------------ build
+
+
+def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None = None) -> BimPrior:
+    """Run the offline stage on one IFC file."""
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = now - clock
+        clock = now
+
+    bim = cfg.bim
+    model = load_ifc(ifc_path, bim.ifc)
+    lap("read_ifc")
+    embedder = embedder or make_text_embedder(cfg.embed)
+    vocabulary = Vocabulary.load(config_file(bim.objects.vocabulary_file))
+    object_elements = [e for e in model.of_class(*bim.objects.classes) if e.storey_index is not None]
+    labels = label_elements(object_elements, vocabulary, embedder, bim.objects.embedding_fallback_min_sim)
+    lap("label_objects")
+
+    furniture_classes = [c for c in bim.objects.classes if c not in ("IfcDoor", "IfcWindow")]
+    spec = grid_spec_for(model, bim.grid, bim.grid.obstacle_exclude_classes)
+    storeys, rooms, doors, matches = [], [], [], []
+    door_elements = model.of_class("IfcDoor")
+    spaces = model.of_class("IfcSpace")
+    for storey in progress(model.storeys, desc="storeys", unit="storey"):
+        grid = build_storey_grid(storey, model.elements, spec, bim.grid, furniture_classes)
+        z_lo, z_hi = storey.elevation_m + bim.grid.band_min_m, storey.elevation_m + bim.grid.band_max_m
+        storey_doors = [(d, g) for d in door_elements if (g := room_ops.door_geometry(d, z_lo, z_hi)) is not None]
+        storey_spaces = [s for s in spaces if s.storey_index == storey.index]
+        layers, storey_rooms, storey_doors_out, match = _storey_rooms(
+            grid, spec, storey_doors, storey_spaces, cfg, first_room_id=len(rooms), first_door_id=len(doors)
+        )
+        storeys.append(layers)
+        rooms.extend(storey_rooms)
+        doors.extend(storey_doors_out)
+        if match is not None:
+            matches.append(match)
+    lap("grids_and_rooms")
+
+    objects = _make_objects(object_elements, labels, storeys, spec)
+    door_object = {o.guid: o.id for o in objects}
+    for door in doors:
+        door.object_id = door_object.get(door.guid, -1)
+    for room in rooms:
+        room.object_ids = [o.id for o in objects if o.room_id == room.id]
+    unique_labels = sorted({o.label for o in objects})
+    label_vectors = dict(zip(unique_labels, embedder.encode(unique_labels), strict=True)) if unique_labels else {}
+    dim = next(iter(label_vectors.values())).shape[0] if label_vectors else embedder.dim
+    embeddings = np.asarray([label_vectors[o.label] for o in objects], np.float32).reshape(-1, dim)
+    lap("assign_objects")
+
+    _classify(rooms, objects, cfg, embedder)
+    lap("classify_rooms")
+
+    room_edges = sorted(
+        {
+            (min(d.room_a, d.room_b), max(d.room_a, d.room_b), d.id)
+            for d in doors
+            if d.connects and min(d.room_a, d.room_b) >= 0
+        }
+    )
+    object_edges = _proximity_edges(objects, bim.objects.proximity_edge_m)
+    lap("edges")
+    return BimPrior(
+        source_file=str(ifc_path),
+        source_sha256=model.sha256,
+        schema=model.schema,
+        embedding_model=getattr(embedder, "name", type(embedder).__name__),
+        grid=spec,
+        storeys=storeys,
+        rooms=rooms,
+        doors=doors,
+        objects=objects,
+        object_embeddings=embeddings,
+        room_edges=[tuple(e) for e in room_edges],
+        object_edges=object_edges,
+        room_matches=matches,
+        timings_s=timings,
+    )
+
+
+def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_room_id: int, first_door_id: int):
+    """Rooms, doors and layers of one storey; storeys with neither doors nor spaces (foundations) get no rooms."""
+    rcfg = cfg.bim.rooms
+    storey = grid.storey
+    sealed = room_ops.seal_doors(grid.structure, [g for _, g in storey_doors], spec, rcfg.door_seal_margin_m)
+    flood, outside = room_ops.floodfill_rooms(sealed, spec, rcfg)
+    space_regions = room_ops.space_rooms(storey_spaces, spec, ~grid.structure)
+    match = None
+    if space_regions:
+        ious = room_ops.match_rooms(flood, space_regions, spec.resolution_m)
+        match = RoomMatch(storey.index, len(space_regions), ious, rcfg.iou_match_threshold)
+    use_spaces = rcfg.source == "ifcspace" or (rcfg.source == "auto" and bool(space_regions))
+    regions = space_regions if use_spaces else flood
+    if not storey_doors and not storey_spaces:
+        regions = []
+    ids = list(range(first_room_id, first_room_id + len(regions)))
+    labels = room_ops.label_map(regions, ids, outside)
+    navigable = room_ops.navigable_mask(grid, labels, cfg.bim.grid)
+    layers = StoreyLayers(storey, grid.structure, grid.furniture, grid.clearance_m, labels, navigable)
+    rooms = []
+    for rid, region in zip(ids, regions, strict=True):
+        cells = np.argwhere(labels == rid)
+        if len(cells) == 0:
+            continue
+        centroid = spec.cell_to_world(cells.mean(axis=0, keepdims=True))[0]
+        rooms.append(
+            Room(
+                id=rid,
+                storey_index=storey.index,
+                source=region.source,
+                area_m2=float(len(cells) * spec.resolution_m**2),
+                centroid_xy=(float(centroid[0]), float(centroid[1])),
+                space_guid=region.space_guid,
+                space_name=region.space_name,
+                category="unknown",
+                category_score=0.0,
+                sentence="",
+                object_ids=[],
+            )
+        )
+    doors = []
+    for k, (element, geom) in enumerate(storey_doors):
+        a, b = room_ops.door_sides(geom, labels, spec, rcfg.door_probe_m)
+        doors.append(
+            Door(
+                id=first_door_id + k,
+                guid=element.guid,
+                storey_index=storey.index,
+                object_id=-1,
+                center_xy=(float(geom.center_xy[0]), float(geom.center_xy[1])),
+                axis_xy=(float(geom.axis_xy[0]), float(geom.axis_xy[1])),
+                width_m=geom.width_m,
+                depth_m=geom.depth_m,
+                room_a=a,
+                room_b=b,
+            )
+        )
+    return layers, rooms, doors, match
+
+
+def _make_objects(elements: list[IfcElement], labels, storeys: list[StoreyLayers], spec: GridSpec) -> list[BimObject]:
+    objects = []
+    for el, lab in zip(elements, labels, strict=True):
+        assert el.mesh is not None and el.storey_index is not None
+        lo, hi = el.mesh.bounds
+        reach = 1.0
+        sub, window = spec.window(lo[0] - reach, lo[1] - reach, hi[0] + reach, hi[1] + reach)
+        tris = el.mesh.vertices[el.mesh.faces][:, :, :2]
+        mask = rasterise_polygons(list(tris), sub).astype(bool)
+        room_labels = storeys[el.storey_index].room_labels[window]
+        room_id = room_ops.assign_to_room(mask, room_labels, sub)
+        center = (lo + hi) / 2
+        objects.append(
+            BimObject(
+                id=len(objects),
+                guid=el.guid,
+                ifc_class=el.ifc_class,
+                label=lab.label,
+                label_source=lab.source.value,
+                raw_text=lab.raw_text,
+                storey_index=el.storey_index,
+                room_id=room_id,
+                position_m=(float(center[0]), float(center[1]), float(center[2])),
+                size_m=tuple(float(v) for v in hi - lo),
+            )
+        )
+    return objects
+
+
+def _classify(rooms: list[Room], objects: list[BimObject], cfg: Config, embedder: TextEmbedder) -> None:
+    if not rooms:
+        return
+    ccfg = cfg.bim.classify
+    pool = load_room_category_pool(ccfg, embedder)
+    ignore = set(ccfg.ignore_labels)
+    room_labels = [[objects[i].label for i in room.object_ids if objects[i].label not in ignore] for room in rooms]
+    for room, result in zip(rooms, classify_rooms(room_labels, pool, min_objects=ccfg.min_objects), strict=True):
+        room.category = result.category
+        room.category_score = result.score
+        room.sentence = result.sentence
+
+
+def _proximity_edges(objects: list[BimObject], radius_m: float) -> list[tuple[int, int]]:
+    edges: list[tuple[int, int]] = []
+    for storey in sorted({o.storey_index for o in objects}):
+        ids = [o.id for o in objects if o.storey_index == storey]
+        xy = np.asarray([objects[i].position_m[:2] for i in ids])
+        for a, b in sorted(cKDTree(xy).query_pairs(radius_m)):
+            edges.append((ids[a], ids[b]))
+    return edges
+
+
+def load_or_build(path: str | Path, cfg: Config) -> BimPrior:
+    """A prior folder is loaded; an IFC file is built from."""
+    path = Path(path)
+    if path.is_dir():
+        return BimPrior.load(path)
+    if path.suffix.lower() == ".ifc":
+        return build_prior(path, cfg)
+    raise InputError(f"{path}: neither a prior folder nor an .ifc file")
