@@ -53,6 +53,11 @@ class RoomsConfig(_Strict):
         ge=0.0, description="How far a door's footprint is grown when it is closed for the flood fill."
     )
     door_probe_m: float = Field(gt=0.0, description="How far beyond the wall a door looks for its rooms.")
+    lintel_band_min_m: float = Field(
+        description="Lower edge of the band above door height where a wall with no wall below it marks a doorway."
+    )
+    lintel_band_max_m: float = Field(description="Upper edge of that lintel band, above the storey elevation.")
+    lintel_classes: list[str] = Field(description="IFC classes whose geometry in the lintel band can mark a doorway.")
     iou_match_threshold: float = Field(
         gt=0.0, le=1.0, description="IoU at which a flood-fill room matches an IfcSpace."
     )

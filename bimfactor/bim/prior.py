@@ -74,9 +74,10 @@ class Room:
 
 @dataclass
 class Door:
-    """A door and the two rooms it joins (OUTSIDE for the exterior, NO_ROOM when a side is unknown)."""
+    """A door (or a leafless passage) and the two rooms it joins (OUTSIDE, NO_ROOM when a side is unknown)."""
 
     id: int
+    kind: str  # "door" (an IfcDoor) or "passage" (a doorway without a leaf, found from its lintel)
     guid: str
     storey_index: int
     object_id: int
@@ -166,14 +167,16 @@ class BimPrior:
                     "name": s.storey.name,
                     "elevation_m": round(s.storey.elevation_m, 3),
                     "rooms": sum(r.storey_index == s.storey.index for r in self.rooms),
-                    "doors": sum(d.storey_index == s.storey.index for d in self.doors),
+                    "doors": sum(d.storey_index == s.storey.index and d.kind == "door" for d in self.doors),
+                    "passages": sum(d.storey_index == s.storey.index and d.kind == "passage" for d in self.doors),
                     "objects": sum(o.storey_index == s.storey.index for o in self.objects),
                 }
                 for s in self.storeys
             ],
             "rooms": len(self.rooms),
-            "doors": len(self.doors),
-            "doors_connecting": sum(d.connects for d in self.doors),
+            "doors": sum(d.kind == "door" for d in self.doors),
+            "doors_connecting": sum(d.connects for d in self.doors if d.kind == "door"),
+            "passages": sum(d.kind == "passage" for d in self.doors),
             "objects": len(self.objects),
             "objects_per_category": dict(Counter(o.label for o in self.objects).most_common()),
             "room_types": dict(Counter(r.category for r in self.rooms).most_common()),
@@ -303,6 +306,10 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
         z_lo, z_hi = storey.elevation_m + bim.grid.band_min_m, storey.elevation_m + bim.grid.band_max_m
         storey_doors = [(d, g) for d in door_elements if (g := room_ops.door_geometry(d, z_lo, z_hi)) is not None]
         storey_spaces = [s for s in spaces if s.storey_index == storey.index]
+        passages = room_ops.passage_geometries(
+            model.elements, grid.structure, [g for _, g in storey_doors], spec, storey.elevation_m, bim.rooms
+        )
+        storey_doors = storey_doors + [(None, g) for g in passages]
         layers, storey_rooms, storey_doors_out, match = _storey_rooms(
             grid, spec, storey_doors, storey_spaces, cfg, first_room_id=len(rooms), first_door_id=len(doors)
         )
@@ -368,7 +375,7 @@ def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_ro
         match = RoomMatch(storey.index, len(space_regions), ious, rcfg.iou_match_threshold)
     use_spaces = rcfg.source == "ifcspace" or (rcfg.source == "auto" and bool(space_regions))
     regions = space_regions if use_spaces else flood
-    if not storey_doors and not storey_spaces:
+    if not any(element is not None for element, _ in storey_doors) and not storey_spaces:
         regions = []
     ids = list(range(first_room_id, first_room_id + len(regions)))
     labels = room_ops.label_map(regions, ids, outside)
@@ -396,12 +403,15 @@ def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_ro
             )
         )
     doors = []
-    for k, (element, geom) in enumerate(storey_doors):
+    for element, geom in storey_doors:
         a, b = room_ops.door_sides(geom, labels, spec, rcfg.door_probe_m)
+        if element is None and (a == b or room_ops.NO_ROOM in (a, b)):
+            continue  # a lintel strip that joins nothing is no passage
         doors.append(
             Door(
-                id=first_door_id + k,
-                guid=element.guid,
+                id=first_door_id + len(doors),
+                kind="door" if element is not None else "passage",
+                guid=element.guid if element is not None else "",
                 storey_index=storey.index,
                 object_id=-1,
                 center_xy=(float(geom.center_xy[0]), float(geom.center_xy[1])),

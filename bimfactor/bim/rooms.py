@@ -58,7 +58,11 @@ def door_geometry(door: IfcElement, z_lo: float, z_hi: float) -> DoorGeometry | 
     polys = band_polygons(door.mesh, z_lo, z_hi)
     if not polys:
         return None
-    pts = np.concatenate(polys).astype(np.float32)
+    return _rect_geometry(np.concatenate(polys).astype(np.float32))
+
+
+def _rect_geometry(pts: np.ndarray) -> DoorGeometry:
+    """Minimum-area rectangle around (N, 2) points, its axis along the longer side."""
     (cx, cy), (w, h), angle = cv2.minAreaRect(pts)
     theta = np.deg2rad(angle)
     axis = np.array([np.cos(theta), np.sin(theta)])
@@ -66,6 +70,42 @@ def door_geometry(door: IfcElement, z_lo: float, z_hi: float) -> DoorGeometry | 
         w, h = h, w
         axis = np.array([-axis[1], axis[0]])
     return DoorGeometry(np.array([cx, cy], float), axis, float(w), float(h))
+
+
+def passage_geometries(
+    storey_elements: list[IfcElement],
+    structure: np.ndarray,
+    doors: list[DoorGeometry],
+    spec: GridSpec,
+    elevation_m: float,
+    cfg: RoomsConfig,
+) -> list[DoorGeometry]:
+    """Leafless doorways: wall geometry in the lintel band (above door height) with no structure below it.
+
+    Open-plan models often leave a passage as a wall whose opening runs to the floor; only the lintel
+    above shows it. Each such strip, not already covered by a door, is returned as a door-like rectangle.
+    """
+    z_lo, z_hi = elevation_m + cfg.lintel_band_min_m, elevation_m + cfg.lintel_band_max_m
+    lintel = np.zeros(spec.shape, np.uint8)
+    for el in storey_elements:
+        if el.mesh is not None and any(el.is_a(c) for c in cfg.lintel_classes):
+            lo, hi = el.mesh.bounds[:, 2]
+            if hi >= z_lo and lo <= z_hi:
+                rasterise_polygons(band_polygons(el.mesh, z_lo, z_hi), spec, out=lintel)
+    covered = seal_doors(structure, doors, spec, cfg.door_seal_margin_m)
+    covered = ndimage.binary_dilation(covered, iterations=2)
+    strips, count = ndimage.label(lintel.astype(bool) & ~covered)
+    passages = []
+    for k in range(1, count + 1):
+        cells = np.argwhere(strips == k)
+        if len(cells) * spec.resolution_m**2 < 0.1:
+            continue
+        xy = spec.cell_to_world(cells).astype(np.float32)
+        geom = _rect_geometry(xy)
+        geom = DoorGeometry(geom.center_xy, geom.axis_xy, geom.width_m + spec.resolution_m, geom.depth_m)
+        if geom.width_m >= 0.6:  # narrower strips are wall slivers, not passages a robot takes
+            passages.append(geom)
+    return passages
 
 
 def seal_doors(structure: np.ndarray, doors: list[DoorGeometry], spec: GridSpec, margin_m: float) -> np.ndarray:

@@ -43,7 +43,12 @@ def draw_floorplan(ax: Axes, prior: BimPrior, storey_index: int, label_objects: 
         )
     for door in (d for d in prior.doors if d.storey_index == storey_index):
         c, a = np.asarray(door.center_xy), np.asarray(door.axis_xy) * door.width_m / 2
-        ax.plot(*np.stack([c - a, c + a]).T, color="tab:green" if door.connects else "tab:red", lw=2.5)
+        ax.plot(
+            *np.stack([c - a, c + a]).T,
+            color="tab:green" if door.connects else "tab:red",
+            lw=2.5,
+            ls="-" if door.kind == "door" else ":",
+        )
     objects = [o for o in prior.objects if o.storey_index == storey_index and o.label not in ("door",)]
     if objects:
         xy = np.asarray([o.position_m[:2] for o in objects])
