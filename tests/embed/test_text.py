@@ -1,0 +1,106 @@
+"""Text embedders: the bundled MiniLM (real model, loaded once per session) and CLIP's error paths."""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bimfactor.config import EmbedConfig
+from bimfactor.embed.text import (
+    MINILM_DIM,
+    ClipTextEmbedder,
+    MiniLMTextEmbedder,
+    TextEmbedder,
+    _LoadedModel,
+    make_text_embedder,
+)
+from bimfactor.errors import DependencyError
+
+
+@pytest.fixture(scope="module")
+def minilm() -> MiniLMTextEmbedder:
+    return MiniLMTextEmbedder()
+
+
+def _embed_config(**overrides: str) -> EmbedConfig:
+    values = {"text_model": "minilm", "clip_model": "ViT-L-14", "clip_weights": ""} | overrides
+    return EmbedConfig(**values)
+
+
+def test_minilm_rows_are_unit_float32(minilm: MiniLMTextEmbedder) -> None:
+    vectors = minilm.encode(["toilet, sink, bathtub", "bed", "a kitchen with a stove"])
+    assert vectors.shape == (3, MINILM_DIM)
+    assert vectors.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(vectors, axis=1), 1.0, atol=1e-5)
+    assert minilm.dim == MINILM_DIM
+    assert minilm.name == "all-MiniLM-L6-v2"
+    assert isinstance(minilm, TextEmbedder)
+
+
+def test_minilm_is_deterministic_and_batch_independent(minilm: MiniLMTextEmbedder) -> None:
+    first = minilm.encode(["office chair", "desk"])
+    again = minilm.encode(["office chair", "desk"])
+    np.testing.assert_array_equal(first, again)
+    # A text never seen before, encoded alone and then inside a larger batch, gives the same vector.
+    alone = minilm.encode(["a rowing machine next to a treadmill"])
+    batched = MiniLMTextEmbedder().encode(["bed", "a rowing machine next to a treadmill", "wardrobe"])
+    np.testing.assert_allclose(alone[0], batched[1], atol=1e-6)
+
+
+def test_minilm_loads_once_per_process(minilm: MiniLMTextEmbedder) -> None:
+    assert MiniLMTextEmbedder()._model is minilm._model
+
+
+def test_minilm_empty_input(minilm: MiniLMTextEmbedder) -> None:
+    assert minilm.encode([]).shape == (0, MINILM_DIM)
+
+
+def test_minilm_similarity_is_semantic(minilm: MiniLMTextEmbedder) -> None:
+    toilet, bathroom, kitchen = minilm.encode(["toilet", "bathroom", "kitchen"])
+    assert toilet @ bathroom > toilet @ kitchen + 0.1
+
+
+def test_cache_encodes_each_text_once() -> None:
+    calls: list[list[str]] = []
+
+    def fake_batch(texts: list[str]) -> np.ndarray:
+        calls.append(texts)
+        return np.array([[len(t), 1.0] for t in texts])
+
+    model = _LoadedModel(fake_batch, dim=2)
+    first = model.encode(["ab", "abc", "ab"])
+    second = model.encode(["abc", "abcd"])
+    assert calls == [["ab", "abc"], ["abcd"]]
+    np.testing.assert_allclose(first[0], first[2])
+    np.testing.assert_allclose(first[1], second[0])
+    np.testing.assert_allclose(np.linalg.norm(second, axis=1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(first[0], np.array([2.0, 1.0]) / np.sqrt(5.0), atol=1e-6)
+
+
+def test_factory_minilm(minilm: MiniLMTextEmbedder) -> None:
+    embedder = make_text_embedder(_embed_config())
+    assert isinstance(embedder, MiniLMTextEmbedder)
+    assert embedder.dim == MINILM_DIM
+
+
+def test_clip_missing_weights_names_the_file(tmp_path: Path) -> None:
+    missing = tmp_path / "ViT-L-14.pt"
+    with pytest.raises(DependencyError, match=re.escape(str(missing))):
+        ClipTextEmbedder("ViT-L-14", missing)
+
+
+def test_clip_without_weights_setting() -> None:
+    with pytest.raises(DependencyError, match=re.escape("embed.clip_weights")):
+        make_text_embedder(_embed_config(text_model="clip"))
+
+
+def test_clip_missing_open_clip_gives_install_hint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    weights = tmp_path / "clip.pt"
+    weights.write_bytes(b"not a real checkpoint")
+    monkeypatch.setitem(sys.modules, "open_clip", None)  # makes `import open_clip` fail
+    with pytest.raises(DependencyError, match=r"pip install 'bimfactor\[vlm\]'"):
+        make_text_embedder(_embed_config(text_model="clip", clip_weights=str(weights)))
