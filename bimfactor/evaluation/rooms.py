@@ -1,0 +1,64 @@
+"""Evaluation of the offline prior's rooms: agreement with IfcSpace and room-type accuracy."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from bimfactor.bim.classify import RoomNameTable, load_room_name_table
+from bimfactor.bim.prior import BimPrior
+
+
+@dataclass
+class RoomTypeRow:
+    room_id: int
+    space_name: str
+    expected: str
+    predicted: str
+    sentence: str
+
+    @property
+    def correct(self) -> bool:
+        return self.expected == self.predicted
+
+
+@dataclass
+class RoomTypeAccuracy:
+    """Language-encoded room types against the architects' names, on rooms with enough labelled objects."""
+
+    rows: list[RoomTypeRow] = field(default_factory=list)
+
+    @property
+    def evaluated(self) -> int:
+        return len(self.rows)
+
+    @property
+    def correct(self) -> int:
+        return sum(r.correct for r in self.rows)
+
+    @property
+    def accuracy(self) -> float:
+        return self.correct / self.evaluated if self.rows else float("nan")
+
+
+def room_type_accuracy(
+    prior: BimPrior,
+    ignore_labels: tuple[str, ...] = ("door", "window"),
+    min_objects: int = 2,
+    table: RoomNameTable | None = None,
+) -> RoomTypeAccuracy:
+    """Score rooms that carry an architect's name the evaluation table knows and ≥ `min_objects` labels."""
+    table = table or load_room_name_table()
+    result = RoomTypeAccuracy()
+    for room in prior.rooms:
+        expected = table.category(room.space_name) if room.space_name else None
+        labelled = [i for i in room.object_ids if prior.objects[i].label not in ignore_labels]
+        if expected is None or len(labelled) < min_objects:
+            continue
+        result.rows.append(RoomTypeRow(room.id, room.space_name, expected, room.category, room.sentence))
+    return result
+
+
+def ifcspace_matched_share(prior: BimPrior) -> float:
+    """Share of IfcSpace rooms (> 2 m²) matched by a flood-fill room at the configured IoU, all storeys."""
+    pairs = [(iou, m.threshold) for m in prior.room_matches for iou in m.ious]
+    return sum(iou >= t for iou, t in pairs) / len(pairs) if pairs else float("nan")
