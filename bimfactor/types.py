@@ -1,0 +1,107 @@
+"""Typed values passed between stages: planar poses, camera models, RGB-D frames.
+
+Conventions (see DESIGN.md): metres, radians, seconds. Planar poses are (x, y, yaw) arrays, arrays of
+them (N, 3). A transform is named by its frames: `T_world_base` maps base coordinates into world.
+Camera frame is OpenCV's: x right, y down, z forward.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# ------------------------------------------------------------------------------------------ SE(2) helpers
+
+
+def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
+    """Wrap angles to [-π, π)."""
+    return (np.asarray(angle) + np.pi) % (2 * np.pi) - np.pi
+
+
+def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a ⊕ b for (..., 3) poses: apply b in a's frame."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def se2_inverse(a: np.ndarray) -> np.ndarray:
+    """⊖a for (..., 3) poses."""
+    a = np.asarray(a, float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = -c * a[..., 0] - s * a[..., 1]
+    y = s * a[..., 0] - c * a[..., 1]
+    return np.stack([x, y, wrap_angle(-a[..., 2])], axis=-1)
+
+
+def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The relative pose ⊖a ⊕ b (b expressed in a's frame)."""
+    return se2_compose(se2_inverse(a), b)
+
+
+def se2_to_matrix(pose: np.ndarray, z_m: float = 0.0) -> np.ndarray:
+    """(3,) planar pose → (4, 4) homogeneous transform (rotation about z), lifted to height `z_m`."""
+    x, y, yaw = np.asarray(pose, float)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = [x, y, z_m]
+    return T
+
+
+def matrix_to_se2(T: np.ndarray) -> np.ndarray:
+    """(4, 4) transform → (3,) planar pose (projection onto the xy-plane)."""
+    return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])])
+
+
+# ------------------------------------------------------------------------------------------ camera
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics of an image `width` × `height` pixels."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @classmethod
+    def from_hfov(cls, width: int, height: int, hfov_deg: float) -> CameraIntrinsics:
+        """Square pixels, principal point at the centre, the given horizontal field of view."""
+        fx = (width / 2) / np.tan(np.deg2rad(hfov_deg) / 2)
+        return cls(width, height, fx, fx, (width - 1) / 2, (height - 1) / 2)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    @property
+    def hfov_rad(self) -> float:
+        return float(2 * np.arctan2(self.width / 2, self.fx))
+
+
+@dataclass
+class Frame:
+    """One RGB-D keyframe with what is known about where it was taken.
+
+    `depth_m` is (H, W) float32 with NaN where there is no return; `rgb` is (H, W, 3) uint8.
+    `odom_pose` is T_odom_base as (x, y, yaw); `gt_pose` is T_world_base when ground truth is known.
+    `instance_ids` (H, W) int32 is present only in simulation: the sequence's instance table says which
+    IFC element each id is (-1: nothing).
+    """
+
+    index: int
+    timestamp_s: float
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    odom_pose: np.ndarray
+    gt_pose: np.ndarray | None = None
+    gt_storey: int | None = None
+    instance_ids: np.ndarray | None = None
+    extras: dict[str, float] = field(default_factory=dict)
