@@ -114,6 +114,73 @@ class SmclConfig(_Strict):
     kappa_alpha: float = Field(ge=0.0, description="κ_α, bearing similarity concentration (paper: 5).")
 
 
+class CameraSimConfig(_Strict):
+    width: int = Field(ge=8, description="Image width in pixels.")
+    height: int = Field(ge=8, description="Image height in pixels.")
+    hfov_deg: float = Field(gt=0.0, lt=180.0, description="Horizontal field of view.")
+    min_range_m: float = Field(ge=0.0, description="Depth below this is no return.")
+    max_range_m: float = Field(gt=0.0, description="Depth beyond this is no return.")
+    mount_height_m: float = Field(description="Camera centre above the floor.")
+    mount_forward_m: float = Field(description="Camera centre ahead of the base origin.")
+    mount_pitch_deg: float = Field(description="Camera pitch; positive looks down.")
+
+
+class DepthNoiseConfig(_Strict):
+    sigma0_m: float = Field(ge=0.0, description="Axial depth noise σ(z) = sigma0 + k·(z − z0)², constant term.")
+    k_per_m: float = Field(ge=0.0, description="Quadratic growth k of the axial noise.")
+    z0_m: float = Field(ge=0.0, description="Depth of least noise z0.")
+    grazing_dropout_deg: float = Field(gt=0.0, le=90.0, description="Incidence angle beyond which returns drop.")
+    dropout_prob: float = Field(ge=0.0, le=1.0, description="Random per-pixel dropout probability.")
+
+
+class OdometryNoiseConfig(_Strict):
+    alpha: list[float] = Field(
+        min_length=4, max_length=4, description="α1..α4 of the standard odometry motion model (Thrun et al.)."
+    )
+
+
+class RobotConfig(_Strict):
+    max_speed_mps: float = Field(gt=0.0, description="Linear speed limit (Jackal: 2.0).")
+    max_turn_rate_deg_s: float = Field(gt=0.0, description="Angular speed limit.")
+    control_dt_s: float = Field(gt=0.0, description="Controller / odometry integration step.")
+
+
+class TrajectorySimConfig(_Strict):
+    keyframe_distance_m: float = Field(gt=0.0, description="A step (keyframe) every this much travel ...")
+    keyframe_angle_deg: float = Field(gt=0.0, description="... or this much rotation.")
+    min_start_goal_m: float = Field(ge=0.0, description="Start and goal at least this far apart.")
+    inflation_m: float = Field(ge=0.0, description="Obstacle inflation for path planning.")
+
+
+class AsBuiltConfig(_Strict):
+    moved_fraction: float = Field(ge=0.0, le=1.0, description="Share of BIM objects moved in the simulated world.")
+    moved_max_m: float = Field(ge=0.0, description="Largest displacement of a moved object.")
+    removed_fraction: float = Field(ge=0.0, le=1.0, description="Share of BIM objects missing in the world.")
+    clutter_count: int = Field(ge=0, description="Objects in the world that the BIM does not contain.")
+
+
+class SimConfig(_Strict):
+    camera: CameraSimConfig
+    depth_noise: DepthNoiseConfig
+    rgb_noise_std: float = Field(ge=0.0, description="Gaussian RGB noise, in 8-bit levels.")
+    odometry: OdometryNoiseConfig
+    robot: RobotConfig
+    trajectory: TrajectorySimConfig
+    as_built: AsBuiltConfig
+
+
+class RosbagConfig(_Strict):
+    rgb_topic: str = Field(description="sensor_msgs/Image colour topic.")
+    depth_topic: str = Field(description="sensor_msgs/Image depth topic (16UC1 mm or 32FC1 m).")
+    camera_info_topic: str = Field(description="sensor_msgs/CameraInfo of the depth camera.")
+    odom_topic: str = Field(description="nav_msgs/Odometry topic.")
+    max_sync_dt_s: float = Field(gt=0.0, description="Largest time offset when pairing rgb, depth and odometry.")
+
+
+class IoConfig(_Strict):
+    rosbag: RosbagConfig
+
+
 class EvaluationConfig(_Strict):
     num_trajectories: int = Field(ge=1, description="Trajectories per building (paper: 6).")
     trajectory_length: int = Field(ge=1, description="T, steps per trajectory (paper: 50).")
@@ -126,6 +193,8 @@ class Config(_Strict):
     embed: EmbedConfig
     perception: PerceptionConfig
     smcl: SmclConfig
+    sim: SimConfig
+    io: IoConfig
     evaluation: EvaluationConfig
 
     def dump_yaml(self) -> str:

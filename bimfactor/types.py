@@ -105,3 +105,21 @@ class Frame:
     gt_storey: int | None = None
     instance_ids: np.ndarray | None = None
     extras: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class SequenceMeta:
+    """What a sequence of frames shares: camera model, camera mount, where it came from.
+
+    `T_base_camera` (4, 4) maps camera coordinates into the robot base frame (base: x forward, z up,
+    on the floor). `instances` lists, for simulated sequences, what each instance id is:
+    {"id", "guid", "ifc_class", "object_id" (id in the BimPrior, -1 for structure), "label"}.
+    """
+
+    name: str
+    source: str
+    intrinsics: CameraIntrinsics
+    T_base_camera: np.ndarray
+    prior_sha256: str = ""
+    instances: list[dict] = field(default_factory=list)
+    extras: dict = field(default_factory=dict)
