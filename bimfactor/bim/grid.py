@@ -158,9 +158,23 @@ def rasterise_polygons(polys: Iterable[np.ndarray], spec: GridSpec, out: np.ndar
 
 
 def footprint_mask(element: IfcElement, spec: GridSpec, z_lo: float = -np.inf, z_hi: float = np.inf) -> np.ndarray:
-    """Cells under the element's geometry between z_lo and z_hi, (rows, cols) bool."""
+    """Cells under the element's geometry between z_lo and z_hi, (rows, cols) bool, as a filled footprint.
+
+    A solid cut by the band shows only its edge-on sides; the enclosed inside is filled.
+    """
     assert element.mesh is not None
-    return rasterise_polygons(band_polygons(element.mesh, z_lo, z_hi), spec).astype(bool)
+    return ndimage.binary_fill_holes(rasterise_polygons(band_polygons(element.mesh, z_lo, z_hi), spec))
+
+
+def paint_footprint(
+    element: IfcElement, spec: GridSpec, out: np.ndarray, z_lo: float = -np.inf, z_hi: float = np.inf
+) -> None:
+    """OR the element's filled footprint between z_lo and z_hi into `out` (rows, cols), working in a window."""
+    assert element.mesh is not None
+    lo, hi = element.mesh.bounds
+    pad = 2 * spec.resolution_m  # the outline must not touch the window border, or its inside cannot be filled
+    sub, window = spec.window(lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad)
+    out[window] |= footprint_mask(element, sub, z_lo, z_hi)
 
 
 def build_storey_grid(

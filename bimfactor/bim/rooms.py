@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from bimfactor.bim.grid import GridSpec, StoreyGrid, band_polygons, footprint_mask, rasterise_polygons
+from bimfactor.bim.grid import GridSpec, StoreyGrid, band_polygons, footprint_mask, paint_footprint, rasterise_polygons
 from bimfactor.bim.ifc import IfcElement
 from bimfactor.config import GridConfig, RoomsConfig
 
@@ -86,15 +86,15 @@ def passage_geometries(
     above shows it. Each such strip, not already covered by a door, is returned as a door-like rectangle.
     """
     z_lo, z_hi = elevation_m + cfg.lintel_band_min_m, elevation_m + cfg.lintel_band_max_m
-    lintel = np.zeros(spec.shape, np.uint8)
+    lintel = np.zeros(spec.shape, bool)
     for el in storey_elements:
         if el.mesh is not None and any(el.is_a(c) for c in cfg.lintel_classes):
             lo, hi = el.mesh.bounds[:, 2]
             if hi >= z_lo and lo <= z_hi:
-                rasterise_polygons(band_polygons(el.mesh, z_lo, z_hi), spec, out=lintel)
+                paint_footprint(el, spec, lintel, z_lo, z_hi)
     covered = seal_doors(structure, doors, spec, cfg.door_seal_margin_m)
     covered = ndimage.binary_dilation(covered, iterations=2)
-    strips, count = ndimage.label(lintel.astype(bool) & ~covered)
+    strips, count = ndimage.label(lintel & ~covered)
     passages = []
     for k in range(1, count + 1):
         cells = np.argwhere(strips == k)
