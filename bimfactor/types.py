@@ -123,3 +123,23 @@ class SequenceMeta:
     prior_sha256: str = ""
     instances: list[dict] = field(default_factory=list)
     extras: dict = field(default_factory=dict)
+
+
+@dataclass
+class Observations:
+    """What the robot sees at one step, as the localizer consumes it: K object nodes in view.
+
+    `embeddings` (K, D) float32 unit rows (visual or fused embedding, same space as the BIM text embeddings);
+    `range_m` (K,) and `bearing_rad` (K,) place each node in the robot base frame (bearing counter-clockwise
+    from the robot's forward x axis); `labels` are the open-vocabulary label texts; `node_ids` (K,) the online
+    scene-graph node ids (or detection ids).
+    """
+
+    embeddings: np.ndarray
+    range_m: np.ndarray
+    bearing_rad: np.ndarray
+    labels: list[str] = field(default_factory=list)
+    node_ids: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.range_m)
