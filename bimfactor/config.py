@@ -75,6 +75,9 @@ class ObjectsConfig(_Strict):
 class ClassifyConfig(_Strict):
     room_categories_file: str = Field(description="Room-category pool, relative to configs/.")
     min_objects: int = Field(ge=0, description="Rooms with fewer labelled objects are typed 'unknown'.")
+    hallway_min_doors: int = Field(
+        ge=0, description="A room with no labelled objects but doors to at least this many places is a hallway; 0: off."
+    )
     ignore_labels: list[str] = Field(
         description="Object labels left out of a room's sentence because every room has them (door, window)."
     )
@@ -179,6 +182,9 @@ class RosbagConfig(_Strict):
 
 class IoConfig(_Strict):
     rosbag: RosbagConfig
+    tum_max_sync_dt_s: float = Field(
+        gt=0.0, description="Largest time offset when pairing TUM RGB-D rgb, depth and ground truth."
+    )
 
 
 class EvaluationConfig(_Strict):

@@ -332,7 +332,7 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     embeddings = np.asarray([label_vectors[o.label] for o in objects], np.float32).reshape(-1, dim)
     lap("assign_objects")
 
-    _classify(rooms, objects, cfg, embedder)
+    _classify(rooms, objects, doors, cfg, embedder)
     lap("classify_rooms")
 
     room_edges = sorted(
@@ -454,7 +454,10 @@ def _make_objects(elements: list[IfcElement], labels, storeys: list[StoreyLayers
     return objects
 
 
-def _classify(rooms: list[Room], objects: list[BimObject], cfg: Config, embedder: TextEmbedder) -> None:
+def _classify(
+    rooms: list[Room], objects: list[BimObject], doors: list[Door], cfg: Config, embedder: TextEmbedder
+) -> None:
+    """The paper's language-encoded room types; object-less rooms joining many places are typed by topology."""
     if not rooms:
         return
     ccfg = cfg.bim.classify
@@ -465,6 +468,14 @@ def _classify(rooms: list[Room], objects: list[BimObject], cfg: Config, embedder
         room.category = result.category
         room.category_score = result.score
         room.sentence = result.sentence
+    if ccfg.hallway_min_doors > 0:
+        for room, labels in zip(rooms, room_labels, strict=True):
+            neighbours = {
+                d.room_b if d.room_a == room.id else d.room_a for d in doors if room.id in (d.room_a, d.room_b)
+            }
+            neighbours.discard(room.id)
+            if not labels and len(neighbours) >= ccfg.hallway_min_doors:
+                room.category, room.sentence = "hallway", f"(topology: joins {len(neighbours)} places)"
 
 
 def _proximity_edges(objects: list[BimObject], radius_m: float) -> list[tuple[int, int]]:

@@ -161,3 +161,13 @@ def test_loading_something_else_is_a_format_error(tmp_path) -> None:
     (tmp_path / "arrays.npz").write_bytes(b"")
     with pytest.raises(FormatError, match="v999"):
         BimPrior.load(tmp_path)
+
+
+@pytest.mark.parametrize("name", ["AC11-Institute-Var-2-IFC.ifc", "duplex.ifc"])
+def test_object_less_rooms_joining_many_places_are_hallways(prior_of, name: str) -> None:
+    from bimfactor.bim.classify import load_room_name_table
+
+    table = load_room_name_table()
+    by_topology = [r for r in prior_of(name).rooms if r.sentence.startswith("(topology")]
+    assert len(by_topology) >= 2
+    assert all(r.category == "hallway" and table.category(r.space_name) == "hallway" for r in by_topology)
