@@ -115,6 +115,22 @@ class SmclConfig(_Strict):
     sigma_rot_deg: float = Field(ge=0.0, description="σ_rot, motion noise (paper: 10°).")
     sigma_d_m: float = Field(gt=0.0, description="σ_d, distance similarity scale (paper: 1.2).")
     kappa_alpha: float = Field(ge=0.0, description="κ_α, bearing similarity concentration (paper: 5).")
+    visibility_cell_m: float = Field(gt=0.0, description="Lattice of the precomputed visible-object table.")
+    semantic_threshold: float = Field(
+        ge=-1.0, le=1.0, description="Pairs with cos(f_j, C_k) below this score 0 (depends on the embedding space)."
+    )
+    temperature: float = Field(gt=0.0, description="T in P(z|x) = exp(score / T); the paper gives no value.")
+    off_map_weight: float = Field(
+        ge=0.0, le=1.0, description="Weight factor for a particle outside navigable space after a prediction."
+    )
+    augmented: bool = Field(description="Augmented MCL random-particle injection; false is the paper's filter.")
+    alpha_slow: float = Field(gt=0.0, le=1.0, description="Augmented MCL long-term likelihood average rate.")
+    alpha_fast: float = Field(gt=0.0, le=1.0, description="Augmented MCL short-term likelihood average rate.")
+    converged_pos_std_m: float = Field(gt=0.0, description="Converged when the position std is below this ...")
+    converged_yaw_std_deg: float = Field(gt=0.0, description="... and the yaw std below this ...")
+    converged_storey_share: float = Field(
+        gt=0.0, le=1.0, description="... and the estimated storey holds at least this share of the weight."
+    )
 
 
 class CameraSimConfig(_Strict):

@@ -1,0 +1,83 @@
+"""A contact sheet of a sequence: one row per frame, RGB | depth | instances, to check data at a glance."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from bimfactor.io.atomic import atomic_path
+from bimfactor.io.sequence import Sequence
+from bimfactor.types import Frame
+
+log = logging.getLogger(__name__)
+
+PANEL_WIDTH_IN = 3.2
+DPI = 100
+
+
+def preview_indices(n_frames: int, max_frames: int) -> np.ndarray:
+    """Row positions of at most `max_frames` frames spread evenly over the sequence, first and last included."""
+    if n_frames <= 0 or max_frames <= 0:
+        return np.zeros(0, dtype=int)
+    return np.unique(np.linspace(0, n_frames - 1, min(n_frames, max_frames)).round().astype(int))
+
+
+def instance_colours(ids: np.ndarray, seed: int = 0) -> np.ndarray:
+    """(H, W) instance ids → (H, W, 3) uint8 with one fixed random colour per id and black for -1."""
+    ids = np.asarray(ids)
+    top = max(int(ids.max(initial=-1)), 0)
+    palette = np.random.default_rng(seed).integers(40, 256, size=(top + 2, 3), dtype=np.uint8)
+    palette[0] = 0  # id -1: nothing
+    return palette[np.clip(ids, -1, top) + 1]
+
+
+def write_preview(sequence: Sequence, path_png: str | Path, max_frames: int = 12) -> Path:
+    """Write a PNG contact sheet of up to `max_frames` evenly spaced frames; returns the path. Atomic.
+
+    Depth is colour-mapped over one range for all rows (no return in black); the instance column appears when
+    any shown frame has instance ids.
+    """
+    path_png = Path(path_png)
+    rows = [sequence[int(i)] for i in preview_indices(len(sequence), max_frames)]
+    if not rows:
+        raise ValueError("cannot preview an empty sequence")
+    with_instances = any(f.instance_ids is not None for f in rows)
+    columns = 3 if with_instances else 2
+    finite = np.concatenate([f.depth_m[np.isfinite(f.depth_m)].ravel() for f in rows])
+    depth_max = float(np.percentile(finite, 99)) if finite.size else 1.0
+
+    K = sequence.meta.intrinsics
+    panel_h = PANEL_WIDTH_IN * K.height / K.width + 0.3  # room for the title
+    fig = Figure(figsize=(PANEL_WIDTH_IN * columns, panel_h * len(rows)), dpi=DPI)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(len(rows), columns, squeeze=False)
+    for row, frame in zip(axes, rows, strict=True):
+        _draw_row(row, frame, depth_max, with_instances)
+    fig.suptitle(f"{sequence.meta.name} ({sequence.meta.source}, {len(sequence)} frames)", fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path_png) as tmp:
+        fig.savefig(tmp, format="png", dpi=DPI)
+    log.info("wrote preview %s (%d frames)", path_png, len(rows))
+    return path_png
+
+
+def _draw_row(axes: np.ndarray, frame: Frame, depth_max: float, with_instances: bool) -> None:
+    stamp = f"#{frame.index}  t={frame.timestamp_s:.3f} s"
+    axes[0].imshow(frame.rgb)
+    axes[0].set_title(f"{stamp}  rgb", fontsize=7)
+    cmap = matplotlib.colormaps["turbo"].with_extremes(bad="black")
+    axes[1].imshow(
+        np.ma.masked_invalid(frame.depth_m), cmap=cmap, vmin=0.0, vmax=max(depth_max, 1e-3), interpolation="nearest"
+    )
+    axes[1].set_title(f"depth 0–{depth_max:.1f} m", fontsize=7)
+    if with_instances:
+        if frame.instance_ids is not None:
+            axes[2].imshow(instance_colours(frame.instance_ids), interpolation="nearest")
+        axes[2].set_title("instances", fontsize=7)
+    for ax in axes:
+        ax.set_axis_off()

@@ -1,0 +1,754 @@
+"""The bimfactor sequence format: RGB-D frames with odometry and ground truth, one folder per sequence.
+
+`write_sequence` writes it (atomically: the folder appears under its name only when complete),
+`read_sequence` opens it as a `Sequence` whose images load on access; `Sequence.from_frames` wraps frames
+already in memory (e.g. the simulator's) in the same interface. The TUM RGB-D and ROS 2 bag readers
+(`bimfactor.io.tum`, `bimfactor.io.rosbag`) return the same `Sequence` interface.
+
+On-disk format, version 1
+-------------------------
+
+A folder holding::
+
+    sequence.json        metadata (below)
+    frames.csv           one row per frame (below)
+    rgb/000000.png       8-bit 3-channel colour image per frame (PNG stores RGB; OpenCV's BGR is converted)
+    depth/000000.png     16-bit 1-channel depth per frame, in millimetres; 0 = no return
+    instances/000000.png 16-bit 1-channel instance id + 1 per frame; 0 = nothing (simulated sequences only)
+    odometry.txt         T_odom_base per frame in TUM trajectory format (only when odometry is known)
+    groundtruth.txt      T_world_base of the frames with ground truth, TUM format (only when any is known)
+
+Image files are named by the frame's row position (zero-padded to six digits), but readers must take the
+names from frames.csv: they are paths relative to the folder ("/" separated; absolute paths and ".." are
+rejected). Every image has the size given by the intrinsics.
+
+`sequence.json` is a UTF-8 JSON object::
+
+    format          "bimfactor-sequence"
+    version         1
+    name, source    strings ("sim", "tum", "rosbag", ...)
+    intrinsics      {"width", "height", "fx", "fy", "cx", "cy"}: pinhole model in pixels
+    T_base_camera   4×4 nested list: camera (OpenCV: x right, y down, z forward) into base (x forward, z up)
+    depth_unit      "millimetre" (the only value of version 1)
+    prior_sha256    SHA-256 of the BimPrior the sequence was simulated over; "" when none
+    instances       list of {"id", "guid", "ifc_class", "object_id", "label"} (simulation; [] otherwise)
+    extras          free-form JSON object (numpy arrays / scalars are stored as lists / numbers)
+    frame_count     number of rows in frames.csv
+
+`frames.csv` is comma-separated (RFC 4180 quoting) with this header line and one row per frame::
+
+    index,timestamp_s,rgb,depth,instances,odom_x,odom_y,odom_yaw,gt_x,gt_y,gt_yaw,gt_storey[,extra.<key>...]
+
+- `index`: the frame's integer index (as in the source stream; not necessarily the row number).
+- `timestamp_s`: seconds, strictly increasing from row to row.
+- `rgb`, `depth`: image paths (required); `instances`: image path or empty.
+- `odom_x, odom_y, odom_yaw`: T_odom_base in metres / radians. Either every row has them or every row
+  leaves all three empty (no odometry: `Sequence.odometry()` is None, `Frame.odom_pose` is NaN).
+- `gt_x, gt_y, gt_yaw`: T_world_base, all three given or all three empty, per row (ground truth may have
+  gaps). `gt_storey`: integer storey index or empty.
+- `extra.<key>`: optional further columns, one per key of `Frame.extras`; empty = key absent in that frame.
+- Numbers are written with Python's `repr` (the shortest text that reads back to the same float64), so a
+  round trip is exact.
+
+Depth quantisation (writer): depth_mm = round(depth_m · 1000) (round half to even); NaN → 0 (no return);
+depths that round above 65535 mm (and +inf) → 0 with one logged warning per sequence; a negative depth is
+an error. Reader: depth_m = float32(depth_mm) / float32(1000), with 0 → NaN (`quantize_depth_m` does both).
+Instance ids are int32 in memory with -1 = nothing; on disk id + 1 in 0..65535.
+
+Error contract
+--------------
+
+Every problem with the input is one `InputError` (or its subclass `FormatError`) whose one-line message
+names the file, and the row or frame where there is one; never a raw numpy / OpenCV traceback:
+
+- the folder missing → InputError; `sequence.json` missing, JSON corrupt, another format name, a newer
+  version, a key missing → FormatError;
+- `frames.csv` missing, a wrong header, a row with the wrong column count, a cell that is not a number,
+  odometry on some rows only, out-of-order or duplicate timestamps (naming the first bad row), a row count
+  that differs from `frame_count` → FormatError;
+- a frame file named in frames.csv that does not exist → FormatError when the sequence is opened; a
+  truncated or corrupt PNG, or one of the wrong size / channels / bit depth → FormatError when that frame
+  is loaded.
+- writer: NaN depth → no return (0); negative depth, images of the wrong shape or type, non-finite or
+  partly-NaN poses, out-of-order or duplicate timestamps, instance ids outside -1..65534, metadata that is
+  not JSON, an existing target folder without `overwrite=True`, no frames at all → InputError.
+
+`read_sequence(path, on_bad_frame="skip")` instead drops, with a logged warning each, every frame whose
+files are missing or fail a structural PNG check (PNG signature and closing IEND chunk present) when the
+sequence is opened; a file that passes that check but still does not decode raises FormatError on load.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path, PurePosixPath
+from typing import Any, Literal, NamedTuple
+
+import cv2
+import numpy as np
+
+from bimfactor.errors import FormatError, InputError
+from bimfactor.io.atomic import atomic_dir
+from bimfactor.io.tum import format_tum_trajectory
+from bimfactor.progress import progress
+from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
+
+log = logging.getLogger(__name__)
+
+SEQUENCE_FORMAT = "bimfactor-sequence"
+SEQUENCE_VERSION = 1
+DEPTH_UNIT = "millimetre"
+DEPTH_SCALE_PER_M = 1000
+MAX_DEPTH_MM = 65535
+MAX_INSTANCE_ID = 65534  # stored as id + 1 in a uint16
+FRAME_COLUMNS = (
+    "index",
+    "timestamp_s",
+    "rgb",
+    "depth",
+    "instances",
+    "odom_x",
+    "odom_y",
+    "odom_yaw",
+    "gt_x",
+    "gt_y",
+    "gt_yaw",
+    "gt_storey",
+)
+EXTRA_PREFIX = "extra."
+META_FILE = "sequence.json"
+FRAMES_FILE = "frames.csv"
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk type and its CRC close every complete PNG
+
+
+class FrameImages(NamedTuple):
+    """The images of one frame: (H, W, 3) uint8 RGB, (H, W) float32 depth (NaN = no return), (H, W) int32 ids."""
+
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    instance_ids: np.ndarray | None
+
+
+# ------------------------------------------------------------------------------------------ the interface
+
+
+class Sequence:
+    """Frames of one recording: the per-frame table held in memory, the images loaded on access.
+
+    `load_images(i)` returns the images of row `i`. `odom_poses` (N, 3) T_odom_base or None when the source has
+    no odometry (then `Frame.odom_pose` is NaN); `gt_poses` (N, 3) T_world_base with NaN rows where ground
+    truth is unknown, or None when none is known.
+    """
+
+    def __init__(
+        self,
+        meta: SequenceMeta,
+        timestamps_s: np.ndarray,
+        load_images: Callable[[int], FrameImages],
+        *,
+        indices: np.ndarray | None = None,
+        odom_poses: np.ndarray | None = None,
+        gt_poses: np.ndarray | None = None,
+        gt_storeys: list[int | None] | None = None,
+        frame_extras: list[dict[str, float]] | None = None,
+    ) -> None:
+        n = len(timestamps_s)
+        self.meta = meta
+        self._timestamps = np.asarray(timestamps_s, dtype=np.float64).reshape(n)
+        self._load_images = load_images
+        self._indices = np.arange(n) if indices is None else np.asarray(indices, dtype=np.int64).reshape(n)
+        self._odom = None if odom_poses is None else np.asarray(odom_poses, dtype=np.float64).reshape(n, 3)
+        self._gt = None if gt_poses is None else np.asarray(gt_poses, dtype=np.float64).reshape(n, 3)
+        if self._gt is not None and np.isnan(self._gt).all():
+            self._gt = None
+        self._gt_storeys = [None] * n if gt_storeys is None else list(gt_storeys)
+        self._extras = [{} for _ in range(n)] if frame_extras is None else [dict(e) for e in frame_extras]
+        if len(self._gt_storeys) != n or len(self._extras) != n:
+            raise ValueError("per-frame lists must have one entry per timestamp")
+
+    @classmethod
+    def from_frames(cls, meta: SequenceMeta, frames: Iterable[Frame]) -> Sequence:
+        """An in-memory sequence over already loaded frames (e.g. straight from the simulator)."""
+        frames = list(frames)
+        odom = np.array([np.asarray(f.odom_pose, dtype=np.float64) for f in frames]).reshape(len(frames), 3)
+        gt = np.array([np.full(3, np.nan) if f.gt_pose is None else f.gt_pose for f in frames], dtype=np.float64)
+        return cls(
+            meta,
+            np.array([f.timestamp_s for f in frames], dtype=np.float64),
+            lambda i: FrameImages(frames[i].rgb, frames[i].depth_m, frames[i].instance_ids),
+            indices=np.array([f.index for f in frames], dtype=np.int64),
+            odom_poses=None if np.isnan(odom).all() else odom,
+            gt_poses=gt.reshape(len(frames), 3),
+            gt_storeys=[f.gt_storey for f in frames],
+            frame_extras=[f.extras for f in frames],
+        )
+
+    def __len__(self) -> int:
+        return len(self._timestamps)
+
+    def __getitem__(self, i: int) -> Frame:
+        i = self._position(i)
+        return self._frame(i, self._load_images(i))
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.meta.name!r}, source={self.meta.source!r}, frames={len(self)})"
+
+    def timestamps(self) -> np.ndarray:
+        """(N,) frame times in seconds, strictly increasing."""
+        return self._timestamps.copy()
+
+    def odometry(self) -> np.ndarray | None:
+        """(N, 3) T_odom_base as x, y, yaw; None when the source has no odometry."""
+        return None if self._odom is None else self._odom.copy()
+
+    def ground_truth(self) -> np.ndarray | None:
+        """(N, 3) T_world_base as x, y, yaw with NaN rows where unknown; None when no frame has ground truth."""
+        return None if self._gt is None else self._gt.copy()
+
+    def ground_truth_storeys(self) -> list[int | None]:
+        """Storey index of each frame's ground truth, None where unknown."""
+        return list(self._gt_storeys)
+
+    def _position(self, i: int) -> int:
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"frame {i} out of range for a sequence of {n} frames")
+        return i % n
+
+    def _frame(self, i: int, images: FrameImages) -> Frame:
+        gt = None if self._gt is None or np.isnan(self._gt[i]).any() else self._gt[i].copy()
+        return Frame(
+            index=int(self._indices[i]),
+            timestamp_s=float(self._timestamps[i]),
+            rgb=images.rgb,
+            depth_m=images.depth_m,
+            odom_pose=np.full(3, np.nan) if self._odom is None else self._odom[i].copy(),
+            gt_pose=gt,
+            gt_storey=self._gt_storeys[i],
+            instance_ids=images.instance_ids,
+            extras=dict(self._extras[i]),
+        )
+
+
+# ------------------------------------------------------------------------------------------ helpers
+
+
+def quantize_depth_m(depth_m: np.ndarray) -> np.ndarray:
+    """Depth as it reads back after a write: millimetre steps, float32, NaN for no return (0 or > 65.535 m)."""
+    return depth_from_mm(_depth_to_mm(np.asarray(depth_m))[0])
+
+
+def depth_from_mm(depth_mm: np.ndarray, scale_per_m: int = DEPTH_SCALE_PER_M) -> np.ndarray:
+    """uint16 depth in 1/scale_per_m metres → float32 metres with 0 → NaN."""
+    depth_m = depth_mm.astype(np.float32) / np.float32(scale_per_m)
+    depth_m[depth_mm == 0] = np.nan
+    return depth_m
+
+
+def _depth_to_mm(depth_m: np.ndarray) -> tuple[np.ndarray, int]:
+    """float depth → uint16 millimetres and the count of pixels clamped to no return. Negative → ValueError."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    if (depth < 0).any():  # NaN compares False
+        raise ValueError(f"negative depth ({np.nanmin(depth)!r} m)")
+    with np.errstate(invalid="ignore", over="ignore"):
+        mm = np.rint(depth * DEPTH_SCALE_PER_M)
+    too_far = mm > MAX_DEPTH_MM
+    mm[np.isnan(mm) | too_far] = 0
+    return mm.astype(np.uint16), int(too_far.sum())
+
+
+def associate_nearest(
+    t_query: np.ndarray, t_ref: np.ndarray, max_dt_s: float, one_to_one: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pair two sorted time series by nearest timestamp within `max_dt_s`.
+
+    Returns (iq, ir): indices into `t_query` and `t_ref`, sorted by iq. With `one_to_one` each reference is
+    used at most once, the closest pairs first (as the TUM benchmark's associate.py does); without it every
+    query takes its nearest reference.
+    """
+    t_query, t_ref = np.asarray(t_query, float), np.asarray(t_ref, float)
+    if len(t_query) == 0 or len(t_ref) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    if not one_to_one:
+        right = np.clip(np.searchsorted(t_ref, t_query), 0, len(t_ref) - 1)
+        left = np.clip(right - 1, 0, len(t_ref) - 1)
+        nearest = np.where(np.abs(t_ref[left] - t_query) <= np.abs(t_ref[right] - t_query), left, right)
+        keep = np.abs(t_ref[nearest] - t_query) <= max_dt_s
+        return np.flatnonzero(keep), nearest[keep]
+    # every candidate pair within max_dt, then greedily the closest pairs first
+    lo = np.searchsorted(t_ref, t_query - max_dt_s, side="left")
+    hi = np.searchsorted(t_ref, t_query + max_dt_s, side="right")
+    pairs_q = np.repeat(np.arange(len(t_query)), hi - lo)
+    pairs_r = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi, strict=True)]).astype(int)
+    dt = np.abs(t_query[pairs_q] - t_ref[pairs_r])
+    matched: dict[int, int] = {}
+    used_r: set[int] = set()
+    for k in np.argsort(dt, kind="stable"):
+        q, r = int(pairs_q[k]), int(pairs_r[k])
+        if q not in matched and r not in used_r:
+            matched[q] = r
+            used_r.add(r)
+    iq = np.array(sorted(matched), dtype=int)
+    return iq, np.array([matched[q] for q in iq], dtype=int)
+
+
+def level_camera_mount(height_m: float = 0.0) -> np.ndarray:
+    """(4, 4) T_base_camera of a camera looking straight ahead: camera z → base x, x → −y, y → −z."""
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
+    T[2, 3] = height_m
+    return T
+
+
+def decode_png(path: Path, *, channels: int, dtype: type, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read a PNG with `channels` channels of `dtype`; colour comes back as RGB. (W, H) `size` is checked.
+
+    Any failure is a one-line FormatError naming the file.
+    """
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if not data.startswith(_PNG_SIGNATURE):
+        raise FormatError(f"{path}: not a PNG file")
+    if not data.endswith(_PNG_END):
+        raise FormatError(f"{path}: truncated PNG (no closing IEND chunk)")
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise FormatError(f"{path}: corrupt PNG (cannot be decoded)")
+    got_channels = 1 if image.ndim == 2 else image.shape[2]
+    if got_channels != channels or image.dtype != dtype:
+        raise FormatError(
+            f"{path}: {got_channels}-channel {image.dtype} image, expected {channels}-channel {np.dtype(dtype)}"
+        )
+    if size is not None and (image.shape[1], image.shape[0]) != size:
+        raise FormatError(f"{path}: image is {image.shape[1]}x{image.shape[0]}, expected {size[0]}x{size[1]}")
+    if channels == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    return image
+
+
+def png_looks_complete(path: Path) -> bool:
+    """Cheap structural check: the file exists, starts with the PNG signature and ends with the IEND chunk."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(len(_PNG_SIGNATURE))
+            f.seek(0, io.SEEK_END)
+            if f.tell() < len(_PNG_SIGNATURE) + len(_PNG_END):
+                return False
+            f.seek(-len(_PNG_END), io.SEEK_END)
+            tail = f.read()
+    except OSError:
+        return False
+    return head == _PNG_SIGNATURE and tail == _PNG_END
+
+
+def _num(value: float) -> str:
+    """Shortest text that reads back to the same float64."""
+    return repr(float(value))
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+# ------------------------------------------------------------------------------------------ writer
+
+
+def write_sequence(path: str | Path, meta: SequenceMeta, frames: Iterable[Frame], *, overwrite: bool = False) -> None:
+    """Write `frames` as a sequence folder at `path` (format above); the folder appears only when complete.
+
+    Frames are consumed one at a time (a generator is fine); their images are written as they come.
+    Raises InputError for frames that cannot be written exactly (see the module's error contract).
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise InputError(f"{path} exists already (pass overwrite=True to replace it)")
+    header = _meta_json(meta)  # fails early on metadata that JSON cannot hold
+    K = meta.intrinsics
+    size = (K.width, K.height)
+    total = len(frames) if hasattr(frames, "__len__") else None
+    rows: list[dict[str, str]] = []
+    extra_keys: list[str] = []
+    odom_rows: list[np.ndarray] = []
+    gt_times: list[float] = []
+    gt_rows: list[np.ndarray] = []
+    has_odometry: bool | None = None
+    clamped_pixels = clamped_frames = 0
+    with atomic_dir(path) as tmp:
+        for sub in ("rgb", "depth"):
+            (tmp / sub).mkdir()
+        for k, frame in enumerate(progress(frames, desc=f"write {path.name}", total=total, unit="frame")):
+            where = f"frame {k} (index {frame.index})"
+            t = float(frame.timestamp_s)
+            if not math.isfinite(t):
+                raise InputError(f"{where}: timestamp {t!r} is not finite")
+            if rows and t <= float(rows[-1]["timestamp_s"]):
+                raise InputError(f"{where}: timestamp {t!r} is not after the previous one ({rows[-1]['timestamp_s']})")
+            odom = _pose_or_none(frame.odom_pose, f"{where}: odom_pose")
+            if has_odometry is None:
+                has_odometry = odom is not None
+            elif has_odometry != (odom is not None):
+                raise InputError(f"{where}: odometry must be known for every frame or for none")
+            gt = _pose_or_none(frame.gt_pose, f"{where}: gt_pose")
+
+            name = f"{k:06d}.png"
+            row = {c: "" for c in FRAME_COLUMNS}
+            row.update(index=str(int(frame.index)), timestamp_s=_num(t), rgb=f"rgb/{name}", depth=f"depth/{name}")
+            _write_png(tmp / "rgb" / name, _rgb_to_disk(frame.rgb, size, where), where)
+            try:
+                depth_mm, clamped = _depth_to_mm(_depth_image(frame.depth_m, size, where))
+            except ValueError as exc:
+                raise InputError(f"{where}: {exc}") from None
+            if clamped:
+                clamped_pixels += clamped
+                clamped_frames += 1
+            _write_png(tmp / "depth" / name, depth_mm, where)
+            if frame.instance_ids is not None:
+                (tmp / "instances").mkdir(exist_ok=True)
+                _write_png(tmp / "instances" / name, _instances_to_disk(frame.instance_ids, size, where), where)
+                row["instances"] = f"instances/{name}"
+            if odom is not None:
+                row.update(odom_x=_num(odom[0]), odom_y=_num(odom[1]), odom_yaw=_num(odom[2]))
+                odom_rows.append(odom)
+            if gt is not None:
+                row.update(gt_x=_num(gt[0]), gt_y=_num(gt[1]), gt_yaw=_num(gt[2]))
+                gt_times.append(t)
+                gt_rows.append(gt)
+            if frame.gt_storey is not None:
+                row["gt_storey"] = str(int(frame.gt_storey))
+            for key, value in frame.extras.items():
+                column = EXTRA_PREFIX + str(key)
+                if column not in extra_keys:
+                    extra_keys.append(column)
+                row[column] = _num(value)
+            rows.append(row)
+        if not rows:
+            raise InputError(f"{path}: no frames to write")
+
+        with (tmp / FRAMES_FILE).open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=[*FRAME_COLUMNS, *extra_keys], restval="", lineterminator="\n")
+            writer.writeheader()
+            writer.writerows(rows)
+        timestamps = np.array([float(r["timestamp_s"]) for r in rows])
+        if has_odometry:
+            (tmp / "odometry.txt").write_text(format_tum_trajectory(timestamps, np.array(odom_rows), "T_odom_base"))
+        if gt_rows:
+            (tmp / "groundtruth.txt").write_text(
+                format_tum_trajectory(np.array(gt_times), np.array(gt_rows), "T_world_base")
+            )
+        header["frame_count"] = len(rows)
+        (tmp / META_FILE).write_text(json.dumps(header, indent=2, default=_json_default) + "\n")
+    if clamped_pixels:
+        log.warning(
+            "%s: %d depth pixels in %d frames beyond %.3f m written as no return",
+            path,
+            clamped_pixels,
+            clamped_frames,
+            MAX_DEPTH_MM / DEPTH_SCALE_PER_M,
+        )
+    log.info("wrote sequence %s: %d frames", path, len(rows))
+
+
+def _meta_json(meta: SequenceMeta) -> dict[str, Any]:
+    K = meta.intrinsics
+    if K.width < 1 or K.height < 1:
+        raise InputError(f"intrinsics: image size {K.width}x{K.height} is not positive")
+    T = np.asarray(meta.T_base_camera, dtype=float)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError(f"T_base_camera must be a finite 4x4 matrix, got shape {T.shape}")
+    header = {
+        "format": SEQUENCE_FORMAT,
+        "version": SEQUENCE_VERSION,
+        "name": str(meta.name),
+        "source": str(meta.source),
+        "intrinsics": {
+            "width": int(K.width),
+            "height": int(K.height),
+            "fx": float(K.fx),
+            "fy": float(K.fy),
+            "cx": float(K.cx),
+            "cy": float(K.cy),
+        },
+        "T_base_camera": T.tolist(),
+        "depth_unit": DEPTH_UNIT,
+        "prior_sha256": str(meta.prior_sha256),
+        "instances": meta.instances,
+        "extras": meta.extras,
+        "frame_count": 0,
+    }
+    try:
+        json.dumps(header, default=_json_default, allow_nan=True)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"sequence metadata is not JSON serialisable: {exc}") from None
+    return header
+
+
+def _pose_or_none(pose: np.ndarray | None, what: str) -> np.ndarray | None:
+    """A finite (3,) pose, or None for an unknown one (None or all NaN)."""
+    if pose is None:
+        return None
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (3,):
+        raise InputError(f"{what} has shape {pose.shape}, expected (3,)")
+    if np.isnan(pose).all():
+        return None
+    if not np.isfinite(pose).all():
+        raise InputError(f"{what} {pose.tolist()} is partly unknown or infinite")
+    return pose
+
+
+def _checked_image(image: np.ndarray, size: tuple[int, int], where: str, what: str, kind: type) -> np.ndarray:
+    image = np.asarray(image)
+    if image.shape[:2] != (size[1], size[0]) or image.ndim not in (2, 3):
+        raise InputError(f"{where}: {what} has shape {image.shape}, the intrinsics say {size[0]}x{size[1]}")
+    if not np.issubdtype(image.dtype, kind):
+        raise InputError(f"{where}: {what} has dtype {image.dtype}, expected {np.dtype(kind).name}")
+    return image
+
+
+def _rgb_to_disk(rgb: np.ndarray, size: tuple[int, int], where: str) -> np.ndarray:
+    rgb = _checked_image(rgb, size, where, "rgb", np.uint8)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise InputError(f"{where}: rgb has shape {rgb.shape}, expected (H, W, 3)")
+    return cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR)
+
+
+def _depth_image(depth_m: np.ndarray, size: tuple[int, int], where: str) -> np.ndarray:
+    depth_m = _checked_image(depth_m, size, where, "depth_m", np.floating)
+    if depth_m.ndim != 2:
+        raise InputError(f"{where}: depth_m has shape {depth_m.shape}, expected (H, W)")
+    return depth_m
+
+
+def _instances_to_disk(ids: np.ndarray, size: tuple[int, int], where: str) -> np.ndarray:
+    ids = _checked_image(ids, size, where, "instance_ids", np.integer)
+    if ids.ndim != 2:
+        raise InputError(f"{where}: instance_ids has shape {ids.shape}, expected (H, W)")
+    if ids.size and (ids.min() < -1 or ids.max() > MAX_INSTANCE_ID):
+        raise InputError(f"{where}: instance ids must lie in -1..{MAX_INSTANCE_ID}, got {ids.min()}..{ids.max()}")
+    return (ids.astype(np.int64) + 1).astype(np.uint16)
+
+
+def _write_png(path: Path, image: np.ndarray, where: str) -> None:
+    if not cv2.imwrite(str(path), image):
+        raise InputError(f"{where}: could not write {path}")
+
+
+# ------------------------------------------------------------------------------------------ reader
+
+
+def read_sequence(path: str | Path, *, on_bad_frame: Literal["raise", "skip"] = "raise") -> Sequence:
+    """Open a sequence folder; the table is read now, the images when a frame is accessed.
+
+    `on_bad_frame="skip"` drops frames with missing or truncated files (logged) instead of raising.
+    """
+    if on_bad_frame not in ("raise", "skip"):
+        raise ValueError(f"on_bad_frame must be 'raise' or 'skip', not {on_bad_frame!r}")
+    folder = Path(path)
+    if not folder.is_dir():
+        raise InputError(f"no such sequence folder: {folder}")
+    meta, frame_count = _read_meta(folder)
+    table = _read_frames_table(folder, frame_count)
+
+    keep = []
+    for row, files in enumerate(table.files):
+        bad = next((f for f in files if f is not None and not f.is_file()), None)
+        if bad is None and on_bad_frame == "skip":
+            bad = next((f for f in files if f is not None and not png_looks_complete(f)), None)
+        if bad is None:
+            keep.append(row)
+        elif on_bad_frame == "raise":
+            raise FormatError(f"{folder / FRAMES_FILE} line {row + 2}: frame file missing: {bad}")
+        else:
+            log.warning("%s: skipping frame at line %d: missing or truncated %s", folder, row + 2, bad)
+    if not keep:
+        raise FormatError(f"{folder}: no readable frames")
+    if len(keep) < frame_count:
+        log.warning("%s: %d of %d frames skipped", folder, frame_count - len(keep), frame_count)
+    files = [table.files[r] for r in keep]
+    size = (meta.intrinsics.width, meta.intrinsics.height)
+
+    def load_images(i: int) -> FrameImages:
+        rgb_file, depth_file, instance_file = files[i]
+        rgb = decode_png(rgb_file, channels=3, dtype=np.uint8, size=size)
+        depth = depth_from_mm(decode_png(depth_file, channels=1, dtype=np.uint16, size=size))
+        ids = None
+        if instance_file is not None:
+            ids = decode_png(instance_file, channels=1, dtype=np.uint16, size=size).astype(np.int32) - 1
+        return FrameImages(rgb, depth, ids)
+
+    return Sequence(
+        meta,
+        table.timestamps[keep],
+        load_images,
+        indices=table.indices[keep],
+        odom_poses=None if table.odom is None else table.odom[keep],
+        gt_poses=None if table.gt is None else table.gt[keep],
+        gt_storeys=[table.gt_storeys[r] for r in keep],
+        frame_extras=[table.extras[r] for r in keep],
+    )
+
+
+def _read_meta(folder: Path) -> tuple[SequenceMeta, int]:
+    meta_file = folder / META_FILE
+    if not meta_file.is_file():
+        raise FormatError(f"{folder}: not a bimfactor sequence ({META_FILE} missing)")
+    try:
+        data = json.loads(meta_file.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise FormatError(f"{meta_file}: corrupt JSON ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != SEQUENCE_FORMAT:
+        raise FormatError(f"{meta_file}: not a {SEQUENCE_FORMAT} file")
+    version = data.get("version")
+    if not isinstance(version, int) or version > SEQUENCE_VERSION or version < 1:
+        raise FormatError(f"{meta_file}: format version {version!r}; this bimfactor reads up to {SEQUENCE_VERSION}")
+    required = ("name", "source", "intrinsics", "T_base_camera", "depth_unit", "frame_count")
+    missing = [key for key in required if key not in data]
+    if missing:
+        raise FormatError(f"{meta_file}: missing key(s) {', '.join(missing)}")
+    if data["depth_unit"] != DEPTH_UNIT:
+        raise FormatError(f"{meta_file}: depth_unit {data['depth_unit']!r}, expected {DEPTH_UNIT!r}")
+    try:
+        K = data["intrinsics"]
+        intrinsics = CameraIntrinsics(
+            int(K["width"]), int(K["height"]), float(K["fx"]), float(K["fy"]), float(K["cx"]), float(K["cy"])
+        )
+        T = np.array(data["T_base_camera"], dtype=np.float64)
+        frame_count = int(data["frame_count"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FormatError(f"{meta_file}: bad intrinsics, T_base_camera or frame_count ({exc!r})") from None
+    if T.shape != (4, 4):
+        raise FormatError(f"{meta_file}: T_base_camera has shape {T.shape}, expected (4, 4)")
+    if not isinstance(data.get("instances", []), list) or not isinstance(data.get("extras", {}), dict):
+        raise FormatError(f"{meta_file}: instances must be a list and extras an object")
+    meta = SequenceMeta(
+        name=str(data["name"]),
+        source=str(data["source"]),
+        intrinsics=intrinsics,
+        T_base_camera=T,
+        prior_sha256=str(data.get("prior_sha256", "")),
+        instances=list(data.get("instances", [])),
+        extras=dict(data.get("extras", {})),
+    )
+    return meta, frame_count
+
+
+class _FramesTable(NamedTuple):
+    indices: np.ndarray
+    timestamps: np.ndarray
+    files: list[tuple[Path, Path, Path | None]]
+    odom: np.ndarray | None
+    gt: np.ndarray | None
+    gt_storeys: list[int | None]
+    extras: list[dict[str, float]]
+
+
+def _read_frames_table(folder: Path, frame_count: int) -> _FramesTable:
+    frames_file = folder / FRAMES_FILE
+    if not frames_file.is_file():
+        raise FormatError(f"{folder}: {FRAMES_FILE} missing")
+    try:
+        with frames_file.open(newline="", encoding="utf-8") as f:
+            lines = list(csv.reader(f))
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise FormatError(f"{frames_file}: unreadable CSV ({exc})") from None
+    if not lines:
+        raise FormatError(f"{frames_file}: empty (no header line)")
+    header, body = lines[0], lines[1:]
+    if tuple(header[: len(FRAME_COLUMNS)]) != FRAME_COLUMNS:
+        raise FormatError(f"{frames_file}: header must start with {','.join(FRAME_COLUMNS)}")
+    extra_columns = header[len(FRAME_COLUMNS) :]
+    if any(not c.startswith(EXTRA_PREFIX) for c in extra_columns):
+        raise FormatError(f"{frames_file}: columns after gt_storey must be named {EXTRA_PREFIX}<key>")
+    if len(body) != frame_count:
+        raise FormatError(f"{frames_file}: {len(body)} frame rows, but {META_FILE} says frame_count {frame_count}")
+
+    indices, timestamps, files, storeys, extras = [], [], [], [], []
+    odom = np.full((len(body), 3), np.nan)
+    gt = np.full((len(body), 3), np.nan)
+    has_odom: list[bool] = []
+    for row, cells in enumerate(body):
+        where = f"{frames_file} line {row + 2}"
+        if len(cells) != len(header):
+            raise FormatError(f"{where}: {len(cells)} columns, expected {len(header)}")
+        cell = dict(zip(header, cells, strict=True))
+        indices.append(_parse_int(cell["index"], where, "index"))
+        timestamps.append(_parse_float(cell["timestamp_s"], where, "timestamp_s"))
+        files.append(
+            (
+                _frame_path(folder, cell["rgb"], where, "rgb"),
+                _frame_path(folder, cell["depth"], where, "depth"),
+                _frame_path(folder, cell["instances"], where, "instances") if cell["instances"] else None,
+            )
+        )
+        odom_known = _parse_pose(cell, ("odom_x", "odom_y", "odom_yaw"), odom[row], where)
+        has_odom.append(odom_known)
+        _parse_pose(cell, ("gt_x", "gt_y", "gt_yaw"), gt[row], where)
+        storeys.append(_parse_int(cell["gt_storey"], where, "gt_storey") if cell["gt_storey"] else None)
+        extras.append({c[len(EXTRA_PREFIX) :]: _parse_float(cell[c], where, c) for c in extra_columns if cell[c] != ""})
+        if has_odom[row] != has_odom[0]:
+            raise FormatError(f"{where}: odometry must be given on every row or on none")
+        if row and timestamps[row] <= timestamps[row - 1]:
+            order = "duplicate" if timestamps[row] == timestamps[row - 1] else "out-of-order"
+            raise FormatError(
+                f"{where}: {order} timestamp {cell['timestamp_s']} (previous row has {timestamps[row - 1]!r})"
+            )
+    return _FramesTable(
+        indices=np.array(indices, dtype=np.int64),
+        timestamps=np.array(timestamps, dtype=np.float64),
+        files=files,
+        odom=odom if has_odom and has_odom[0] else None,
+        gt=None if np.isnan(gt).all() else gt,
+        gt_storeys=storeys,
+        extras=extras,
+    )
+
+
+def _parse_float(text: str, where: str, column: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise FormatError(f"{where}: {column} {text!r} is not a number") from None
+    return value
+
+
+def _parse_int(text: str, where: str, column: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise FormatError(f"{where}: {column} {text!r} is not an integer") from None
+
+
+def _parse_pose(cell: dict[str, str], columns: tuple[str, str, str], out: np.ndarray, where: str) -> bool:
+    """Fill `out` from three columns; False when all three are empty, FormatError when only some are."""
+    texts = [cell[c] for c in columns]
+    if all(t == "" for t in texts):
+        return False
+    if any(t == "" for t in texts):
+        raise FormatError(f"{where}: {', '.join(columns)} must be all given or all empty")
+    out[:] = [_parse_float(t, where, c) for t, c in zip(texts, columns, strict=True)]
+    if not np.isfinite(out).all():
+        raise FormatError(f"{where}: {', '.join(columns)} are not finite")
+    return True
+
+
+def _frame_path(folder: Path, name: str, where: str, column: str) -> Path:
+    relative = PurePosixPath(name)
+    if not name or relative.is_absolute() or ".." in relative.parts:
+        raise FormatError(f"{where}: {column} path {name!r} must be a relative path inside the sequence folder")
+    return folder.joinpath(*relative.parts)
