@@ -53,6 +53,9 @@ class RoomsConfig(_Strict):
         ge=0.0, description="How far a door's footprint is grown when it is closed for the flood fill."
     )
     door_probe_m: float = Field(gt=0.0, description="How far beyond the wall a door looks for its rooms.")
+    min_opening_m: float = Field(
+        gt=0.0, description="Rooms touching along at least this much free boundary are joined as open plan."
+    )
     lintel_band_min_m: float = Field(
         description="Lower edge of the band above door height where a wall with no wall below it marks a doorway."
     )

@@ -120,8 +120,12 @@ def read_schema(path: Path) -> str:
     """The schema named in a STEP file's header; raises IfcError for anything that is not IFC-SPF."""
     with path.open("rb") as fh:
         head = fh.read(65536).decode("latin-1")
+        fh.seek(max(0, path.stat().st_size - 1024))
+        tail = fh.read().decode("latin-1")
     if not head.lstrip().startswith("ISO-10303-21"):
         raise IfcError(f"{path}: not an IFC file (no ISO-10303-21 header)")
+    if "END-ISO-10303-21" not in tail:
+        raise IfcError(f"{path}: truncated IFC file (no END-ISO-10303-21 trailer)")
     match = re.search(r"FILE_SCHEMA\s*\(\s*\(\s*'([^']+)'", head)
     if match is None:
         raise IfcError(f"{path}: IFC header names no FILE_SCHEMA")

@@ -77,7 +77,7 @@ class Door:
     """A door (or a leafless passage) and the two rooms it joins (OUTSIDE, NO_ROOM when a side is unknown)."""
 
     id: int
-    kind: str  # "door" (an IfcDoor) or "passage" (a doorway without a leaf, found from its lintel)
+    kind: str  # "door" (an IfcDoor), "passage" (a leafless doorway under a lintel), "opening" (open-plan edge)
     guid: str
     storey_index: int
     object_id: int
@@ -177,6 +177,7 @@ class BimPrior:
             "doors": sum(d.kind == "door" for d in self.doors),
             "doors_connecting": sum(d.connects for d in self.doors if d.kind == "door"),
             "passages": sum(d.kind == "passage" for d in self.doors),
+            "openings": sum(d.kind == "opening" for d in self.doors),
             "objects": len(self.objects),
             "objects_per_category": dict(Counter(o.label for o in self.objects).most_common()),
             "room_types": dict(Counter(r.category for r in self.rooms).most_common()),
@@ -191,7 +192,15 @@ class BimPrior:
     # -------------------------------------------------------------------------------- disk
 
     def save(self, out_dir: str | Path, config_yaml: str = "") -> None:
-        """Write the prior folder atomically (a half-written prior never appears under `out_dir`)."""
+        """Write the prior folder atomically (a half-written prior never appears under `out_dir`).
+
+        An existing prior there is replaced; any other non-empty folder is refused, never overwritten.
+        """
+        out_dir = Path(out_dir)
+        if out_dir.exists() and (
+            not out_dir.is_dir() or (any(out_dir.iterdir()) and not (out_dir / "prior.json").is_file())
+        ):
+            raise InputError(f"{out_dir}: exists and is not a bimfactor prior; refusing to overwrite it")
         meta = {
             "format": PRIOR_FORMAT,
             "version": PRIOR_VERSION,
@@ -412,6 +421,22 @@ def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_ro
                 id=first_door_id + len(doors),
                 kind="door" if element is not None else "passage",
                 guid=element.guid if element is not None else "",
+                storey_index=storey.index,
+                object_id=-1,
+                center_xy=(float(geom.center_xy[0]), float(geom.center_xy[1])),
+                axis_xy=(float(geom.axis_xy[0]), float(geom.axis_xy[1])),
+                width_m=geom.width_m,
+                depth_m=geom.depth_m,
+                room_a=a,
+                room_b=b,
+            )
+        )
+    for a, b, geom in room_ops.open_boundaries(labels, spec, min_length_m=rcfg.min_opening_m):
+        doors.append(
+            Door(
+                id=first_door_id + len(doors),
+                kind="opening",
+                guid="",
                 storey_index=storey.index,
                 object_id=-1,
                 center_xy=(float(geom.center_xy[0]), float(geom.center_xy[1])),

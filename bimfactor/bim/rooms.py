@@ -170,6 +170,29 @@ def match_rooms(
     return ious
 
 
+def open_boundaries(labels: np.ndarray, spec: GridSpec, min_length_m: float) -> list[tuple[int, int, DoorGeometry]]:
+    """Pairs of rooms whose cells touch with no wall between (open-plan IfcSpace rooms), with the shared edge.
+
+    The edge is returned as a door-like rectangle along the boundary; boundaries shorter than `min_length_m`
+    (corner contacts) are left out.
+    """
+    pairs, points = [], []
+    for a, b, offset in ((labels[:, :-1], labels[:, 1:], (0, 0.5)), (labels[:-1], labels[1:], (0.5, 0))):
+        touch = (a >= 0) & (b >= 0) & (a != b)
+        rc = np.argwhere(touch).astype(float) + offset
+        pairs.append(np.sort(np.stack([a[touch], b[touch]], axis=1), axis=1))
+        points.append(rc)
+    pair_arr, rc_arr = np.concatenate(pairs), np.concatenate(points)
+    out = []
+    for pair in np.unique(pair_arr, axis=0):
+        cells = rc_arr[np.all(pair_arr == pair, axis=1)]
+        if len(cells) * spec.resolution_m < min_length_m:
+            continue
+        geom = _rect_geometry(spec.cell_to_world(cells).astype(np.float32))
+        out.append((int(pair[0]), int(pair[1]), DoorGeometry(geom.center_xy, geom.axis_xy, geom.width_m, 0.0)))
+    return out
+
+
 def door_sides(door: DoorGeometry, labels: np.ndarray, spec: GridSpec, probe_m: float) -> tuple[int, int]:
     """The room labels on the two sides of a door (OUTSIDE for the exterior, NO_ROOM if unknown)."""
     sides = []

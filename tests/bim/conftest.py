@@ -11,29 +11,13 @@ from bimfactor.bim.prior import BimPrior, build_prior
 from bimfactor.bim.synth import write_building
 from bimfactor.config import Config, load_config
 
-SHARED_IFC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ifc"
-
 
 @pytest.fixture(scope="session")
-def ifc_path() -> Callable[[str], Path]:
-    """Path of a real IFC building in ../shared/data/ifc; skips the test when the data is absent."""
-
-    def find(name: str) -> Path:
-        path = SHARED_IFC / name
-        if not path.is_file():
-            pytest.skip(f"real IFC data not available: {path}")
-        return path
-
-    return find
-
-
-@pytest.fixture(scope="session")
-def session_cfg(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., Config]:
-    """Config factory with the geometry cache in a session temp dir (never ~/.cache)."""
-    cache = tmp_path_factory.mktemp("geometry-cache")
+def session_cfg(config_overrides: list[str]) -> Callable[..., Config]:
+    """Config factory on top of the session's geometry cache (never ~/.cache)."""
 
     def make(*overrides: str) -> Config:
-        return load_config(overrides=[f"bim.ifc.cache_dir={cache}", *overrides])
+        return load_config(overrides=[*config_overrides, *overrides])
 
     return make
 
@@ -54,14 +38,14 @@ def synth_ifc(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Path]
 
 
 @pytest.fixture(scope="session")
-def prior_of(ifc_path, synth_ifc, session_cfg) -> Callable[..., BimPrior]:
+def prior_of(ifc_file, synth_ifc, session_cfg) -> Callable[..., BimPrior]:
     """Prior of a real building file name or a synth preset ('synth:paper-floor'), built once per source mode."""
     built: dict[tuple[str, str], BimPrior] = {}
 
     def make(name: str, rooms: str = "auto") -> BimPrior:
         key = (name, rooms)
         if key not in built:
-            path = synth_ifc(name.removeprefix("synth:")) if name.startswith("synth:") else ifc_path(name)
+            path = synth_ifc(name.removeprefix("synth:")) if name.startswith("synth:") else ifc_file(name)
             built[key] = build_prior(path, session_cfg(f"bim.rooms.source={rooms}"))
         return built[key]
 

@@ -16,16 +16,16 @@ def _footprint(model) -> np.ndarray:
     return boxes[:, 1, :2].max(axis=0) - boxes[:, 0, :2].min(axis=0)
 
 
-def test_millimetre_model_is_scaled_to_metres(ifc_path, session_cfg) -> None:
-    model = load_ifc(ifc_path("SampleHouse4.ifc"), session_cfg().bim.ifc)
+def test_millimetre_model_is_scaled_to_metres(ifc_file, session_cfg) -> None:
+    model = load_ifc(ifc_file("SampleHouse4.ifc"), session_cfg().bim.ifc)
     assert model.length_unit_m == pytest.approx(0.001)
     np.testing.assert_allclose(_footprint(model), [16.9, 8.7], atol=0.1)
     assert [s.name for s in model.storeys] == ["Ground Floor", "Roof"]
     assert model.storeys[1].elevation_m == pytest.approx(2.5)
 
 
-def test_storeys_are_sorted_and_elements_know_their_storey(ifc_path, session_cfg) -> None:
-    model = load_ifc(ifc_path("duplex.ifc"), session_cfg().bim.ifc)
+def test_storeys_are_sorted_and_elements_know_their_storey(ifc_file, session_cfg) -> None:
+    model = load_ifc(ifc_file("duplex.ifc"), session_cfg().bim.ifc)
     elevations = [s.elevation_m for s in model.storeys]
     assert elevations == sorted(elevations)
     assert elevations[0] == pytest.approx(-1.25)
@@ -38,32 +38,32 @@ def test_storeys_are_sorted_and_elements_know_their_storey(ifc_path, session_cfg
     assert all(f.space_guid in {s.guid for s in spaces} for f in furniture)
 
 
-def test_ifc2x3_sanitary_terminals_keep_their_type(ifc_path, session_cfg) -> None:
+def test_ifc2x3_sanitary_terminals_keep_their_type(ifc_file, session_cfg) -> None:
     """IFC2X3 has no IfcSanitaryTerminal: flow terminals are typed by IfcSanitaryTerminalType (here by its Name;
     its PredefinedType is NOTDEFINED, which is read as empty)."""
-    model = load_ifc(ifc_path("AC11-FZK-Haus-IFC.ifc"), session_cfg().bim.ifc)
+    model = load_ifc(ifc_file("AC11-FZK-Haus-IFC.ifc"), session_cfg().bim.ifc)
     terminals = [e for e in model.of_class("IfcFlowTerminal") if e.type_class == "IfcSanitaryTerminalType"]
     assert len(terminals) == 6
     assert {t.type_name for t in terminals} == {"BATH", "SHOWER", "BASIN", "TOILET"}
     assert all(t.predefined_type == "" for t in terminals)
 
 
-def test_subclass_ancestry_lets_config_name_a_superclass(ifc_path, session_cfg) -> None:
-    model = load_ifc(ifc_path("SampleHouse4.ifc"), session_cfg().bim.ifc)
+def test_subclass_ancestry_lets_config_name_a_superclass(ifc_file, session_cfg) -> None:
+    model = load_ifc(ifc_file("SampleHouse4.ifc"), session_cfg().bim.ifc)
     furniture = model.of_class("IfcFurnishingElement")
     assert len(furniture) == 14
     assert all(f.ifc_class == "IfcFurniture" for f in furniture)
 
 
-def test_cache_round_trip_is_identical_and_skips_parsing(ifc_path, session_cfg, monkeypatch) -> None:
+def test_cache_round_trip_is_identical_and_skips_parsing(ifc_file, session_cfg, monkeypatch) -> None:
     cfg = session_cfg().bim.ifc
-    first = load_ifc(ifc_path("AC20-FZK-Haus.ifc"), cfg)
+    first = load_ifc(ifc_file("AC20-FZK-Haus.ifc"), cfg)
 
     def fail(*_args, **_kwargs):
         raise AssertionError("the cache was not used")
 
     monkeypatch.setattr(ifc_module, "_parse", fail)
-    second = load_ifc(ifc_path("AC20-FZK-Haus.ifc"), cfg)
+    second = load_ifc(ifc_file("AC20-FZK-Haus.ifc"), cfg)
     assert second.storeys == first.storeys
     assert len(second.elements) == len(first.elements)
     for a, b in zip(first.elements, second.elements, strict=True):
@@ -96,8 +96,8 @@ def test_schema_and_file_checks(tmp_path, session_cfg) -> None:
         load_ifc(tmp_path / "missing.ifc", cfg)
 
 
-def test_truncated_file_is_an_ifc_error(ifc_path, tmp_path, session_cfg) -> None:
+def test_truncated_file_is_an_ifc_error(ifc_file, tmp_path, session_cfg) -> None:
     cut = tmp_path / "cut.ifc"
-    cut.write_bytes(ifc_path("AC20-FZK-Haus.ifc").read_bytes()[:5000])
-    with pytest.raises(IfcError):
+    cut.write_bytes(ifc_file("AC20-FZK-Haus.ifc").read_bytes()[:5000])
+    with pytest.raises(IfcError, match="truncated"):
         load_ifc(cut, session_cfg("bim.ifc.cache_dir=''").bim.ifc)

@@ -9,7 +9,7 @@ import pytest
 
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.rooms import NO_ROOM, OUTSIDE
-from bimfactor.errors import FormatError
+from bimfactor.errors import FormatError, InputError
 from bimfactor.evaluation.rooms import ifcspace_matched_share, room_type_accuracy
 
 REAL = ["AC20-FZK-Haus.ifc", "AC11-FZK-Haus-IFC.ifc", "SampleHouse4.ifc", "duplex.ifc", "AC11-Institute-Var-2-IFC.ifc"]
@@ -57,6 +57,7 @@ def test_ifc4_and_ifc2x3_fzk_haus_give_the_same_rooms_and_door_graph(prior_of) -
     assert ifc4 == ifc2x3
     assert len(ifc4[0]) == 7
     assert frozenset(("Flur", "outside")) in ifc4[1] and frozenset(("Bad", "Flur")) in ifc4[1]
+    assert frozenset(("Wohnen", "Küche")) in ifc4[1]  # open plan: joined by an opening, not a door
     # Flood-fill rooms: the same geometry (the exports differ by one column in the living room).
     flood4 = sorted(prior_of("AC20-FZK-Haus.ifc", rooms="floodfill").rooms, key=lambda r: r.centroid_xy)
     flood2x3 = sorted(prior_of("AC11-FZK-Haus-IFC.ifc", rooms="floodfill").rooms, key=lambda r: r.centroid_xy)
@@ -71,8 +72,6 @@ def test_sample_house_in_millimetres_has_metric_rooms(prior_of) -> None:
     prior = prior_of("SampleHouse4.ifc")
     ground = sorted(r.area_m2 for r in prior.rooms if r.storey_index == 0)
     assert len(ground) == 3 and ground[0] > 5 and ground[-1] < 120  # entrance hall 8.5 m², living room 51 m²
-    x0, x1, y0, y1 = prior.grid.extent
-    assert 16.0 < x1 - x0 - 2 < 18.0 and 7.5 < y1 - y0 - 2 < 9.5  # footprint 16.9 × 8.7 m plus 1 m padding
 
 
 @pytest.mark.parametrize(
@@ -152,6 +151,13 @@ def test_save_and_load_round_trip(prior_of, tmp_path) -> None:
         for name in ("structure", "furniture", "clearance_m", "room_labels", "navigable"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     assert loaded.summary() == prior.summary()
+
+
+def test_save_refuses_to_replace_a_folder_that_is_not_a_prior(prior_of, tmp_path) -> None:
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="not a bimfactor prior"):
+        prior_of("AC20-FZK-Haus.ifc").save(tmp_path)
+    assert (tmp_path / "notes.txt").read_text() == "mine"
 
 
 def test_loading_something_else_is_a_format_error(tmp_path) -> None:

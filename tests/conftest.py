@@ -1,0 +1,60 @@
+"""Shared fixtures: the real IFC buildings beside the project, and a per-session geometry cache.
+
+Tests never write to ~/.cache: pass `config_overrides` to `load_config` (or `cli_config_args` to the CLI),
+or use `test_config` directly; they point `bim.ifc.cache_dir` at a temporary folder for the session.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from bimfactor.config import Config, load_config
+from bimfactor.evaluation.bench import SHARED_IFC_DIR, find_shared_ifc_dir
+
+
+@pytest.fixture(scope="session")
+def ifc_dir() -> Path:
+    """`../shared/data/ifc` (the five real IFC buildings); the test is skipped when it is absent."""
+    found = find_shared_ifc_dir()
+    if found is None:
+        pytest.skip(f"real IFC buildings not available: {SHARED_IFC_DIR} is missing")
+    return found
+
+
+@pytest.fixture(scope="session")
+def ifc_file(ifc_dir: Path):
+    """`ifc_file("AC20-FZK-Haus.ifc")` → its path; skips when that one file is missing."""
+
+    def get(name: str) -> Path:
+        path = ifc_dir / name
+        if not path.is_file():
+            pytest.skip(f"real IFC building not available: {path}")
+        return path
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def geometry_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One geometry cache for the whole session, so each IFC file is meshed at most once."""
+    return tmp_path_factory.mktemp("geometry-cache")
+
+
+@pytest.fixture(scope="session")
+def config_overrides(geometry_cache_dir: Path) -> list[str]:
+    """`--set`-style overrides every test config should carry (the session's geometry cache)."""
+    return [f"bim.ifc.cache_dir={geometry_cache_dir}"]
+
+
+@pytest.fixture(scope="session")
+def cli_config_args(config_overrides: list[str]) -> list[str]:
+    """The same overrides as CLI arguments: `["--set", "bim.ifc.cache_dir=..."]`."""
+    return [arg for override in config_overrides for arg in ("--set", override)]
+
+
+@pytest.fixture(scope="session")
+def test_config(config_overrides: list[str]) -> Config:
+    """The default configuration with the session's geometry cache."""
+    return load_config(None, config_overrides)

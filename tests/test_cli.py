@@ -1,0 +1,305 @@
+"""The `bimfactor` command: one-line errors with exit code 2 for bad input, and the prior / synth / demo outputs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from bimfactor.cli import app
+from bimfactor.config import load_config
+
+runner = CliRunner()
+PRIOR_FILES = ("prior.json", "arrays.npz", "config.yaml", "floorplan_0.png")
+
+
+def invoke(*args: str | Path) -> object:
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def assert_one_line_error(result, exit_code: int = 2, contains: str = "") -> str:
+    """Exit code as given, exactly one `error:` line on stderr, no traceback anywhere."""
+    assert isinstance(result.exception, SystemExit), f"uncaught {result.exception!r}"
+    assert result.exit_code == exit_code, result.output
+    assert "Traceback" not in result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("error: ")
+    assert contains in lines[0]
+    return lines[0]
+
+
+# ---------------------------------------------------------------------------------------- bad input files
+
+
+def _text_file(tmp: Path, ifc_dir: Path | None) -> Path:
+    path = tmp / "notes.ifc"
+    path.write_text("these are meeting notes, not a building\n")
+    return path
+
+
+def _truncated(tmp: Path, ifc_dir: Path | None) -> Path:
+    if ifc_dir is None:
+        pytest.skip("needs ../shared/data/ifc/AC20-FZK-Haus.ifc")
+    path = tmp / "truncated.ifc"
+    path.write_bytes((ifc_dir / "AC20-FZK-Haus.ifc").read_bytes()[:3000])
+    return path
+
+
+def _old_schema(tmp: Path, ifc_dir: Path | None) -> Path:
+    path = tmp / "old.ifc"
+    path.write_text(
+        "ISO-10303-21;\nHEADER;\nFILE_DESCRIPTION(('ViewDefinition'),'2;1');\n"
+        "FILE_NAME('old.ifc','2000-01-01T00:00:00',(''),(''),'','','');\n"
+        "FILE_SCHEMA(('IFC2X_FINAL'));\nENDSEC;\nDATA;\nENDSEC;\nEND-ISO-10303-21;\n"
+    )
+    return path
+
+
+def _no_walls(tmp: Path, ifc_dir: Path | None) -> Path:
+    """A valid IFC4 model: project, site, building, storey and one meshable IfcFurniture, but no wall."""
+    import ifcopenshell
+    import ifcopenshell.api.aggregate
+    import ifcopenshell.api.context
+    import ifcopenshell.api.geometry
+    import ifcopenshell.api.root
+    import ifcopenshell.api.spatial
+    import ifcopenshell.api.unit
+    from ifcopenshell.util.shape_builder import ShapeBuilder
+
+    f = ifcopenshell.file(schema="IFC4")
+    project = ifcopenshell.api.root.create_entity(f, ifc_class="IfcProject", name="No walls")
+    ifcopenshell.api.unit.assign_unit(f)
+    model = ifcopenshell.api.context.add_context(f, context_type="Model")
+    body = ifcopenshell.api.context.add_context(
+        f, context_type="Model", context_identifier="Body", target_view="MODEL_VIEW", parent=model
+    )
+    site = ifcopenshell.api.root.create_entity(f, ifc_class="IfcSite", name="Site")
+    building = ifcopenshell.api.root.create_entity(f, ifc_class="IfcBuilding", name="Building")
+    storey = ifcopenshell.api.root.create_entity(f, ifc_class="IfcBuildingStorey", name="Ground floor")
+    ifcopenshell.api.aggregate.assign_object(f, products=[site], relating_object=project)
+    ifcopenshell.api.aggregate.assign_object(f, products=[building], relating_object=site)
+    ifcopenshell.api.aggregate.assign_object(f, products=[storey], relating_object=building)
+    table = ifcopenshell.api.root.create_entity(f, ifc_class="IfcFurniture", name="Table")
+    ifcopenshell.api.geometry.edit_object_placement(f, product=table, matrix=np.eye(4))
+    builder = ShapeBuilder(f)
+    solid = builder.extrude(builder.rectangle(size=(1600.0, 800.0)), 750.0)  # project units are millimetres
+    ifcopenshell.api.geometry.assign_representation(
+        f, product=table, representation=builder.get_representation(body, [solid])
+    )
+    ifcopenshell.api.spatial.assign_container(f, products=[table], relating_structure=storey)
+    path = tmp / "no-walls.ifc"
+    f.write(str(path))
+    return path
+
+
+def _missing(tmp: Path, ifc_dir: Path | None) -> Path:
+    return tmp / "does-not-exist.ifc"
+
+
+def _empty_dir(tmp: Path, ifc_dir: Path | None) -> Path:
+    path = tmp / "not-a-prior"
+    path.mkdir()
+    return path
+
+
+BAD_INPUTS: dict[str, tuple[Callable[[Path, Path | None], Path], str]] = {
+    "text file": (_text_file, "not an IFC file"),
+    "truncated IFC": (_truncated, "truncated.ifc"),
+    "unsupported schema": (_old_schema, "unsupported IFC schema IFC2X_FINAL"),
+    "no walls": (_no_walls, "no walls"),
+    "missing path": (_missing, "does-not-exist.ifc"),
+    "empty folder": (_empty_dir, "not a bimfactor prior"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_INPUTS))
+def test_prior_bad_input_is_one_line_error(case: str, tmp_path: Path, cli_config_args: list[str]) -> None:
+    make, expected = BAD_INPUTS[case]
+    from bimfactor.evaluation.bench import find_shared_ifc_dir
+
+    path = make(tmp_path, find_shared_ifc_dir())
+    result = invoke("prior", path, "-o", tmp_path / "out", *cli_config_args)
+    if case == "empty folder":  # a folder is summarised as a prior, -o does not apply
+        result = invoke("prior", path, *cli_config_args)
+    assert_one_line_error(result, contains=expected)
+    assert not (tmp_path / "out").exists()
+
+
+def test_unknown_config_key_from_set(tmp_path: Path) -> None:
+    result = invoke("synth", "-o", tmp_path / "x.ifc", "--set", "bim.grid.nope=1")
+    assert_one_line_error(result, contains="unknown config key 'bim.grid.nope'")
+    assert not (tmp_path / "x.ifc").exists()
+
+
+def test_unknown_config_key_in_preset_file(tmp_path: Path) -> None:
+    preset = tmp_path / "mine.yaml"
+    preset.write_text("bim:\n  grid:\n    resolution_m: 0.1\n    nope: 1\n")
+    result = invoke("prior", tmp_path / "x.ifc", "-c", preset)
+    assert_one_line_error(result, contains="unknown config key 'bim.grid.nope'")
+
+
+def test_unknown_preset_name() -> None:
+    assert_one_line_error(invoke("demo", "-c", "no-such-preset"), contains="config file not found")
+
+
+def test_unknown_building_preset(tmp_path: Path) -> None:
+    result = invoke("synth", "--preset", "castle", "-o", tmp_path / "x.ifc")
+    assert_one_line_error(result, contains="unknown building preset 'castle'")
+
+
+def test_unexpected_exception_is_internal_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import bimfactor.bim.synth
+
+    def broken(preset: str, seed: int, path: Path) -> None:
+        raise ValueError("boom\nsecond line")
+
+    monkeypatch.setattr(bimfactor.bim.synth, "write_building", broken)
+    monkeypatch.delenv("BIMFACTOR_DEBUG", raising=False)
+    line = assert_one_line_error(invoke("synth", "-o", tmp_path / "x.ifc"), exit_code=1)
+    assert line == "error: internal: ValueError: boom second line"
+    debug = invoke("synth", "-o", tmp_path / "x.ifc", "--debug")
+    assert debug.exit_code == 1
+    assert "Traceback" in debug.stderr
+    assert debug.stderr.strip().splitlines()[-1] == line
+
+
+def test_error_in_a_real_process_is_one_line(tmp_path: Path) -> None:
+    """Outside CliRunner too: nothing from native libraries or warnings reaches stderr besides the error."""
+    path = _old_schema(tmp_path, None)
+    proc = subprocess.run(
+        [sys.executable, "-m", "bimfactor", "prior", str(path), "-o", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        f"error: {path}: unsupported IFC schema IFC2X_FINAL (supported: IFC2X3, IFC4, IFC4X3)"
+    ]
+
+
+def test_version() -> None:
+    result = invoke("--version")
+    assert result.exit_code == 0
+    assert result.stdout.startswith("bimfactor 0.1.0\n")
+    assert "cannot import" not in result.stdout
+
+
+def test_bench_without_shared_data(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import bimfactor.evaluation.bench as bench
+
+    monkeypatch.setattr(bench, "SHARED_IFC_DIR", tmp_path / "nowhere")
+    result = invoke("bench", "prior", "-o", tmp_path / "bench")
+    assert_one_line_error(result, contains=str(tmp_path / "nowhere"))
+
+
+# ---------------------------------------------------------------------------------------- working runs
+
+
+@pytest.fixture(scope="module")
+def fzk_prior(tmp_path_factory: pytest.TempPathFactory, ifc_file, cli_config_args: list[str]):
+    out = tmp_path_factory.mktemp("fzk") / "prior"
+    result = invoke("prior", ifc_file("AC20-FZK-Haus.ifc"), "-o", out, "--json", *cli_config_args)
+    return out, result
+
+
+def test_prior_on_real_ifc_writes_the_folder(fzk_prior) -> None:
+    out, result = fzk_prior
+    assert result.exit_code == 0, result.output
+    for name in PRIOR_FILES:
+        assert (out / name).is_file(), name
+    summary = json.loads(result.stdout)
+    assert summary["source"] == "AC20-FZK-Haus.ifc"
+    assert [s["name"] for s in summary["storeys"]] == ["Erdgeschoss", "Dachgeschoss"]
+    assert summary["rooms"] == len(summary["room_list"]) == 7
+    assert {r["space_name"] for r in summary["room_list"]} >= {"Flur", "Bad", "Wohnen", "Galerie"}
+    assert summary["doors"] == 5
+    assert summary["floorplans"] == [str(out / "floorplan_0.png"), str(out / "floorplan_1.png")]
+
+
+def test_saved_config_reloads_equal(fzk_prior, config_overrides: list[str]) -> None:
+    out, _ = fzk_prior
+    assert load_config(out / "config.yaml") == load_config(None, config_overrides)
+
+
+def test_prior_folder_is_summarised(fzk_prior) -> None:
+    out, _ = fzk_prior
+    result = invoke("prior", out)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.startswith(f"prior of AC20-FZK-Haus.ifc (IFC4) in {out}\n")
+    assert "Erdgeschoss" in result.stdout
+    assert '"Flur"' in result.stdout
+
+
+def test_synth_then_prior_on_paper_floor(tmp_path: Path, cli_config_args: list[str]) -> None:
+    pytest.importorskip("bimfactor.bim.synth")
+    ifc = tmp_path / "paper-floor.ifc"
+    result = invoke("synth", "--preset", "paper-floor", "--seed", "0", "-o", ifc)
+    assert result.exit_code == 0, result.output
+    assert "rooms:   7" in result.stdout
+    assert "objects: 43 in 14 categories" in result.stdout
+    assert ifc.read_bytes().startswith(b"ISO-10303-21;")
+
+    out = tmp_path / "prior"
+    result = invoke("prior", ifc, "-o", out, "--json", *cli_config_args)
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["rooms"] == 7
+    assert summary["objects"] == 43
+    for name in PRIOR_FILES:
+        assert (out / name).is_file(), name
+
+
+def test_python_dash_m_help() -> None:
+    proc = subprocess.run([sys.executable, "-m", "bimfactor", "--help"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0
+    for command in ("synth", "prior", "demo", "bench"):
+        assert f"  {command} " in proc.stdout
+
+
+def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: list[str]) -> None:
+    pytest.importorskip("bimfactor.bim.synth")
+    out = tmp_path / "demo"
+    result = invoke("demo", "-o", out, *cli_config_args)
+    assert result.exit_code == 0, result.output
+    assert (out / "paper-floor.ifc").is_file()
+    for name in PRIOR_FILES:
+        assert (out / "prior" / name).is_file(), name
+    assert load_config(out / "config.yaml") == load_config(out / "prior" / "config.yaml")
+    assert result.stdout.startswith("[1/2] synth: ")
+    assert "[2/2] prior: " in result.stdout
+    assert f"figure: {out / 'prior' / 'floorplan_0.png'}" in result.stdout
+
+
+def test_bench_prior_writes_results(tmp_path: Path, ifc_file, cli_config_args: list[str]) -> None:
+    out = tmp_path / "bench"
+    result = invoke(
+        "bench", "prior", "--ifc", ifc_file("AC20-FZK-Haus.ifc"), "--repeats", "2", "-o", out, *cli_config_args
+    )
+    assert result.exit_code == 0, result.output
+    header, _rule, row = result.stdout.splitlines()[:3]
+    assert header.split() == ["file", "storeys", "rooms", "objects", "cold", "build", "s", "reload", "s"]
+    assert row.split()[:4] == ["AC20-FZK-Haus.ifc", "2", "7", "16"]
+    report = json.loads((out / "results.json").read_text())
+    (entry,) = report["rows"]
+    assert entry["file"] == "AC20-FZK-Haus.ifc"
+    assert len(entry["reload_runs_s"]) == 2
+    assert entry["cold_build_s"] > entry["reload_s"] > 0
+    assert (out / "priors" / "AC20-FZK-Haus" / "prior.json").is_file()
+    assert load_config(out / "config.yaml") == load_config(None, [a for a in cli_config_args if a != "--set"])
+
+
+def test_prior_refuses_to_replace_a_folder_that_is_not_a_prior(tmp_path: Path) -> None:
+    keep = tmp_path / "documents"
+    keep.mkdir()
+    (keep / "thesis.txt").write_text("precious")
+    result = invoke("prior", _old_schema(tmp_path, None), "-o", keep)
+    assert_one_line_error(result, contains="exists and is not a prior folder")
+    assert (keep / "thesis.txt").read_text() == "precious"
