@@ -1,0 +1,178 @@
+"""Simulate a whole RGB-D + odometry sequence over a BIM prior, and benchmark the renderer.
+
+`simulate_sequence` is what `bimfactor simulate` runs: it builds the world from the IFC model, drives a
+trajectory, takes odometry between keyframes and renders one RGB-D frame per keyframe. Nothing is written
+to disk here (the sequence format is `bimfactor.io.sequence`'s job).
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bimfactor.bim.ifc import IfcModel, file_sha256, load_ifc
+from bimfactor.bim.prior import BimPrior
+from bimfactor.config import Config, load_config
+from bimfactor.errors import InputError
+from bimfactor.progress import progress as progress_bar
+from bimfactor.sim.sensors import RgbdCamera, simulate_odometry
+from bimfactor.sim.trajectory import SimTrajectory, TrajectorySimulator
+from bimfactor.sim.world import SimWorld
+from bimfactor.types import Frame, SequenceMeta
+
+log = logging.getLogger(__name__)
+
+# Independent random streams of one (seed, trajectory): the world is shared by all trajectories of a seed.
+WORLD_STREAM, ODOMETRY_STREAM, SENSOR_STREAM = 0x3D, 0x0D0, 0x5E5
+ODOMETRY_STEP = "keyframe"  # the odometry motion model is applied to the increments between keyframes
+
+
+@dataclass
+class SimResult:
+    """A simulated sequence: shared metadata, one frame per keyframe, and the dense ground truth and commands."""
+
+    meta: SequenceMeta
+    frames: list[Frame]
+    trajectory: SimTrajectory
+
+
+def world_rng(seed: int) -> np.random.Generator:
+    """The generator of a seed's as-built world (the same for every trajectory of that seed)."""
+    return np.random.default_rng([seed, WORLD_STREAM])
+
+
+def build_world(prior: BimPrior, model: IfcModel, cfg: Config, seed: int) -> SimWorld:
+    """The simulated world of a seed; raises InputError when the model is not the prior's IFC."""
+    if model.sha256 != prior.source_sha256:
+        raise InputError(
+            f"IFC model {Path(model.source_path).name} (sha256 {model.sha256[:12]}…) is not the one the prior "
+            f"was built from (sha256 {prior.source_sha256[:12]}…)"
+        )
+    return SimWorld.from_model(model, prior, cfg.sim.as_built, world_rng(seed))
+
+
+def simulate_sequence(
+    prior: BimPrior,
+    model: IfcModel,
+    cfg: Config,
+    trajectory_index: int,
+    seed: int,
+    progress: bool = True,
+    world: SimWorld | None = None,
+) -> SimResult:
+    """Simulate trajectory `trajectory_index` of `seed`: T keyframes of RGB-D, ground truth and wheel odometry.
+
+    Reproducible bit for bit from (prior, model, cfg, trajectory_index, seed). Pass `world` (from `build_world`
+    with the same seed) to reuse one world across trajectories.
+    """
+    world = world if world is not None else build_world(prior, model, cfg, seed)
+    grid = cfg.bim.grid
+    extra = None
+    if any(c["kind"] in ("moved", "clutter") for c in world.changes):
+        extra = {}
+        for layers in prior.storeys:
+            z = layers.storey.elevation_m
+            extra[layers.storey.index] = world.added_obstacles(
+                prior.grid, layers.storey.index, z + grid.band_min_m, z + grid.band_max_m
+            )
+    trajectory = TrajectorySimulator(prior, cfg, extra).trajectory(trajectory_index, seed)
+    gt = trajectory.keyframe_poses
+    odometry_rng = np.random.default_rng([seed, trajectory_index, ODOMETRY_STREAM])
+    odom = simulate_odometry(gt, cfg.sim.odometry.alpha, odometry_rng)
+    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    sensor_rng = np.random.default_rng([seed, trajectory_index, SENSOR_STREAM])
+    storey = trajectory.storey_index
+    elevation = prior.storeys[storey].storey.elevation_m
+    frames = []
+    times = trajectory.keyframe_times_s
+    steps = range(len(gt))
+    for i in progress_bar(steps, desc="simulating frames", unit="frame") if progress else steps:
+        image = camera.render(gt[i], elevation, sensor_rng)
+        frames.append(
+            Frame(
+                index=i,
+                timestamp_s=float(times[i]),
+                rgb=image.rgb,
+                depth_m=image.depth_m,
+                odom_pose=odom[i],
+                gt_pose=gt[i].copy(),
+                gt_storey=storey,
+                instance_ids=image.instance_ids,
+            )
+        )
+    meta = SequenceMeta(
+        name=f"sim-{Path(prior.source_file).stem}-t{trajectory_index}-s{seed}",
+        source="sim",
+        intrinsics=camera.intrinsics,
+        T_base_camera=camera.T_base_camera.copy(),
+        prior_sha256=prior.source_sha256,
+        instances=[dict(rec) for rec in world.instances],
+        extras={
+            "trajectory_index": trajectory_index,
+            "seed": seed,
+            "storey_index": storey,
+            "odometry_step": ODOMETRY_STEP,
+            "odometry_alpha": list(cfg.sim.odometry.alpha),
+            "goals": trajectory.goals,
+            "as_built_changes": world.changes,
+        },
+    )
+    log.info("simulated %s: %d frames on storey %d", meta.name, len(frames), storey)
+    return SimResult(meta, frames, trajectory)
+
+
+def load_world_inputs(prior_dir: str | Path, cfg: Config | None = None) -> tuple[BimPrior, IfcModel]:
+    """Load a prior folder and the IFC model it was built from (its `source_file`, checked by SHA-256).
+
+    A relative `source_file` is looked up from the working directory, then beside the prior folder.
+    """
+    cfg = cfg if cfg is not None else load_config()
+    prior = BimPrior.load(prior_dir)
+    source = Path(prior.source_file)
+    candidates = [source]
+    if not source.is_absolute():
+        candidates += [Path(prior_dir) / source, Path(prior_dir).parent / source]
+    path = next((p for p in candidates if p.is_file()), None)
+    if path is None:
+        raise InputError(f"the IFC file the prior {prior_dir} was built from is missing: {prior.source_file}")
+    if file_sha256(path) != prior.source_sha256:
+        raise InputError(f"{path} changed since the prior {prior_dir} was built from it; rebuild the prior")
+    return prior, load_ifc(path, cfg.bim.ifc)
+
+
+def benchmark_render(prior: BimPrior, model: IfcModel, cfg: Config, n_frames: int = 200) -> dict:
+    """Render speed with noise and instance ids at the configured image size, over poses of trajectory 0."""
+    t0 = time.perf_counter()
+    world = build_world(prior, model, cfg, cfg.seed)
+    world_s = time.perf_counter() - t0
+    trajectory = TrajectorySimulator(prior, cfg).trajectory(0, cfg.seed)
+    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    elevation = prior.storeys[trajectory.storey_index].storey.elevation_m
+    poses = trajectory.poses[np.linspace(0, len(trajectory.poses) - 1, n_frames).astype(int)]
+    rng = np.random.default_rng(cfg.seed)
+    camera.render(poses[0], elevation, rng)  # warm-up: the scene's BVH is built on the first query
+    times_ms = []
+    start = time.perf_counter()
+    for pose in progress_bar(poses, desc="rendering", unit="frame"):
+        t = time.perf_counter()
+        camera.render(pose, elevation, rng)
+        times_ms.append((time.perf_counter() - t) * 1000)
+    total = time.perf_counter() - start
+    k = camera.intrinsics
+    return {
+        "building": Path(prior.source_file).name,
+        "width": k.width,
+        "height": k.height,
+        "n_frames": n_frames,
+        "frames_per_s": n_frames / total,
+        "median_ms": statistics.median(times_ms),
+        "p90_ms": float(np.percentile(times_ms, 90)),
+        "instances": len(world.instances),
+        "triangles": sum(len(m.faces) for m in world.meshes),
+        "world_build_s": world_s,
+    }

@@ -1,0 +1,464 @@
+"""Robot trajectories through the building: room-to-room goals, grid path planning, pure-pursuit driving.
+
+The robot drives on a storey's indoor free space: the prior's navigable layer (rooms, clearance ≥ robot
+radius) joined through its doorways. Paths are planned by Dijkstra on a coarse graph (one node per 0.2 m
+block, at the block's cell farthest from obstacles; edges checked at full resolution, cost grown near
+obstacles closer than `inflation_m`), then shortcut at full resolution. A unicycle pure-pursuit controller
+with the robot's speed and turn-rate limits follows them; a keyframe is taken every `keyframe_distance_m`
+of travel or `keyframe_angle_deg` of turn, and a trajectory has exactly T keyframes: when a goal is reached
+first, a next goal in another room is chosen.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
+
+from bimfactor.bim.grid import GridSpec, rasterise_polygons
+from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.rooms import OUTSIDE
+from bimfactor.config import Config, load_config
+from bimfactor.errors import BimfactorError, InputError
+from bimfactor.types import wrap_angle
+
+log = logging.getLogger(__name__)
+
+PLANNING_CELL_M = 0.2  # side of a coarse planning block
+LOW_CLEARANCE_COST = 10.0  # extra cost per metre at zero clearance margin below inflation_m (linear in deficit)
+DOOR_APPROACH_M = 0.5  # a doorway's free cells reach this far beyond the door on both sides
+MIN_ROOM_NODES = 25  # rooms with fewer planning nodes (1 m² at 0.2 m) are no start or goal (closets)
+FIRST_GOAL_BUDGET = 0.6  # a goal lies within this share of the travel the remaining keyframes allow
+MIN_GOAL_BUDGET_M = 5.0
+GOAL_TOLERANCE_M = 0.15
+SLOWDOWN_DISTANCE_M = 0.8  # the robot slows down linearly within this distance of a goal
+MIN_SPEED_MPS = 0.1
+ROTATE_IN_PLACE_RAD = math.radians(45.0)  # heading errors beyond this are turned out on the spot
+MIN_LOOKAHEAD_M = 0.2
+START_HEADING_STD_RAD = math.radians(20.0)
+LEG_TIME_FACTOR = 4.0  # a leg that takes this many times its nominal duration is abandoned
+MAX_LEGS_PER_STEP = 5  # a trajectory needing more legs than this per keyframe is stuck
+_START_ORDER_STREAM = 0x57A7
+_TRAJECTORY_STREAM = 0x7A1
+
+
+class SimulationError(BimfactorError):
+    """The simulated robot could not complete its trajectory (a planning or control failure)."""
+
+
+@dataclass
+class SimTrajectory:
+    """Ground truth of one simulated drive on one storey.
+
+    `poses` (K, 3) T_world_base at `times_s` (K,), every control step; `commands` (K, 2) the (v, ω) commanded
+    from times_s[i] to times_s[i+1] (the last is zero); `keyframe_indices` (T,) the steps where frames are taken.
+    """
+
+    index: int
+    seed: int
+    storey_index: int
+    times_s: np.ndarray
+    poses: np.ndarray
+    commands: np.ndarray
+    keyframe_indices: np.ndarray
+    goals: list[dict] = field(default_factory=list)
+
+    @property
+    def keyframe_poses(self) -> np.ndarray:
+        """(T, 3) ground-truth T_world_base at the keyframes."""
+        return self.poses[self.keyframe_indices]
+
+    @property
+    def keyframe_times_s(self) -> np.ndarray:
+        return self.times_s[self.keyframe_indices]
+
+
+# ------------------------------------------------------------------------------------------ planning graph
+
+
+@dataclass
+class NavGraph:
+    """The coarse planning graph of one storey over its full-resolution traversable mask.
+
+    Nodes: `node_xy` (M, 2) world, `node_clearance` (M,), `node_room` (M,) room id (< 0: doorway or no room),
+    `node_component` (M,); `graph` (M, M) sparse edge costs. `traversable` and `clearance_m` are (rows, cols).
+    """
+
+    storey_index: int
+    spec: GridSpec
+    traversable: np.ndarray
+    clearance_m: np.ndarray
+    node_xy: np.ndarray
+    node_clearance: np.ndarray
+    node_room: np.ndarray
+    node_component: np.ndarray
+    graph: sparse.csr_matrix
+    inflation_m: float
+    _tree: cKDTree | None = field(default=None, repr=False)
+
+    def nearest_node(self, xy: np.ndarray) -> int:
+        if self._tree is None:
+            self._tree = cKDTree(self.node_xy)
+        return int(self._tree.query(np.asarray(xy, float))[1])
+
+    def shortest_paths(self, sources: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) cost to the nearest source and (M,) predecessors (-9999 at sources and unreachable nodes)."""
+        dist, pred, _ = csgraph.dijkstra(
+            self.graph, directed=True, indices=sources, return_predecessors=True, min_only=True
+        )
+        return dist, pred
+
+    def clearance_at(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) clearance at (N, 2) world points; 0 off the traversable space."""
+        rc = self.spec.world_to_cell(xy)
+        ok = self.spec.contains(rc)
+        out = np.zeros(len(rc), np.float32)
+        r, c = rc[ok, 0], rc[ok, 1]
+        out[ok] = np.where(self.traversable[r, c], self.clearance_m[r, c], 0.0)
+        return out
+
+    def segment_min_clearance(self, a: np.ndarray, b: np.ndarray) -> float:
+        """Smallest clearance along the straight segment a→b at full resolution (0 if it leaves free space)."""
+        length = float(np.hypot(*(b - a)))
+        n = max(2, math.ceil(length / (0.5 * self.spec.resolution_m)) + 1)
+        t = np.linspace(0.0, 1.0, n)[:, None]
+        return float(self.clearance_at(a + t * (b - a)).min())
+
+    def plan(self, start_xy: np.ndarray, pred: np.ndarray, goal_node: int) -> np.ndarray:
+        """(P, 2) shortcut polyline from `start_xy` to the goal node along a Dijkstra predecessor tree."""
+        nodes = [goal_node]
+        while pred[nodes[-1]] >= 0:
+            nodes.append(int(pred[nodes[-1]]))
+        nodes.reverse()
+        points = np.vstack([np.asarray(start_xy, float)[None], self.node_xy[nodes]])
+        return self._shortcut(points)
+
+    def _shortcut(self, points: np.ndarray) -> np.ndarray:
+        """String pulling: skip vertices while the straight line keeps the clearance the path had (≤ inflation)."""
+        clearance = self.clearance_at(points)
+        out, i = [points[0]], 0
+        while i < len(points) - 1:
+            j = i + 1
+            while j + 1 < len(points):
+                need = min(self.inflation_m, float(clearance[i : j + 2].min()))
+                if self.segment_min_clearance(points[i], points[j + 1]) < need - 1e-6:
+                    break
+                j += 1
+            out.append(points[j])
+            i = j
+        return np.asarray(out)
+
+
+def traversable_mask(
+    prior: BimPrior, storey_index: int, robot_radius_m: float, extra_obstacles: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) bool indoor free space a robot centre may occupy (navigable rooms joined by their doorways),
+    and the (rows, cols) clearance in metres, with `extra_obstacles` (rows, cols) bool counted as obstacles."""
+    layers, spec = prior.storeys[storey_index], prior.grid
+    clearance = layers.clearance_m
+    if extra_obstacles is not None and extra_obstacles.any():
+        extra = ndimage.distance_transform_edt(~extra_obstacles) * spec.resolution_m
+        clearance = np.minimum(clearance, extra.astype(np.float32))
+    free = (clearance >= robot_radius_m) & (layers.room_labels != OUTSIDE)
+    doorways = np.zeros(spec.shape, np.uint8)
+    for door in prior.doors:
+        if door.storey_index != storey_index:
+            continue
+        c, u = np.asarray(door.center_xy), np.asarray(door.axis_xy)
+        n = np.array([-u[1], u[0]]) * (door.depth_m / 2 + DOOR_APPROACH_M)
+        u = u * door.width_m / 2
+        rasterise_polygons([np.array([c - u - n, c + u - n, c + u + n, c - u + n])], spec, out=doorways)
+    return free & (layers.navigable | doorways.astype(bool)), clearance
+
+
+def build_nav_graph(
+    prior: BimPrior,
+    storey_index: int,
+    robot_radius_m: float,
+    inflation_m: float,
+    extra_obstacles: np.ndarray | None = None,
+) -> NavGraph:
+    """The coarse planning graph of a storey (see module docstring)."""
+    spec = prior.grid
+    traversable, clearance = traversable_mask(prior, storey_index, robot_radius_m, extra_obstacles)
+    f = max(1, round(PLANNING_CELL_M / spec.resolution_m))
+    rows_c, cols_c = -(-spec.rows // f), -(-spec.cols // f)
+    score = np.full((rows_c * f, cols_c * f), -1.0, np.float32)
+    score[: spec.rows, : spec.cols] = np.where(traversable, clearance, -1.0)
+    blocks = score.reshape(rows_c, f, cols_c, f).transpose(0, 2, 1, 3).reshape(rows_c, cols_c, f * f)
+    best = blocks.argmax(axis=2)
+    exists = np.take_along_axis(blocks, best[..., None], axis=2)[..., 0] >= 0
+    block_node = np.full((rows_c, cols_c), -1, np.int64)
+    block_node[exists] = np.arange(int(exists.sum()))
+    br, bc = np.nonzero(exists)
+    node_rc = np.stack([br * f + best[br, bc] // f, bc * f + best[br, bc] % f], axis=1)
+    node_xy = spec.cell_to_world(node_rc)
+    node_clearance = clearance[node_rc[:, 0], node_rc[:, 1]]
+    node_room = prior.storeys[storey_index].room_labels[node_rc[:, 0], node_rc[:, 1]].astype(np.int32)
+
+    # Edges to the 8 neighbour blocks whose straight line stays traversable at full resolution.
+    samples = 2 * f + 1
+    t = np.linspace(0.0, 1.0, samples)
+    heads, tails, costs = [], [], []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = block_node[: rows_c - dr, max(0, -dc) : cols_c - max(0, dc)]
+        b = block_node[dr:, max(0, dc) : cols_c + min(0, dc)]
+        ok = (a >= 0) & (b >= 0)
+        a, b = a[ok], b[ok]
+        pa, pb = node_rc[a].astype(float), node_rc[b].astype(float)
+        line = np.rint(pa[:, None, :] + t[None, :, None] * (pb - pa)[:, None, :]).astype(np.int64)
+        on_free = traversable[line[..., 0], line[..., 1]].all(axis=1)
+        low = clearance[line[..., 0], line[..., 1]].min(axis=1)
+        a, b, low = a[on_free], b[on_free], low[on_free]
+        length = np.hypot(*(node_xy[b] - node_xy[a]).T)
+        deficit = np.clip((inflation_m - low) / max(inflation_m, 1e-9), 0.0, None)
+        heads.append(a)
+        tails.append(b)
+        costs.append(length * (1.0 + LOW_CLEARANCE_COST * deficit))
+    a, b, w = np.concatenate(heads), np.concatenate(tails), np.concatenate(costs)
+    m = len(node_xy)
+    graph = sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(m, m))
+    _, component = csgraph.connected_components(graph, directed=False)
+    return NavGraph(
+        storey_index, spec, traversable, clearance, node_xy, node_clearance, node_room, component, graph, inflation_m
+    )
+
+
+# ------------------------------------------------------------------------------------------ trajectories
+
+
+class TrajectorySimulator:
+    """Plans and drives trajectories on a prior; holds the planning graphs of its storeys."""
+
+    def __init__(self, prior: BimPrior, cfg: Config, extra_obstacles: dict[int, np.ndarray] | None = None) -> None:
+        self.prior = prior
+        self.cfg = cfg
+        tcfg = cfg.sim.trajectory
+        radius = cfg.bim.grid.robot_radius_m
+        self.graphs: dict[int, NavGraph] = {}
+        self.rooms: dict[tuple[int, int], list[int]] = {}  # (storey, component) → usable rooms
+        for layers in prior.storeys:
+            if not layers.navigable.any():
+                continue
+            index = layers.storey.index
+            extra = (extra_obstacles or {}).get(index)
+            graph = build_nav_graph(prior, index, radius, max(tcfg.inflation_m, radius), extra)
+            self.graphs[index] = graph
+            for comp in np.unique(graph.node_component):
+                in_comp = (graph.node_component == comp) & (graph.node_room >= 0)
+                ids, counts = np.unique(graph.node_room[in_comp], return_counts=True)
+                usable = [int(r) for r, n in zip(ids, counts, strict=True) if n >= MIN_ROOM_NODES]
+                if len(usable) >= 2:
+                    self.rooms[(index, int(comp))] = usable
+        if not self.rooms:
+            raise InputError(
+                f"{prior.source_file}: no storey has two rooms joined by a doorway; nothing to drive between"
+            )
+        lookahead = 2 * math.sqrt(2) * (max(tcfg.inflation_m, radius) - radius)  # corner cut ≤ inflation margin
+        self.lookahead_m = max(MIN_LOOKAHEAD_M, lookahead)
+
+    def start_rooms(self, seed: int) -> list[tuple[int, int, int]]:
+        """(storey, component, room) of every usable room, in the seed's order, alternating between components."""
+        rng = np.random.default_rng([seed, _START_ORDER_STREAM])
+        groups = [[(s, c, r) for r in rng.permutation(rooms)] for (s, c), rooms in sorted(self.rooms.items())]
+        groups = [groups[i] for i in rng.permutation(len(groups))]
+        order = []
+        for k in range(max(len(g) for g in groups)):
+            order.extend(g[k] for g in groups if k < len(g))
+        return [(int(s), int(c), int(r)) for s, c, r in order]
+
+    def trajectory(self, index: int, seed: int) -> SimTrajectory:
+        """Trajectory `index` for `seed` (bit-for-bit reproducible): starts in the index-th room of the seed's order."""
+        order = self.start_rooms(seed)
+        storey, comp, room = order[index % len(order)]
+        rng = np.random.default_rng([seed, index, _TRAJECTORY_STREAM])
+        graph = self.graphs[storey]
+        rooms = self.rooms[(storey, comp)]
+        tcfg, steps = self.cfg.sim.trajectory, self.cfg.evaluation.trajectory_length
+
+        # Start: a roomy node of the start room from which another room lies within the first goal's budget.
+        budget = max(FIRST_GOAL_BUDGET * steps * tcfg.keyframe_distance_m, MIN_GOAL_BUDGET_M)
+        in_comp = graph.node_component == comp
+        others = np.flatnonzero(in_comp & np.isin(graph.node_room, [r for r in rooms if r != room]))
+        to_other, _ = graph.shortest_paths(others)
+        in_room = np.flatnonzero(in_comp & (graph.node_room == room))
+        roomy = in_room[graph.node_clearance[in_room] >= graph.inflation_m]
+        candidates = roomy if len(roomy) else in_room
+        near = candidates[to_other[candidates] <= budget / 2]
+        if len(near) == 0:
+            near = candidates[to_other[candidates] <= np.quantile(to_other[candidates], 0.1)]
+        start_node = int(near[rng.integers(len(near))])
+        driver = _Driver(self, graph, rng, steps)
+        driver.run(start_node, rooms)
+        return SimTrajectory(
+            index=index,
+            seed=seed,
+            storey_index=storey,
+            times_s=np.asarray(driver.times),
+            poses=np.asarray(driver.poses),
+            commands=np.asarray(driver.commands),
+            keyframe_indices=np.asarray(driver.keyframes, np.int64),
+            goals=driver.goals,
+        )
+
+
+class _Driver:
+    """Drives one trajectory: picks goals, plans, follows with pure pursuit, takes keyframes."""
+
+    def __init__(self, sim: TrajectorySimulator, graph: NavGraph, rng: np.random.Generator, steps: int) -> None:
+        self.sim, self.graph, self.rng, self.steps = sim, graph, rng, steps
+        robot, tcfg = sim.cfg.sim.robot, sim.cfg.sim.trajectory
+        self.dt = robot.control_dt_s
+        self.v_max = robot.max_speed_mps
+        self.w_max = math.radians(robot.max_turn_rate_deg_s)
+        self.kf_distance = tcfg.keyframe_distance_m
+        self.kf_angle = math.radians(tcfg.keyframe_angle_deg)
+        self.min_goal_distance = tcfg.min_start_goal_m
+        self.times: list[float] = []
+        self.poses: list[tuple[float, float, float]] = []
+        self.commands: list[tuple[float, float]] = []
+        self.keyframes: list[int] = []
+        self.goals: list[dict] = []
+
+    def run(self, start_node: int, rooms: list[int]) -> None:
+        """Drive from `start_node` to goals in `rooms` (other than the current one) until T keyframes are taken."""
+        graph, node = self.graph, start_node
+        pose = None
+        for _ in range(MAX_LEGS_PER_STEP * self.steps):
+            if len(self.keyframes) >= self.steps:
+                return
+            xy = graph.node_xy[node] if pose is None else np.array(pose[:2])
+            dist, pred = graph.shortest_paths(node)
+            goal = self._pick_goal(xy, int(graph.node_room[node]), dist, rooms)
+            path = graph.plan(xy, pred, goal)
+            self.goals.append({"room_id": int(graph.node_room[goal]), "xy": [float(v) for v in graph.node_xy[goal]]})
+            if pose is None:
+                d = path[min(1, len(path) - 1)] - path[0]
+                yaw = math.atan2(d[1], d[0]) + self.rng.normal(0.0, START_HEADING_STD_RAD)
+                pose = (float(xy[0]), float(xy[1]), float(wrap_angle(yaw)))
+                self._log(pose, keyframe=True)
+            pose = self._follow(pose, path)
+            node = goal if np.hypot(*(np.array(pose[:2]) - graph.node_xy[goal])) < 0.5 else graph.nearest_node(pose[:2])
+        raise SimulationError(f"the robot got stuck: {len(self.keyframes)} of {self.steps} keyframes after many goals")
+
+    def _pick_goal(self, xy: np.ndarray, current_room: int, dist: np.ndarray, rooms: list[int]) -> int:
+        """A node in another room: preferably ≥ min_start_goal_m away and within the remaining travel budget."""
+        graph = self.graph
+        remaining = self.steps - len(self.keyframes)
+        budget = max(FIRST_GOAL_BUDGET * remaining * self.kf_distance, MIN_GOAL_BUDGET_M)
+        nodes = np.flatnonzero(np.isin(graph.node_room, [r for r in rooms if r != current_room]) & np.isfinite(dist))
+        roomy = nodes[graph.node_clearance[nodes] >= graph.inflation_m]
+        nodes = roomy if len(roomy) else nodes
+        far = np.hypot(*(graph.node_xy[nodes] - xy).T) >= self.min_goal_distance
+        within = dist[nodes] <= budget
+        for pick in (far & within, within, far, np.ones(len(nodes), bool)):
+            if pick.any():
+                nodes = nodes[pick]
+                break
+        room_choice = self.rng.choice(np.unique(graph.node_room[nodes]))
+        nodes = nodes[graph.node_room[nodes] == room_choice]
+        return int(nodes[self.rng.integers(len(nodes))])
+
+    def _follow(self, pose: tuple[float, float, float], path: np.ndarray) -> tuple[float, float, float]:
+        """Pure pursuit along `path` (P, 2) until the goal is reached or all keyframes are taken."""
+        seg = np.diff(path, axis=0)
+        seg_len = np.hypot(seg[:, 0], seg[:, 1])
+        s_start = np.concatenate([[0.0], np.cumsum(seg_len)])
+        total = float(s_start[-1])
+        goal = path[-1]
+        progress = 0.0
+        nominal = total / self.v_max + 2 * math.pi / self.w_max
+        max_steps = int(LEG_TIME_FACTOR * nominal / self.dt) + 1
+        for _ in range(max_steps):
+            x, y, _ = pose
+            if math.hypot(goal[0] - x, goal[1] - y) < GOAL_TOLERANCE_M or len(self.keyframes) >= self.steps:
+                return pose
+            progress = self._progress(np.array([x, y]), path, seg, seg_len, s_start, progress)
+            target = self._point_at(path, seg, seg_len, s_start, min(progress + self.sim.lookahead_m, total))
+            v, w = self._command(pose, target, math.hypot(goal[0] - x, goal[1] - y))
+            self.commands[-1] = (v, w)
+            pose = _integrate(pose, v, w, self.dt)
+            self._log(pose, keyframe=self._is_keyframe(pose))
+        log.warning("trajectory leg of %.1f m not finished in %d steps; choosing a new goal", total, max_steps)
+        return pose
+
+    @staticmethod
+    def _progress(p, path, seg, seg_len, s_start, progress: float) -> float:
+        """Arc length of the closest path point near the current progress (never going back)."""
+        window = (s_start[:-1] <= progress + 1.0) & (s_start[1:] >= progress - 0.05)
+        idx = np.flatnonzero(window)
+        if len(idx) == 0:
+            return progress
+        rel = p - path[idx]
+        t = np.clip(np.einsum("ij,ij->i", rel, seg[idx]) / np.maximum(seg_len[idx] ** 2, 1e-12), 0.0, 1.0)
+        closest = path[idx] + t[:, None] * seg[idx]
+        k = int(np.argmin(np.hypot(*(closest - p).T)))
+        return max(progress, float(s_start[idx[k]] + t[k] * seg_len[idx[k]]))
+
+    @staticmethod
+    def _point_at(path, seg, seg_len, s_start, s: float) -> np.ndarray:
+        k = int(np.clip(np.searchsorted(s_start, s, side="right") - 1, 0, len(seg) - 1))
+        return path[k] + seg[k] * ((s - s_start[k]) / max(seg_len[k], 1e-12))
+
+    def _command(self, pose, target: np.ndarray, goal_distance: float) -> tuple[float, float]:
+        """Unicycle pure pursuit with speed and turn-rate limits; large heading errors are turned on the spot."""
+        x, y, yaw = pose
+        dx, dy = target[0] - x, target[1] - y
+        lookahead = math.hypot(dx, dy)
+        if lookahead < 1e-9:
+            return 0.0, 0.0
+        alpha = float(wrap_angle(math.atan2(dy, dx) - yaw))
+        if abs(alpha) > ROTATE_IN_PLACE_RAD:
+            return 0.0, math.copysign(min(self.w_max, abs(alpha) / self.dt), alpha)
+        curvature = 2.0 * math.sin(alpha) / lookahead
+        v = self.v_max * min(1.0, max(goal_distance / SLOWDOWN_DISTANCE_M, MIN_SPEED_MPS / self.v_max))
+        if abs(v * curvature) > self.w_max:
+            v = self.w_max / abs(curvature)
+        return v, v * curvature
+
+    def _is_keyframe(self, pose) -> bool:
+        last = self.poses[self.keyframes[-1]]
+        moved = math.hypot(pose[0] - last[0], pose[1] - last[1])
+        turned = abs(float(wrap_angle(pose[2] - last[2])))
+        return moved >= self.kf_distance or turned >= self.kf_angle
+
+    def _log(self, pose, keyframe: bool) -> None:
+        self.times.append(len(self.times) * self.dt)
+        self.poses.append(pose)
+        self.commands.append((0.0, 0.0))
+        if keyframe:
+            self.keyframes.append(len(self.poses) - 1)
+
+
+def _integrate(pose: tuple[float, float, float], v: float, w: float, dt: float) -> tuple[float, float, float]:
+    """Exact unicycle motion for one step of constant (v, ω): the arc's chord, in a form stable for small ω."""
+    x, y, yaw = pose
+    half_turn = w * dt / 2
+    chord = v * dt * (math.sin(half_turn) / half_turn if abs(half_turn) > 1e-12 else 1.0)
+    heading = yaw + half_turn
+    return x + chord * math.cos(heading), y + chord * math.sin(heading), float(wrap_angle(yaw + w * dt))
+
+
+def make_trajectory(
+    prior: BimPrior,
+    cfg: Config,
+    index: int,
+    seed: int,
+    extra_obstacles: dict[int, np.ndarray] | None = None,
+) -> SimTrajectory:
+    """One trajectory (see `TrajectorySimulator.trajectory`); `extra_obstacles` maps storey → (rows, cols) bool."""
+    return TrajectorySimulator(prior, cfg, extra_obstacles).trajectory(index, seed)
+
+
+def standard_trajectories(prior: BimPrior, n: int = 6, seed: int = 0, cfg: Config | None = None) -> list[SimTrajectory]:
+    """The n benchmark trajectories of a prior for a seed, with distinct starts (different rooms where possible).
+
+    `cfg` defaults to the default configuration (configs/default.yaml).
+    """
+    sim = TrajectorySimulator(prior, cfg if cfg is not None else load_config())
+    return [sim.trajectory(k, seed) for k in range(n)]

@@ -1,0 +1,106 @@
+"""Whole simulated sequences: frames and metadata, reproducibility, as-built worlds, and loading the inputs."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bimfactor.errors import InputError
+from bimfactor.sim.simulate import SimResult, benchmark_render, load_world_inputs, simulate_sequence
+from bimfactor.types import CameraIntrinsics, se2_between
+
+from .conftest import Building, config_with
+
+SMALL_CAMERA = ["sim.camera.width=64", "sim.camera.height=48"]
+
+
+@pytest.fixture(scope="module")
+def sequence(paper_floor: Building) -> SimResult:
+    return simulate_sequence(paper_floor.prior, paper_floor.model, paper_floor.cfg, 1, seed=0, progress=False)
+
+
+def test_sequence_frames_and_meta(paper_floor: Building, sequence: SimResult) -> None:
+    cfg = paper_floor.cfg
+    cam = cfg.sim.camera
+    meta, frames, trajectory = sequence.meta, sequence.frames, sequence.trajectory
+    assert len(frames) == cfg.evaluation.trajectory_length
+    assert meta.source == "sim" and meta.prior_sha256 == paper_floor.prior.source_sha256
+    assert meta.intrinsics == CameraIntrinsics.from_hfov(cam.width, cam.height, cam.hfov_deg)
+    assert meta.T_base_camera.shape == (4, 4)
+    assert meta.extras["trajectory_index"] == 1 and meta.extras["seed"] == 0
+    assert meta.extras["as_built_changes"] == []
+    json.dumps(meta.extras)  # plain data, ready for the sequence writer
+    ids = {rec["id"] for rec in meta.instances}
+    for i, frame in enumerate(frames):
+        assert frame.index == i and frame.gt_storey == trajectory.storey_index
+        assert frame.rgb.shape == (cam.height, cam.width, 3) and frame.rgb.dtype == np.uint8
+        assert frame.depth_m.shape == (cam.height, cam.width) and frame.depth_m.dtype == np.float32
+        assert frame.instance_ids.dtype == np.int32
+        assert set(np.unique(frame.instance_ids).tolist()) <= ids | {-1}
+        np.testing.assert_array_equal(frame.gt_pose, trajectory.keyframe_poses[i])
+    np.testing.assert_array_equal(frames[0].odom_pose, [0.0, 0.0, 0.0])
+    assert np.all(np.diff([f.timestamp_s for f in frames]) > 0)
+    # Odometry drifts, but each increment stays close to the true one.
+    gt = np.asarray([f.gt_pose for f in frames])
+    odom = np.asarray([f.odom_pose for f in frames])
+    error = se2_between(odom[:-1], odom[1:]) - se2_between(gt[:-1], gt[1:])
+    assert 0 < np.abs(error[:, :2]).max() < 0.5
+
+
+def test_sequence_reproducible(paper_floor: Building, config_overrides: list[str]) -> None:
+    cfg = config_with(config_overrides, *SMALL_CAMERA)
+    first, again, other = (
+        simulate_sequence(paper_floor.prior, paper_floor.model, cfg, 2, seed=s, progress=False) for s in (0, 0, 1)
+    )
+    for a, b in zip(first.frames, again.frames, strict=True):
+        assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth_m, b.depth_m, equal_nan=True)
+        assert np.array_equal(a.odom_pose, b.odom_pose) and np.array_equal(a.instance_ids, b.instance_ids)
+    assert not np.array_equal(first.frames[5].gt_pose, other.frames[5].gt_pose)
+
+
+def test_as_built_sequence_drives_around_the_clutter(paper_floor: Building, config_overrides: list[str]) -> None:
+    overrides = [*SMALL_CAMERA, "sim.as_built.clutter_count=5", "sim.as_built.moved_fraction=0.3"]
+    cfg = config_with(config_overrides, *overrides)
+    result = simulate_sequence(paper_floor.prior, paper_floor.model, cfg, 0, seed=0, progress=False)
+    clutter = [c for c in result.meta.extras["as_built_changes"] if c["kind"] == "clutter"]
+    assert len(clutter) == 5
+    json.dumps(result.meta.extras)
+    assert any(c["kind"] == "moved" for c in result.meta.extras["as_built_changes"])
+    xy = result.trajectory.poses[:, :2]
+    margin = cfg.bim.grid.robot_radius_m - paper_floor.prior.grid.resolution_m
+    for box in clutter:
+        c, s = np.cos(box["yaw_rad"]), np.sin(box["yaw_rad"])
+        local = (xy - box["position_m"][:2]) @ np.array([[c, -s], [s, c]])
+        outside = np.maximum(np.abs(local) - np.asarray(box["size_m"][:2]) / 2, 0.0)
+        assert np.hypot(outside[:, 0], outside[:, 1]).min() >= margin
+
+
+def test_load_world_inputs_checks_the_ifc(paper_floor: Building, tmp_path: Path) -> None:
+    ifc = tmp_path / "building.ifc"
+    shutil.copy(paper_floor.ifc_path, ifc)
+    prior_dir = tmp_path / "prior"
+    paper_floor.prior.save(prior_dir)
+    meta_file = prior_dir / "prior.json"
+    meta = json.loads(meta_file.read_text())
+    meta["source_file"] = str(ifc)
+    meta_file.write_text(json.dumps(meta))
+    prior, model = load_world_inputs(prior_dir, paper_floor.cfg)
+    assert model.sha256 == prior.source_sha256 and len(model.elements) == len(paper_floor.model.elements)
+    with ifc.open("ab") as fh:
+        fh.write(b"/* edited */\n")
+    with pytest.raises(InputError, match="changed since the prior"):
+        load_world_inputs(prior_dir, paper_floor.cfg)
+    ifc.unlink()
+    with pytest.raises(InputError, match="is missing"):
+        load_world_inputs(prior_dir, paper_floor.cfg)
+
+
+def test_benchmark_render_reports(paper_floor: Building, config_overrides: list[str]) -> None:
+    cfg = config_with(config_overrides, *SMALL_CAMERA)
+    report = benchmark_render(paper_floor.prior, paper_floor.model, cfg, n_frames=4)
+    assert report["n_frames"] == 4 and (report["width"], report["height"]) == (64, 48)
+    assert report["frames_per_s"] > 0 and report["median_ms"] > 0

@@ -1,0 +1,97 @@
+"""Trajectories: on indoor free space, room to room, T keyframes, distinct starts, reproducible, within limits."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from bimfactor.bim.rooms import NO_ROOM, OUTSIDE
+from bimfactor.sim.trajectory import SimTrajectory, standard_trajectories
+
+from .conftest import Building
+
+DOORWAY_REACH_M = 1.0  # a pose in no room must be this close to a door of its storey
+
+
+def test_every_pose_on_indoor_free_space(building: Building, six_trajectories: list[SimTrajectory]) -> None:
+    prior, spec = building.prior, building.prior.grid
+    min_clearance = building.cfg.bim.grid.robot_radius_m - spec.resolution_m
+    for trajectory in six_trajectories:
+        layers = prior.storeys[trajectory.storey_index]
+        rc = spec.world_to_cell(trajectory.poses[:, :2])
+        assert spec.contains(rc).all()
+        clearance = layers.clearance_m[rc[:, 0], rc[:, 1]]
+        labels = layers.room_labels[rc[:, 0], rc[:, 1]]
+        assert clearance.min() >= min_clearance, f"trajectory {trajectory.index} comes within {clearance.min():.3f} m"
+        assert (labels != OUTSIDE).all()
+        in_room = labels >= 0
+        assert layers.navigable[rc[in_room, 0], rc[in_room, 1]].all()
+        # Poses in no room are in doorways: close to a door of the storey.
+        doors = np.asarray([d.center_xy for d in prior.doors if d.storey_index == trajectory.storey_index])
+        between = trajectory.poses[labels == NO_ROOM, :2]
+        if len(between):
+            gap = np.linalg.norm(between[:, None, :] - doors[None], axis=2).min(axis=1)
+            assert gap.max() <= DOORWAY_REACH_M
+
+
+def test_each_trajectory_visits_two_rooms_in_exactly_t_steps(
+    building: Building, six_trajectories: list[SimTrajectory]
+) -> None:
+    steps = building.cfg.evaluation.trajectory_length
+    for trajectory in six_trajectories:
+        assert len(trajectory.keyframe_indices) == steps == 50
+        rooms = building.prior.room_at(trajectory.keyframe_poses[:, :2], trajectory.storey_index)
+        assert len(set(rooms[rooms >= 0].tolist())) >= 2, f"trajectory {trajectory.index} stays in one room"
+
+
+def test_starts_are_distinct_rooms(building: Building, six_trajectories: list[SimTrajectory]) -> None:
+    starts = np.asarray([t.poses[0] for t in six_trajectories])
+    gaps = np.linalg.norm(starts[:, None, :2] - starts[None, :, :2], axis=2) + np.eye(len(starts)) * 1e9
+    assert gaps.min() > 0.5
+    rooms = [int(building.prior.room_at(t.poses[:1, :2], t.storey_index)[0]) for t in six_trajectories]
+    assert len(set(rooms)) == len(rooms), rooms  # both buildings have more than six usable rooms
+
+
+def test_keyframes_every_distance_or_angle(building: Building, six_trajectories: list[SimTrajectory]) -> None:
+    tcfg, robot = building.cfg.sim.trajectory, building.cfg.sim.robot
+    max_step_m = robot.max_speed_mps * robot.control_dt_s
+    max_turn = math.radians(robot.max_turn_rate_deg_s) * robot.control_dt_s
+    for trajectory in six_trajectories:
+        kf = trajectory.keyframe_poses
+        moved = np.linalg.norm(np.diff(kf[:, :2], axis=0), axis=1)
+        turned = np.abs((np.diff(kf[:, 2]) + np.pi) % (2 * np.pi) - np.pi)
+        assert np.all((moved >= tcfg.keyframe_distance_m) | (turned >= math.radians(tcfg.keyframe_angle_deg)))
+        assert np.all(moved <= tcfg.keyframe_distance_m + max_step_m + 1e-9)
+        assert np.all(turned <= math.radians(tcfg.keyframe_angle_deg) + max_turn + 1e-9)
+        assert trajectory.keyframe_indices[0] == 0
+        assert np.all(np.diff(trajectory.keyframe_times_s) > 0)
+
+
+def test_commands_within_limits_and_integrate_to_the_poses(
+    building: Building, six_trajectories: list[SimTrajectory]
+) -> None:
+    robot = building.cfg.sim.robot
+    for trajectory in six_trajectories:
+        v, w = trajectory.commands.T
+        assert v.min() >= 0 and v.max() <= robot.max_speed_mps + 1e-9
+        assert np.abs(w).max() <= math.radians(robot.max_turn_rate_deg_s) + 1e-9
+        # Independent midpoint integration of the commands reproduces the poses.
+        p, dt = trajectory.poses, robot.control_dt_s
+        mid = p[:-1, 2] + w[:-1] * dt / 2
+        step = v[:-1] * dt * np.sinc(w[:-1] * dt / 2 / np.pi)
+        predicted = p[:-1, :2] + step[:, None] * np.column_stack([np.cos(mid), np.sin(mid)])
+        assert np.abs(predicted - p[1:, :2]).max() < 1e-9
+        turn = (p[1:, 2] - p[:-1, 2] - w[:-1] * dt + np.pi) % (2 * np.pi) - np.pi
+        assert np.abs(turn).max() < 1e-9
+        np.testing.assert_allclose(np.diff(trajectory.times_s), dt)
+
+
+def test_reproducible_per_seed(building: Building, six_trajectories: list[SimTrajectory]) -> None:
+    again = standard_trajectories(building.prior, n=2, seed=0, cfg=building.cfg)
+    other = standard_trajectories(building.prior, n=2, seed=1, cfg=building.cfg)
+    for first, second, third in zip(six_trajectories[:2], again, other, strict=True):
+        assert np.array_equal(first.poses, second.poses)
+        assert np.array_equal(first.commands, second.commands)
+        assert np.array_equal(first.keyframe_indices, second.keyframe_indices)
+        assert first.poses.shape != third.poses.shape or not np.array_equal(first.poses, third.poses)
