@@ -245,7 +245,7 @@ def prior(
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
-        from bimfactor.bim.prior import BimPrior, build_prior
+        from bimfactor.bim.prior import BimPrior, build_prior, ensure_prior_destination
 
         if not model.exists():
             raise InputError(f"no such file or folder: {model}")
@@ -257,7 +257,7 @@ def prior(
             if model.suffix.lower() != ".ifc":
                 raise InputError(f"{model}: expected an .ifc file or a prior folder")
             out_dir = output if output is not None else DEFAULT_PRIOR_ROOT / model.stem
-            _check_replaceable(out_dir)
+            ensure_prior_destination(out_dir)
             started = time.perf_counter()
             built = build_prior(model, cfg)
             built.save(out_dir, config_yaml=cfg.dump_yaml())
@@ -269,14 +269,6 @@ def prior(
             typer.echo(json.dumps(summary, indent=2, ensure_ascii=False))
         else:
             typer.echo(_format_prior_summary(built, summary))
-
-
-def _check_replaceable(out_dir: Path) -> None:
-    """Saving replaces the whole folder: refuse a folder that holds anything but a prior."""
-    if out_dir.exists() and (
-        not out_dir.is_dir() or (any(out_dir.iterdir()) and not (out_dir / "prior.json").is_file())
-    ):
-        raise InputError(f"{out_dir} exists and is not a prior folder; choose another -o (it would be replaced)")
 
 
 def _prior_summary(built: BimPrior, out_dir: Path) -> dict[str, Any]:
@@ -413,6 +405,9 @@ def bench_prior(
     repeats: Annotated[
         int, typer.Option("--repeats", min=1, metavar="N", help="Timed reloads per prior (median).")
     ] = 5,
+    all_buildings: Annotated[
+        bool, typer.Option("--all", help="Every IFC building in ../shared/data/ifc instead of the default one.")
+    ] = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -426,14 +421,147 @@ def bench_prior(
     \b
     Examples:
       bimfactor bench prior
+      bimfactor bench prior --all
       bimfactor bench prior --ifc ../shared/data/ifc/duplex.ifc --ifc ../shared/data/ifc/SampleHouse4.ifc
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
         from bimfactor.evaluation.bench import default_prior_bench_files, format_prior_table, run_prior_bench
 
-        files = list(ifc) if ifc else default_prior_bench_files()
+        files = list(ifc) if ifc else default_prior_bench_files(all_buildings)
         result = run_prior_bench(files, cfg, output, reload_repeats=repeats)
         typer.echo(format_prior_table(result.rows))
         typer.echo(f"text encoder load (once, not in the builds): {result.embedder_load_s:.1f} s")
         typer.echo(f"results: {output / 'results.json'}")
+
+
+@bench_app.command("sim", short_help="Render speed of the RGB-D simulator (frames/s at the configured size).")
+def bench_sim(
+    ifc: Annotated[
+        list[Path] | None,
+        typer.Option("--ifc", metavar="PATH", help="IFC file (repeatable; default: paper-floor and duplex.ifc)."),
+    ] = None,
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
+        "runs/bench-sim"
+    ),
+    frames: Annotated[int, typer.Option("--frames", min=1, metavar="N", help="Frames rendered per building.")] = 200,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Time RGB + depth + instance-id rendering with the noise model, along trajectory 0 of each building.
+
+    \b
+    Examples:
+      bimfactor bench sim
+      bimfactor bench sim --ifc ../shared/data/ifc/AC11-Institute-Var-2-IFC.ifc --frames 100
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose)
+        from bimfactor.bim.synth import write_building
+        from bimfactor.evaluation.bench import run_sim_bench, shared_ifc_dir
+
+        if ifc:
+            files = list(ifc)
+        else:
+            output.mkdir(parents=True, exist_ok=True)
+            paper = output / "paper-floor.ifc"
+            write_building("paper-floor", cfg.seed, paper)
+            files = [paper, shared_ifc_dir() / "duplex.ifc"]
+        rows = run_sim_bench(files, cfg, output, n_frames=frames)
+        for row in rows:
+            typer.echo(
+                f"{row['building']:<32} {row['width']}x{row['height']}  {row['frames_per_s']:6.1f} frames/s  "
+                f"median {row['median_ms']:.1f} ms  p90 {row['p90_ms']:.1f} ms  ({row['triangles']} triangles)"
+            )
+        typer.echo(f"results: {output / 'results.json'}")
+
+
+# ------------------------------------------------------------------------------------------ sequences
+
+
+@app.command(short_help="Simulate an RGB-D + odometry sequence in a prior's building.")
+def simulate(
+    prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="SEQ_DIR", help="Sequence folder to write.")],
+    trajectory: Annotated[
+        int, typer.Option("--trajectory", "-k", min=0, metavar="K", help="Standard trajectory index (0-5).")
+    ] = 0,
+    seed: Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Drive the simulated robot along standard trajectory K and write the sequence and its preview.
+
+    The IFC file the prior was built from must still be where the prior says (its hash is checked).
+    Writes SEQ_DIR (sequence.json, frames.csv, rgb/, depth/, instances/, groundtruth.txt, odometry.txt,
+    config.yaml) and SEQ_DIR/preview.png.
+
+    \b
+    Examples:
+      bimfactor simulate runs/demo/prior -o runs/seq0 --trajectory 0 --seed 1
+      bimfactor simulate runs/prior/duplex -o runs/duplex-asbuilt --set sim.as_built.removed_fraction=0.2
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose)
+        written = _simulate_to_disk(prior_dir, output, cfg, trajectory, cfg.seed if seed is None else seed, overwrite)
+        typer.echo(written)
+
+
+def _simulate_to_disk(prior_dir: Path, output: Path, cfg: Config, trajectory: int, seed: int, overwrite: bool) -> str:
+    """Simulate, write the sequence atomically, then its config and preview; returns a one-line account."""
+    from bimfactor.io.atomic import write_text_atomic
+    from bimfactor.io.preview import write_preview
+    from bimfactor.io.sequence import read_sequence, write_sequence
+    from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
+
+    prior, model = load_world_inputs(prior_dir, cfg)
+    result = simulate_sequence(prior, model, cfg, trajectory, seed)
+    write_sequence(output, result.meta, result.frames, overwrite=overwrite)
+    write_text_atomic(output / "config.yaml", cfg.dump_yaml())
+    preview = write_preview(read_sequence(output), output / "preview.png")
+    rooms = {int(r) for r in prior.room_at(result.trajectory.poses[:, :2], result.trajectory.storey_index) if r >= 0}
+    return (
+        f"wrote {output}: {len(result.frames)} keyframes of trajectory {trajectory} (seed {seed}), "
+        f"{len(rooms)} rooms visited; preview {preview}"
+    )
+
+
+@app.command(short_help="Convert a TUM RGB-D folder or a ROS 2 bag into a bimfactor sequence.")
+def convert(
+    kind: Annotated[str, typer.Argument(metavar="KIND", help="tum or rosbag.")],
+    source: Annotated[Path, typer.Argument(metavar="SOURCE", help="TUM RGB-D folder or ROS 2 bag folder.")],
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="SEQ_DIR", help="Sequence folder to write.")],
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Read a recording (topics of a bag from the config's io.rosbag) and write it as a bimfactor sequence.
+
+    \b
+    Examples:
+      bimfactor convert tum rgbd_dataset_freiburg1_room -o runs/fr1-room
+      bimfactor convert rosbag my_bag -o runs/bag --set io.rosbag.odom_topic=/wheel/odom
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose)
+        from bimfactor.io.preview import write_preview
+        from bimfactor.io.rosbag import read_rosbag
+        from bimfactor.io.sequence import read_sequence, write_sequence
+        from bimfactor.io.tum import read_tum_rgbd
+
+        if kind == "tum":
+            sequence = read_tum_rgbd(source, max_sync_dt_s=cfg.io.tum_max_sync_dt_s)
+        elif kind == "rosbag":
+            sequence = read_rosbag(source, cfg.io.rosbag)
+        else:
+            raise InputError(f"unknown recording kind '{kind}' (expected tum or rosbag)")
+        write_sequence(output, sequence.meta, sequence, overwrite=overwrite)
+        preview = write_preview(read_sequence(output), output / "preview.png")
+        typer.echo(f"wrote {output}: {len(sequence)} frames from {kind} {source}; preview {preview}")

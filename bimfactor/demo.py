@@ -1,4 +1,4 @@
-"""The demo: a list of named steps from a procedural building to its BIM prior.
+"""The demo: a list of named steps from a procedural building to its BIM prior and a simulated sequence.
 
 Each step reads what earlier steps left in the `DemoContext`, writes its files under the output folder and
 returns one line that says what it did. Later stages (simulation, localization) are added as further steps.
@@ -32,6 +32,7 @@ class DemoContext:
     building: BuildingSpec | None = None
     prior_dir: Path | None = None
     prior: BimPrior | None = None
+    sequence_dir: Path | None = None
     figures: list[Path] = field(default_factory=list)
     step_seconds: dict[str, float] = field(default_factory=dict)
 
@@ -72,9 +73,25 @@ def _prior(ctx: DemoContext) -> str:
     )
 
 
+def _simulate(ctx: DemoContext) -> str:
+    from bimfactor.io.preview import write_preview
+    from bimfactor.io.sequence import read_sequence, write_sequence
+    from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
+
+    assert ctx.prior_dir is not None, "the simulate step needs the prior step's folder"
+    prior, model = load_world_inputs(ctx.prior_dir, ctx.cfg)
+    result = simulate_sequence(prior, model, ctx.cfg, trajectory_index=0, seed=ctx.cfg.seed)
+    ctx.sequence_dir = ctx.out_dir / "sequence"
+    write_sequence(ctx.sequence_dir, result.meta, result.frames, overwrite=True)
+    preview = write_preview(read_sequence(ctx.sequence_dir), ctx.sequence_dir / "preview.png")
+    ctx.figures.append(preview)
+    return f"wrote {ctx.sequence_dir}/: {len(result.frames)} RGB-D keyframes with odometry and ground truth"
+
+
 STEPS: tuple[DemoStep, ...] = (
     DemoStep("synth", _synth),
     DemoStep("prior", _prior),
+    DemoStep("simulate", _simulate),
 )
 
 

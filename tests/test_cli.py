@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from collections.abc import Callable
@@ -14,6 +15,7 @@ from typer.testing import CliRunner
 
 from bimfactor.cli import app
 from bimfactor.config import load_config
+from bimfactor.io.sequence import read_sequence
 
 runner = CliRunner()
 PRIOR_FILES = ("prior.json", "arrays.npz", "config.yaml", "floorplan_0.png")
@@ -273,9 +275,13 @@ def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: 
     for name in PRIOR_FILES:
         assert (out / "prior" / name).is_file(), name
     assert load_config(out / "config.yaml") == load_config(out / "prior" / "config.yaml")
-    assert result.stdout.startswith("[1/2] synth: ")
-    assert "[2/2] prior: " in result.stdout
+    assert result.stdout.startswith("[1/3] synth: ")
+    assert "[2/3] prior: " in result.stdout
+    assert "[3/3] simulate: wrote" in result.stdout
     assert f"figure: {out / 'prior' / 'floorplan_0.png'}" in result.stdout
+    assert f"figure: {out / 'sequence' / 'preview.png'}" in result.stdout
+    sequence = read_sequence(out / "sequence")
+    assert len(sequence) == 50 and sequence.ground_truth() is not None
 
 
 def test_bench_prior_writes_results(tmp_path: Path, ifc_file, cli_config_args: list[str]) -> None:
@@ -285,8 +291,8 @@ def test_bench_prior_writes_results(tmp_path: Path, ifc_file, cli_config_args: l
     )
     assert result.exit_code == 0, result.output
     header, _rule, row = result.stdout.splitlines()[:3]
-    assert header.split() == ["file", "storeys", "rooms", "objects", "cold", "build", "s", "reload", "s"]
-    assert row.split()[:4] == ["AC20-FZK-Haus.ifc", "2", "7", "16"]
+    assert header.split()[:5] == ["file", "storeys", "rooms", "doors", "objects"]
+    assert row.split()[:5] == ["AC20-FZK-Haus.ifc", "2", "7", "9", "16"]
     report = json.loads((out / "results.json").read_text())
     (entry,) = report["rows"]
     assert entry["file"] == "AC20-FZK-Haus.ifc"
@@ -301,5 +307,62 @@ def test_prior_refuses_to_replace_a_folder_that_is_not_a_prior(tmp_path: Path) -
     keep.mkdir()
     (keep / "thesis.txt").write_text("precious")
     result = invoke("prior", _old_schema(tmp_path, None), "-o", keep)
-    assert_one_line_error(result, contains="exists and is not a prior folder")
+    assert_one_line_error(result, contains="exists and is not a bimfactor prior")
     assert (keep / "thesis.txt").read_text() == "precious"
+
+
+def test_simulate_writes_a_sequence_with_preview_and_config(demo_prior: Path, tmp_path: Path) -> None:
+    out = tmp_path / "seq"
+    result = invoke("simulate", demo_prior, "-o", out, "--trajectory", "2", "--seed", "4")
+    assert result.exit_code == 0, result.output
+    assert "50 keyframes of trajectory 2 (seed 4)" in result.stdout
+    sequence = read_sequence(out)
+    assert sequence.meta.extras["trajectory_index"] == 2 and sequence.meta.extras["seed"] == 4
+    assert (out / "preview.png").stat().st_size > 10_000 and (out / "config.yaml").is_file()
+    again = invoke("simulate", demo_prior, "-o", out)
+    assert_one_line_error(again, contains="exists")
+
+
+def test_simulate_refuses_a_missing_prior_and_a_moved_ifc(demo_prior: Path, tmp_path: Path) -> None:
+    assert_one_line_error(invoke("simulate", tmp_path / "nope", "-o", tmp_path / "s"), contains="not a bimfactor prior")
+    moved = tmp_path / "prior-copy"
+    shutil.copytree(demo_prior, moved)
+    meta = json.loads((moved / "prior.json").read_text())
+    meta["source_file"] = str(tmp_path / "gone.ifc")
+    (moved / "prior.json").write_text(json.dumps(meta))
+    assert_one_line_error(invoke("simulate", moved, "-o", tmp_path / "s"), contains="is missing")
+
+
+def test_convert_tum_folder(tmp_path: Path) -> None:
+    import cv2
+
+    folder = tmp_path / "rgbd_dataset_freiburg1_xyz"
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    rgb_lines, depth_lines, gt_lines = [], [], []
+    for i in range(3):
+        t = 1000.0 + i / 30
+        cv2.imwrite(str(folder / f"rgb/{t:.6f}.png"), np.full((480, 640, 3), 40 * i, np.uint8))
+        cv2.imwrite(str(folder / f"depth/{t:.6f}.png"), np.full((480, 640), 5000 * (i + 1), np.uint16))
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+        depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
+        gt_lines.append(f"{t:.6f} {0.1 * i} 0 0 0 0 0 1")
+    for name, lines in (("rgb", rgb_lines), ("depth", depth_lines), ("groundtruth", gt_lines)):
+        (folder / f"{name}.txt").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "converted"
+    result = invoke("convert", "tum", folder, "-o", out)
+    assert result.exit_code == 0, result.output
+    sequence = read_sequence(out)
+    assert len(sequence) == 3 and sequence.meta.source == "tum"
+    np.testing.assert_allclose(sequence[2].depth_m, 3.0)  # TUM depth: 5000 per metre
+    assert_one_line_error(invoke("convert", "kinect", folder, "-o", tmp_path / "x"), contains="unknown recording kind")
+
+
+@pytest.fixture(scope="module")
+def demo_prior(tmp_path_factory: pytest.TempPathFactory, cli_config_args: list[str]) -> Path:
+    """A prior of the paper-floor building, built through the CLI once for this module."""
+    folder = tmp_path_factory.mktemp("cli-sim")
+    assert invoke("synth", "-o", folder / "paper-floor.ifc").exit_code == 0
+    result = invoke("prior", folder / "paper-floor.ifc", "-o", folder / "prior", *cli_config_args)
+    assert result.exit_code == 0, result.output
+    return folder / "prior"

@@ -276,6 +276,15 @@ class BimPrior:
         )
 
 
+def ensure_prior_destination(out_dir: str | Path) -> None:
+    """Raise InputError unless `out_dir` is absent, empty, or a prior (saving replaces the whole folder)."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and (
+        not out_dir.is_dir() or (any(out_dir.iterdir()) and not (out_dir / "prior.json").is_file())
+    ):
+        raise InputError(f"{out_dir}: exists and is not a bimfactor prior; refusing to overwrite it")
+
+
 def _save_extra_files(prior: BimPrior, folder: Path) -> None:
     from bimfactor.evaluation.plots import save_floorplans
 

@@ -48,8 +48,11 @@ def shared_ifc_dir() -> Path:
     return found
 
 
-def default_prior_bench_files() -> list[Path]:
+def default_prior_bench_files(all_buildings: bool = False) -> list[Path]:
+    """The default benchmark file, or with `all_buildings` every IFC file in ../shared/data/ifc."""
     folder = shared_ifc_dir()
+    if all_buildings:
+        return sorted(folder.glob("*.ifc"))
     files = [folder / name for name in DEFAULT_PRIOR_BENCH_FILES]
     for path in files:
         if not path.is_file():
@@ -75,6 +78,9 @@ class PriorBenchRow:
     reload_runs_s: list[float]
     stage_timings_s: dict[str, float]
     prior_dir: str
+    ifcspace_match_share: float
+    room_type_accuracy: float
+    room_types_evaluated: int
 
 
 @dataclass
@@ -110,6 +116,7 @@ def run_prior_bench(
     """
     from bimfactor.bim.prior import BimPrior, build_prior
     from bimfactor.embed.text import make_text_embedder
+    from bimfactor.evaluation.rooms import ifcspace_matched_share, room_type_accuracy
 
     out_dir = Path(out_dir)
     paths = [Path(p) for p in ifc_paths]
@@ -139,6 +146,7 @@ def run_prior_bench(
             started = time.perf_counter()
             BimPrior.load(prior_dir)
             reload_runs.append(time.perf_counter() - started)
+        room_types = room_type_accuracy(prior, ignore_labels=tuple(cfg.bim.classify.ignore_labels))
         rows.append(
             PriorBenchRow(
                 file=path.name,
@@ -155,6 +163,9 @@ def run_prior_bench(
                 reload_runs_s=reload_runs,
                 stage_timings_s=dict(prior.timings_s),
                 prior_dir=str(prior_dir),
+                ifcspace_match_share=ifcspace_matched_share(prior),
+                room_type_accuracy=room_types.accuracy,
+                room_types_evaluated=room_types.evaluated,
             )
         )
         log.info("%s: cold build %.2f s, reload %.3f s", path.name, cold_build_s, rows[-1].reload_s)
@@ -175,9 +186,29 @@ def run_prior_bench(
 
 def format_prior_table(rows: list[PriorBenchRow]) -> str:
     """A fixed-width text table: file, storeys, rooms, objects, cold build s, reload s (median)."""
-    header = ("file", "storeys", "rooms", "objects", "cold build s", "reload s")
+    header = (
+        "file",
+        "storeys",
+        "rooms",
+        "doors",
+        "objects",
+        "IfcSpace matched",
+        "room types",
+        "cold build s",
+        "reload s",
+    )
     body = [
-        (r.file, str(r.storeys), str(r.rooms), str(r.objects), f"{r.cold_build_s:.2f}", f"{r.reload_s:.3f}")
+        (
+            r.file,
+            str(r.storeys),
+            str(r.rooms),
+            str(r.doors),
+            str(r.objects),
+            "-" if r.ifcspace_match_share != r.ifcspace_match_share else f"{100 * r.ifcspace_match_share:.0f}%",
+            "-" if not r.room_types_evaluated else f"{100 * r.room_type_accuracy:.0f}% of {r.room_types_evaluated}",
+            f"{r.cold_build_s:.2f}",
+            f"{r.reload_s:.3f}",
+        )
         for r in rows
     ]
     widths = [max(len(line[i]) for line in (header, *body)) for i in range(len(header))]
@@ -187,3 +218,28 @@ def format_prior_table(rows: list[PriorBenchRow]) -> str:
         return "  ".join(cells)
 
     return "\n".join([fmt(header), "  ".join("-" * w for w in widths), *(fmt(line) for line in body)])
+
+
+def run_sim_bench(ifc_paths: list[Path], cfg: Config, out_dir: str | Path, n_frames: int = 200) -> list[dict]:
+    """Render speed of the simulator (RGB, depth, instance ids, noise) per building; writes OUT/results.json."""
+    from bimfactor.bim.ifc import load_ifc
+    from bimfactor.bim.prior import build_prior
+    from bimfactor.sim.simulate import benchmark_render
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out_dir / "config.yaml", cfg.dump_yaml())
+    rows = []
+    for path in progress(ifc_paths, desc="bench sim", unit="building"):
+        prior = build_prior(path, cfg)
+        row = benchmark_render(prior, load_ifc(path, cfg.bim.ifc), cfg, n_frames=n_frames)
+        row["building"] = Path(path).name
+        rows.append(row)
+    report = {
+        "benchmark": "sim",
+        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "host": _host(),
+        "rows": rows,
+    }
+    write_text_atomic(out_dir / "results.json", json.dumps(report, indent=2))
+    return rows
