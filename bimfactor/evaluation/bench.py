@@ -155,7 +155,7 @@ def run_prior_bench(
                 schema=prior.schema,
                 storeys=len(prior.storeys),
                 rooms=len(prior.rooms),
-                doors=len(prior.doors),
+                doors=sum(d.kind == "door" for d in prior.doors),
                 objects=len(prior.objects),
                 cold_build_s=cold_build_s,
                 save_s=save_s,
