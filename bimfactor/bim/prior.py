@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 
 from bimfactor.bim import rooms as room_ops
 from bimfactor.bim.classify import classify_rooms, load_room_category_pool
-from bimfactor.bim.grid import GridSpec, build_storey_grid, grid_spec_for, rasterise_polygons
+from bimfactor.bim.grid import GridSpec, StoreyGrid, build_storey_grid, grid_spec_for, rasterise_polygons
 from bimfactor.bim.ifc import IfcElement, Storey, load_ifc
 from bimfactor.bim.vocabulary import Vocabulary, label_elements
 from bimfactor.config import Config, config_file
@@ -88,6 +88,24 @@ class Door:
     room_a: int
     room_b: int
 
+    @classmethod
+    def from_geometry(
+        cls, door_id: int, kind: str, guid: str, storey_index: int, geom: room_ops.DoorGeometry, a: int, b: int
+    ) -> Door:
+        return cls(
+            id=door_id,
+            kind=kind,
+            guid=guid,
+            storey_index=storey_index,
+            object_id=-1,
+            center_xy=(float(geom.center_xy[0]), float(geom.center_xy[1])),
+            axis_xy=(float(geom.axis_xy[0]), float(geom.axis_xy[1])),
+            width_m=float(geom.width_m),
+            depth_m=float(geom.depth_m),
+            room_a=a,
+            room_b=b,
+        )
+
     @property
     def connects(self) -> bool:
         """True when the door joins two different known places (two rooms, or a room and outside)."""
@@ -95,19 +113,11 @@ class Door:
 
 
 @dataclass
-class StoreyLayers:
-    """Per-storey rasters, all (rows, cols) on the prior's shared grid."""
+class StoreyLayers(StoreyGrid):
+    """A storey's grid layers plus its room labels (int32 room id, OUTSIDE, NO_ROOM) and navigable cells."""
 
-    storey: Storey
-    structure: np.ndarray
-    furniture: np.ndarray
-    clearance_m: np.ndarray
     room_labels: np.ndarray
     navigable: np.ndarray
-
-    @property
-    def occupied(self) -> np.ndarray:
-        return self.structure | self.furniture
 
 
 @dataclass
@@ -425,37 +435,11 @@ def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_ro
         a, b = room_ops.door_sides(geom, labels, spec, rcfg.door_probe_m)
         if element is None and (a == b or room_ops.NO_ROOM in (a, b)):
             continue  # a lintel strip that joins nothing is no passage
-        doors.append(
-            Door(
-                id=first_door_id + len(doors),
-                kind="door" if element is not None else "passage",
-                guid=element.guid if element is not None else "",
-                storey_index=storey.index,
-                object_id=-1,
-                center_xy=(float(geom.center_xy[0]), float(geom.center_xy[1])),
-                axis_xy=(float(geom.axis_xy[0]), float(geom.axis_xy[1])),
-                width_m=geom.width_m,
-                depth_m=geom.depth_m,
-                room_a=a,
-                room_b=b,
-            )
-        )
+        kind = "door" if element is not None else "passage"
+        guid = element.guid if element is not None else ""
+        doors.append(Door.from_geometry(first_door_id + len(doors), kind, guid, storey.index, geom, a, b))
     for a, b, geom in room_ops.open_boundaries(labels, spec, min_length_m=rcfg.min_opening_m):
-        doors.append(
-            Door(
-                id=first_door_id + len(doors),
-                kind="opening",
-                guid="",
-                storey_index=storey.index,
-                object_id=-1,
-                center_xy=(float(geom.center_xy[0]), float(geom.center_xy[1])),
-                axis_xy=(float(geom.axis_xy[0]), float(geom.axis_xy[1])),
-                width_m=geom.width_m,
-                depth_m=geom.depth_m,
-                room_a=a,
-                room_b=b,
-            )
-        )
+        doors.append(Door.from_geometry(first_door_id + len(doors), "opening", "", storey.index, geom, a, b))
     return layers, rooms, doors, match
 
 
