@@ -488,6 +488,9 @@ def simulate(
     trajectory: Annotated[
         int, typer.Option("--trajectory", "-k", min=0, metavar="K", help="Standard trajectory index (0-5).")
     ] = 0,
+    all_trajectories: Annotated[
+        bool, typer.Option("--all", help="All standard trajectories, into SEQ_DIR/k<K>/ (the paper's protocol).")
+    ] = False,
     seed: Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
     config: ConfigOption = None,
@@ -499,21 +502,29 @@ def simulate(
 
     The IFC file the prior was built from must still be where the prior says (its hash is checked).
     Writes SEQ_DIR (sequence.json, frames.csv, rgb/, depth/, instances/, groundtruth.txt, odometry.txt,
-    config.yaml) and SEQ_DIR/preview.png.
+    config.yaml), SEQ_DIR/preview.png (frames) and SEQ_DIR/trajectory.png (the drive over the floor plan).
 
     \b
     Examples:
       bimfactor simulate runs/demo/prior -o runs/seq0 --trajectory 0 --seed 1
+      bimfactor simulate runs/demo/prior -o runs/paper-six --all
       bimfactor simulate runs/prior/duplex -o runs/duplex-asbuilt --set sim.as_built.removed_fraction=0.2
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
-        written = _simulate_to_disk(prior_dir, output, cfg, trajectory, cfg.seed if seed is None else seed, overwrite)
-        typer.echo(written)
+        used_seed = cfg.seed if seed is None else seed
+        if all_trajectories:
+            for k in range(cfg.evaluation.num_trajectories):
+                typer.echo(_simulate_to_disk(prior_dir, output / f"k{k}", cfg, k, used_seed, overwrite))
+        else:
+            typer.echo(_simulate_to_disk(prior_dir, output, cfg, trajectory, used_seed, overwrite))
 
 
 def _simulate_to_disk(prior_dir: Path, output: Path, cfg: Config, trajectory: int, seed: int, overwrite: bool) -> str:
     """Simulate, write the sequence atomically, then its config and preview; returns a one-line account."""
+    import numpy as np
+
+    from bimfactor.evaluation.plots import save_trajectory_plot
     from bimfactor.io.atomic import write_text_atomic
     from bimfactor.io.preview import write_preview
     from bimfactor.io.sequence import read_sequence, write_sequence
@@ -524,10 +535,21 @@ def _simulate_to_disk(prior_dir: Path, output: Path, cfg: Config, trajectory: in
     write_sequence(output, result.meta, result.frames, overwrite=overwrite)
     write_text_atomic(output / "config.yaml", cfg.dump_yaml())
     preview = write_preview(read_sequence(output), output / "preview.png")
-    rooms = {int(r) for r in prior.room_at(result.trajectory.poses[:, :2], result.trajectory.storey_index) if r >= 0}
+    drive = result.trajectory
+    rooms = {int(r) for r in prior.room_at(drive.poses[:, :2], drive.storey_index) if r >= 0}
+    odom = np.asarray([f.odom_pose for f in result.frames])
+    save_trajectory_plot(
+        prior,
+        drive.storey_index,
+        output / "trajectory.png",
+        drive.poses[:, :2],
+        drive.keyframe_poses,
+        odom,
+        title=f"{result.meta.name}: {len(result.frames)} keyframes, {len(rooms)} rooms",
+    )
     return (
         f"wrote {output}: {len(result.frames)} keyframes of trajectory {trajectory} (seed {seed}), "
-        f"{len(rooms)} rooms visited; preview {preview}"
+        f"{len(rooms)} rooms visited; figures {preview.name}, trajectory.png"
     )
 
 

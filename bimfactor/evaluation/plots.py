@@ -39,6 +39,7 @@ def draw_floorplan(ax: Axes, prior: BimPrior, storey_index: int, label_objects: 
             va="center",
             fontsize=7,
             weight="bold",
+            clip_on=True,
             bbox={"boxstyle": "round,pad=0.2", "fc": "white", "alpha": 0.7, "lw": 0},
         )
     for door in (d for d in prior.doors if d.storey_index == storey_index):
@@ -59,6 +60,7 @@ def draw_floorplan(ax: Axes, prior: BimPrior, storey_index: int, label_objects: 
                     o.label,
                     o.position_m[:2],
                     fontsize=5,
+                    annotation_clip=True,
                     color="navy",
                     xytext=(2, 2),
                     textcoords="offset points",
@@ -88,3 +90,52 @@ def save_floorplans(prior: BimPrior, out_dir: str | Path) -> list[Path]:
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+def save_trajectory_plot(
+    prior: BimPrior,
+    storey_index: int,
+    path: str | Path,
+    gt_dense_xy: np.ndarray,
+    keyframe_poses: np.ndarray,
+    odom_poses: np.ndarray | None = None,
+    title: str = "",
+) -> Path:
+    """The drive over the floor plan: dense ground truth (N, 2), keyframes (T, 3) with heading ticks, and the
+    odometry (T, 3) anchored at the first keyframe's true pose, so its drift shows."""
+    from bimfactor.types import se2_between, se2_compose
+
+    x0, x1, y0, y1 = prior.grid.extent
+    aspect = (y1 - y0) / max(x1 - x0, 1e-6)
+    fig, ax = plt.subplots(figsize=(10, max(3.0, min(10 * aspect, 14))))
+    draw_floorplan(ax, prior, storey_index, label_objects=False)
+    ax.plot(gt_dense_xy[:, 0], gt_dense_xy[:, 1], color="black", lw=1.2, label="ground truth")
+    kf = np.asarray(keyframe_poses)
+    ax.quiver(
+        kf[:, 0],
+        kf[:, 1],
+        np.cos(kf[:, 2]),
+        np.sin(kf[:, 2]),
+        color="tab:orange",
+        scale=40,
+        width=0.003,
+        label="keyframes",
+    )
+    if odom_poses is not None and len(odom_poses):
+        anchored = se2_compose(kf[0], se2_between(np.asarray(odom_poses)[0], np.asarray(odom_poses)))
+        ax.plot(
+            anchored[:, 0], anchored[:, 1], "--", color="tab:purple", lw=1.2, label="odometry (from the true start)"
+        )
+    ax.plot(*kf[0, :2], "o", color="tab:green", ms=8, label="start")
+    ax.plot(*kf[-1, :2], "s", color="tab:red", ms=8, label="end")
+    # zoom onto the drive with a margin, keeping the building's context
+    lo, hi = gt_dense_xy.min(axis=0) - 4.0, gt_dense_xy.max(axis=0) + 4.0
+    ax.set_xlim(max(lo[0], x0), min(hi[0], x1))
+    ax.set_ylim(max(lo[1], y0), min(hi[1], y1))
+    ax.legend(loc="upper right", fontsize=7)
+    ax.set_title(title)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
+    plt.close(fig)
+    return path
