@@ -1,0 +1,392 @@
+"""Semantic Monte Carlo localization (paper Sec. II.C): a particle filter over (x, y, yaw, storey) in the BIM.
+
+One step reads like the paper:
+1. predict:  move every particle by the odometry increment plus Gaussian noise (`motion.propagate`);
+             particles that leave navigable space keep only `off_map_weight` of their weight.
+2. update:   weight ×= P(z|x) = exp(score / T), the semantic × spatial Hungarian score (`likelihood`); normalise.
+3. resample: when ESS < δ_ess·M, systematic (low-variance) resampling from the cumulative weights; weights reset.
+4. estimate: weighted mean x, y and circular mean yaw on the storey holding the most weight; its room id.
+
+The storey is part of the state: every particle carries a storey index (into `prior.storeys`). Initialization
+spreads particles over the navigable space of all storeys in proportion to area; the motion model keeps a
+particle on its storey (storey changes are not modelled), so the observations decide the storey.
+Beyond the paper, `augmented: true` adds augmented MCL (Thrun et al., Probabilistic Robotics, Table 8.3):
+random particles are injected with probability max(0, 1 − w_fast / w_slow) to recover from a wrong convergence.
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.visibility import VisibilityTable
+from bimfactor.config import SmclConfig
+from bimfactor.errors import InputError
+from bimfactor.localization.likelihood import SemanticLikelihood, polar_coordinates
+from bimfactor.localization.motion import propagate
+from bimfactor.types import Observations, wrap_angle
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PoseEstimate:
+    """The filter's pose estimate: (3,) x, y, yaw in the world frame on `storey`, with its (3, 3) covariance."""
+
+    pose: np.ndarray
+    storey: int
+    covariance: np.ndarray
+    converged: bool
+    room_id: int
+    position_std_m: float
+    yaw_std_rad: float
+    storey_share: float
+
+
+@dataclass
+class StepResult:
+    """One filter step: the estimate after it, the ESS before resampling, and what each part took."""
+
+    estimate: PoseEstimate
+    ess: float
+    resampled: bool
+    injected: int = 0
+    n_observations: int = 0
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def pose(self) -> np.ndarray:
+        return self.estimate.pose
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.estimate.covariance
+
+    @property
+    def converged(self) -> bool:
+        return self.estimate.converged
+
+    @property
+    def room_id(self) -> int:
+        return self.estimate.room_id
+
+    @property
+    def storey(self) -> int:
+        return self.estimate.storey
+
+
+# ------------------------------------------------------------------------------------------ pieces
+
+
+def effective_sample_size(weights: np.ndarray) -> float:
+    """ESS = 1 / Σ w² of (M,) normalised weights."""
+    w = np.asarray(weights, np.float64)
+    return float(1.0 / np.dot(w, w))
+
+
+def systematic_resample(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n,) indices drawn by low-variance (systematic) sampling from the cumulative (M,) weights.
+
+    Each particle i is drawn ⌊n·w_i⌋ or ⌈n·w_i⌉ times.
+    """
+    cumulative = np.cumsum(np.asarray(weights, np.float64))
+    cumulative /= cumulative[-1]
+    positions = (rng.random() + np.arange(n)) / n
+    return np.minimum(np.searchsorted(cumulative, positions, side="right"), len(cumulative) - 1)
+
+
+def circular_mean(angles: np.ndarray, weights: np.ndarray | None = None) -> float:
+    """Weighted circular mean of (N,) angles in [-π, π): atan2(Σ w sin θ, Σ w cos θ)."""
+    angles = np.asarray(angles, np.float64)
+    w = np.ones_like(angles) if weights is None else np.asarray(weights, np.float64)
+    return float(wrap_angle(np.arctan2(np.dot(w, np.sin(angles)), np.dot(w, np.cos(angles)))))
+
+
+def weighted_pose_stats(poses: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) weighted mean (circular in yaw) and (3, 3) covariance of (N, 3) poses; yaw residuals wrapped."""
+    w = np.asarray(weights, np.float64)
+    w = w / w.sum()
+    mean = np.empty(3)
+    mean[:2] = w @ poses[:, :2]
+    mean[2] = circular_mean(poses[:, 2], w)
+    residuals = poses - mean
+    residuals[:, 2] = wrap_angle(residuals[:, 2])
+    covariance = (residuals * w[:, None]).T @ residuals
+    return mean, covariance
+
+
+# ------------------------------------------------------------------------------------------ the filter
+
+
+class SemanticMCL:
+    """The S-MCL particle filter against one BimPrior; every random draw comes from `rng`."""
+
+    def __init__(
+        self,
+        prior: BimPrior,
+        visibility: VisibilityTable,
+        cfg: SmclConfig,
+        rng: np.random.Generator,
+        num_particles: int | None = None,
+    ) -> None:
+        self.prior = prior
+        self.cfg = cfg
+        self.rng = rng
+        self.num_particles = int(num_particles or cfg.num_particles)
+        self.likelihood = SemanticLikelihood(prior, visibility, cfg)
+        self.navigable = np.stack([layers.navigable.astype(bool) for layers in prior.storeys])  # (S, rows, cols)
+        self._free_cells = np.flatnonzero(self.navigable).astype(np.int64)  # flat (storey, row, col) indices
+        if len(self._free_cells) == 0:
+            raise InputError("the prior has no navigable space to spread particles over")
+        self.particles = np.zeros((self.num_particles, 3))
+        self.storeys = np.zeros(self.num_particles, np.int64)
+        self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
+        self.w_slow: float | None = None
+        self.w_fast: float | None = None
+        self._initialized = False
+
+    # -------------------------------------------------------------------------------- sampling
+
+    def sample_free_space(self, n: int, storeys: list[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """n poses uniform over the navigable space of the given storeys (all: None) and uniform in yaw.
+
+        Returns (n, 3) x, y, yaw and (n,) storey indices.
+        """
+        cells = self._free_cells
+        if storeys is not None:
+            per_storey = self.navigable[0].size
+            cells = cells[np.isin(cells // per_storey, np.asarray(storeys, np.int64))]
+            if len(cells) == 0:
+                raise InputError(f"no navigable space on storeys {list(storeys)}")
+        picked = cells[self.rng.integers(0, len(cells), n)]
+        s, r, c = np.unravel_index(picked, self.navigable.shape)
+        grid = self.prior.grid
+        jitter = self.rng.random((n, 2))
+        poses = np.empty((n, 3))
+        poses[:, 0] = grid.origin_x + (c + jitter[:, 0]) * grid.resolution_m
+        poses[:, 1] = grid.origin_y + (r + jitter[:, 1]) * grid.resolution_m
+        poses[:, 2] = self.rng.uniform(-np.pi, np.pi, n)
+        return poses, s.astype(np.int64)
+
+    def on_navigable(self, particles: np.ndarray, storeys: np.ndarray) -> np.ndarray:
+        """(M,) bool: is each particle's position in navigable space of its storey?"""
+        rc = self.prior.grid.world_to_cell(particles[:, :2])
+        ok = self.prior.grid.contains(rc)
+        out = np.zeros(len(rc), bool)
+        out[ok] = self.navigable[storeys[ok], rc[ok, 0], rc[ok, 1]]
+        return out
+
+    # -------------------------------------------------------------------------------- the cycle
+
+    def initialize(self, storeys: list[int] | None = None) -> None:
+        """M particles uniform over the navigable space of the given storeys (None: all), equal weights."""
+        self.particles, self.storeys = self.sample_free_space(self.num_particles, storeys)
+        self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
+        self.w_slow = self.w_fast = None
+        self._initialized = True
+
+    def predict(self, odom_increment: np.ndarray) -> None:
+        """Move the particles by a (3,) robot-frame odometry increment (dx, dy, dyaw) with the motion noise."""
+        self._require_initialized()
+        self.particles = propagate(
+            self.particles, odom_increment, self.cfg.sigma_trans_m, np.deg2rad(self.cfg.sigma_rot_deg), self.rng
+        )
+        off_map = ~self.on_navigable(self.particles, self.storeys)
+        if off_map.any():
+            self.weights[off_map] *= self.cfg.off_map_weight
+            self._normalise("after leaving navigable space")
+
+    def update(self, observations: Observations) -> None:
+        """Weight ×= P(z|x) for every particle and normalise; no observations leave the weights as they are."""
+        self._require_initialized()
+        if len(observations) == 0:
+            return
+        log_likelihood = self.likelihood.log_likelihood(self.particles, self.storeys, observations)
+        if not np.all(self.weights >= 0) or self.weights.sum() <= 0:
+            self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
+        if self.cfg.augmented:
+            # Average likelihood on an absolute scale (a perfect match = 1), weighted by the prior weights.
+            w_avg = float(np.dot(self.weights, np.exp(log_likelihood - 1.0 / self.cfg.temperature)))
+            self.w_slow = w_avg if self.w_slow is None else self.w_slow + self.cfg.alpha_slow * (w_avg - self.w_slow)
+            self.w_fast = w_avg if self.w_fast is None else self.w_fast + self.cfg.alpha_fast * (w_avg - self.w_fast)
+        with np.errstate(divide="ignore"):
+            log_w = np.log(self.weights) + log_likelihood
+        peak = log_w.max()
+        self.weights = np.exp(log_w - peak) if np.isfinite(peak) else np.zeros_like(log_w)
+        self._normalise("after the measurement update")
+
+    def effective_sample_size(self) -> float:
+        return effective_sample_size(self.weights)
+
+    def injection_probability(self) -> float:
+        """Augmented MCL: max(0, 1 − w_fast / w_slow); 0 for the paper's filter."""
+        if not self.cfg.augmented or not self.w_slow or self.w_fast is None:
+            return 0.0
+        return max(0.0, 1.0 - self.w_fast / self.w_slow)
+
+    def resample_if_needed(self) -> tuple[bool, int]:
+        """Systematic resampling when ESS < δ_ess·M (or random particles are due); returns (resampled, injected)."""
+        self._require_initialized()
+        M = self.num_particles
+        n_random = int(self.rng.binomial(M, self.injection_probability())) if self.cfg.augmented else 0
+        if self.effective_sample_size() >= self.cfg.ess_threshold * M and n_random == 0:
+            return False, 0
+        keep = systematic_resample(self.weights, M - n_random, self.rng)
+        particles, storeys = self.particles[keep], self.storeys[keep]
+        if n_random:
+            fresh, fresh_storeys = self.sample_free_space(n_random)
+            particles = np.concatenate([particles, fresh])
+            storeys = np.concatenate([storeys, fresh_storeys])
+        self.particles, self.storeys = particles, storeys
+        self.weights = np.full(M, 1.0 / M)
+        return True, n_random
+
+    def estimate(self) -> PoseEstimate:
+        """Weighted mean pose (circular yaw) and covariance on the storey with the most weight; its room id."""
+        self._require_initialized()
+        storey_weight = np.bincount(self.storeys, weights=self.weights, minlength=len(self.prior.storeys))
+        storey = int(np.argmax(storey_weight))
+        on_storey = self.storeys == storey
+        mean, covariance = weighted_pose_stats(self.particles[on_storey], self.weights[on_storey])
+        position_std = float(np.sqrt(max(np.linalg.eigvalsh(covariance[:2, :2])[-1], 0.0)))
+        yaw_std = float(np.sqrt(covariance[2, 2]))
+        share = float(storey_weight[storey] / storey_weight.sum())
+        converged = (
+            position_std < self.cfg.converged_pos_std_m
+            and yaw_std < np.deg2rad(self.cfg.converged_yaw_std_deg)
+            and share >= self.cfg.converged_storey_share
+        )
+        room_id = int(self.prior.room_at(mean[None, :2], storey)[0])
+        return PoseEstimate(mean, storey, covariance, bool(converged), room_id, position_std, yaw_std, share)
+
+    def step(self, odom_increment: np.ndarray | None, observations: Observations | None) -> StepResult:
+        """predict (when an increment is given) → update (when observations are given) → resample → estimate."""
+        if not self._initialized:
+            self.initialize()
+        timings: dict[str, float] = {}
+        clock = time.perf_counter()
+
+        def lap(name: str) -> None:
+            nonlocal clock
+            now = time.perf_counter()
+            timings[name] = (now - clock) * 1e3
+            clock = now
+
+        if odom_increment is not None:
+            self.predict(odom_increment)
+        lap("predict")
+        n_obs = 0 if observations is None else len(observations)
+        if observations is not None:
+            self.update(observations)
+        lap("update")
+        ess = self.effective_sample_size()
+        resampled, injected = self.resample_if_needed()
+        lap("resample")
+        estimate = self.estimate()
+        lap("estimate")
+        return StepResult(estimate, ess, resampled, injected, n_obs, timings)
+
+    # -------------------------------------------------------------------------------- helpers
+
+    def _normalise(self, when: str) -> None:
+        total = self.weights.sum()
+        if not np.isfinite(total) or total <= 0:
+            log.warning("all particle weights are zero %s; resetting them to uniform", when)
+            self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
+        else:
+            self.weights /= total
+
+    def _require_initialized(self) -> None:
+        if not self._initialized:
+            raise RuntimeError("SemanticMCL.initialize() must run before the filter is used")
+
+
+# ------------------------------------------------------------------------------------------ benchmark
+
+
+def _benchmark_observations(
+    prior: BimPrior, visibility: VisibilityTable, cfg: SmclConfig, n_obs: int, rng: np.random.Generator
+) -> tuple[Observations, np.ndarray, int]:
+    """n_obs observations at a navigable pose that sees many objects: the objects in its view, then others.
+
+    Returns the observations, the (3,) pose and its storey. Embeddings are the BIM label embeddings plus noise.
+    """
+    sampler = SemanticMCL(prior, visibility, cfg, rng, num_particles=1)
+    poses, storeys = sampler.sample_free_space(400)
+    scorer = sampler.likelihood
+    offsets, ids = visibility.candidates(poses[:, :2], storeys)
+    owner = np.repeat(np.arange(len(poses)), np.diff(offsets))
+    d, alpha = polar_coordinates(poses[owner], scorer.object_xy[ids])
+    in_view = (d <= scorer.radius_m) & (np.abs(alpha) <= scorer.half_fov_rad)
+    best = int(np.argmax(np.bincount(owner[in_view], minlength=len(poses))))
+    pick = in_view & (owner == best)
+    seen_ids, ranges, bearings = ids[pick][:n_obs], d[pick][:n_obs], alpha[pick][:n_obs]
+    extra = n_obs - len(seen_ids)
+    if extra > 0:  # distractors: random BIM objects at random places in the view
+        seen_ids = np.concatenate([seen_ids, rng.integers(0, len(prior.objects), extra)])
+        ranges = np.concatenate([ranges, rng.uniform(0.5, scorer.radius_m, extra)])
+        bearings = np.concatenate([bearings, rng.uniform(-scorer.half_fov_rad, scorer.half_fov_rad, extra)])
+    noise = 0.02 * rng.standard_normal((n_obs, prior.object_embeddings.shape[1]))
+    embeddings = prior.object_embeddings[seen_ids] + noise
+    embeddings /= np.linalg.norm(embeddings, axis=1, keepdims=True)
+    observations = Observations(
+        embeddings.astype(np.float32),
+        ranges + 0.1 * rng.standard_normal(n_obs),
+        wrap_angle(bearings + np.deg2rad(3.0) * rng.standard_normal(n_obs)),
+        labels=[prior.objects[i].label for i in seen_ids],
+    )
+    return observations, poses[best], int(storeys[best])
+
+
+def benchmark_step(
+    prior: BimPrior,
+    visibility: VisibilityTable,
+    cfg: SmclConfig,
+    n_particles_list: tuple[int, ...] = (100, 1000, 5000, 20000),
+    n_obs: int = 12,
+    repeats: int = 20,
+    seed: int = 0,
+) -> list[dict[str, Any]]:
+    """Median milliseconds of predict + update + resample per particle count, from a uniform (global) start.
+
+    Every repeat starts from freshly spread particles (not timed), the hardest case: particles everywhere, every
+    candidate list different. The observations are `n_obs` objects seen from one pose (padded with distractors).
+    `*_ms_*` are wall-clock; `total_cpu_ms_median` is this thread's CPU time (robust to a busy machine).
+    """
+    rng = np.random.default_rng(seed)
+    observations, _, _ = _benchmark_observations(prior, visibility, cfg, n_obs, rng)
+    increment = np.array([0.5, 0.0, np.deg2rad(5.0)])
+    rows = []
+    for M in n_particles_list:
+        mcl = SemanticMCL(prior, visibility, cfg, np.random.default_rng(seed + M), num_particles=M)
+        parts: dict[str, list[float]] = {"predict": [], "update": [], "resample": [], "total": [], "total_cpu": []}
+        calls, resampled = [], 0
+        for _ in range(repeats + 1):  # the first round warms caches and is dropped
+            mcl.initialize()
+            cpu0, t0 = time.thread_time(), time.perf_counter()
+            mcl.predict(increment)
+            t1 = time.perf_counter()
+            mcl.update(observations)
+            t2 = time.perf_counter()
+            did, _ = mcl.resample_if_needed()
+            t3, cpu3 = time.perf_counter(), time.thread_time()
+            for name, value in (("predict", t1 - t0), ("update", t2 - t1), ("resample", t3 - t2), ("total", t3 - t0)):
+                parts[name].append(value * 1e3)
+            parts["total_cpu"].append((cpu3 - cpu0) * 1e3)
+            calls.append(mcl.likelihood.last_stats.hungarian_calls)
+            resampled += int(did)
+        row: dict[str, Any] = {"n_particles": M, "n_obs": len(observations), "repeats": repeats}
+        for name, values in parts.items():
+            row[f"{name}_ms_median"] = statistics.median(values[1:])
+        row["total_ms_p90"] = float(np.percentile(parts["total"][1:], 90))
+        row["hungarian_calls_median"] = statistics.median(calls[1:])
+        row["resampled_share"] = resampled / (repeats + 1)
+        rows.append(row)
+        log.info("S-MCL step, M=%d, K=%d: %.2f ms median", M, len(observations), row["total_ms_median"])
+    return rows

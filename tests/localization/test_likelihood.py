@@ -1,0 +1,138 @@
+"""The measurement model: each score term against hand-computed values, the assignment against brute force."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from bimfactor.config import SmclConfig
+from bimfactor.localization.likelihood import (
+    SemanticLikelihood,
+    assignment_sums,
+    bearing_similarity,
+    distance_similarity,
+    likelihood_from_score,
+    pair_score,
+    polar_coordinates,
+    semantic_similarity,
+)
+from bimfactor.types import Observations
+from tests.localization.handmade import embedding, object_id
+
+
+def observe(*items: tuple[str, float, float]) -> Observations:
+    """Observations of (label, range m, bearing rad) with exact one-hot embeddings."""
+    labels = [label for label, _, _ in items]
+    return Observations(
+        np.stack([embedding(label) for label in labels]),
+        np.array([r for _, r, _ in items]),
+        np.array([b for _, _, b in items]),
+        labels=labels,
+    )
+
+
+def test_polar_coordinates_are_counter_clockwise_from_the_heading():
+    pose = np.array([1.0, 2.0, np.pi / 2])  # at (1, 2), facing +y
+    d, alpha = polar_coordinates(pose, np.array([[1.0, 5.0], [0.0, 2.0], [2.0, 2.0], [1.0, 0.0]]))
+    np.testing.assert_allclose(d, [3.0, 1.0, 1.0, 2.0])
+    np.testing.assert_allclose(alpha, [0.0, np.pi / 2, -np.pi / 2, -np.pi], atol=1e-12)  # ahead, left, right, behind
+
+
+def test_semantic_similarity_is_the_cosine_of_unit_embeddings():
+    a = np.array([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0]], np.float32)
+    b = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], np.float32)
+    np.testing.assert_allclose(semantic_similarity(a, b), [[0.0, 1.0], [0.8, 0.6]], atol=1e-7)
+
+
+def test_distance_and_bearing_terms():
+    assert distance_similarity(3.0, 1.8, 1.2) == pytest.approx(np.exp(-1.0))
+    assert distance_similarity(1.8, 3.0, 1.2) == pytest.approx(np.exp(-1.0))
+    assert distance_similarity(2.0, 2.0, 1.2) == pytest.approx(1.0)
+    assert bearing_similarity(np.pi / 2, 0.0, 5.0) == pytest.approx(np.exp(-5.0))
+    assert bearing_similarity(np.pi, -np.pi, 5.0) == pytest.approx(1.0)  # the same direction across ±π
+    assert bearing_similarity(0.3, 0.1, 5.0) == pytest.approx(np.exp(5.0 * (np.cos(0.2) - 1.0)))
+
+
+def test_pair_score_is_the_product_and_screens_by_the_semantic_threshold(smcl_cfg: SmclConfig):
+    expected = 0.9 * np.exp(-0.5 / 1.2) * np.exp(5.0 * (np.cos(0.2) - 1.0))
+    assert pair_score(0.9, 2.0, 1.5, 0.2, 0.0, smcl_cfg) == pytest.approx(expected)
+    assert pair_score(smcl_cfg.semantic_threshold - 0.01, 2.0, 2.0, 0.0, 0.0, smcl_cfg) == 0.0
+
+
+def test_likelihood_is_exp_score_over_temperature():
+    assert likelihood_from_score(0.5, 0.25) == pytest.approx(np.exp(2.0))
+    assert likelihood_from_score(0.0, 0.15) == pytest.approx(1.0)
+
+
+def test_pair_scores_of_one_particle_match_hand_computed_values(box_prior, box_visibility, smcl_cfg):
+    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
+    particle = np.array([[4.0, 3.0, np.pi]])  # facing west: the chair is 1 m straight ahead
+    obs = observe(("chair", 1.5, 0.2), ("cabinet", 3.0, -0.5))
+    phi, ids = scorer.pair_scores(particle, np.array([0]), obs)
+    chair, cabinet = object_id(box_prior, "chair"), object_id(box_prior, "cabinet")
+    assert set(ids[0][ids[0] >= 0]) == {chair, cabinet}
+    col = {int(i): c for c, i in enumerate(ids[0]) if i >= 0}
+    cab_d, cab_a = np.hypot(3.0, 2.0), np.arctan2(2.0, -3.0) - np.pi  # cabinet at (1, 5)
+    expected_chair = np.exp(-0.5 / 1.2) * np.exp(5.0 * (np.cos(0.2) - 1.0))
+    expected_cabinet = np.exp(-abs(3.0 - cab_d) / 1.2) * np.exp(5.0 * (np.cos(-0.5 - cab_a) - 1.0))
+    assert phi[0, 0, col[chair]] == pytest.approx(expected_chair, rel=1e-6)
+    assert phi[0, 1, col[cabinet]] == pytest.approx(expected_cabinet, rel=1e-6)
+    assert phi[0, 0, col[cabinet]] == 0.0 and phi[0, 1, col[chair]] == 0.0  # different labels: screened out
+    score = scorer.scores(particle, np.array([0]), obs)
+    assert score[0] == pytest.approx((expected_chair + expected_cabinet) / 2, rel=1e-6)
+
+
+def test_an_unmatched_observation_counts_zero_in_the_mean(box_prior, box_visibility, smcl_cfg):
+    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
+    particle = np.array([[4.0, 3.0, np.pi]])
+    exact = observe(("chair", 1.0, 0.0))
+    with_unexplained = observe(("chair", 1.0, 0.0), ("table", 2.0, 0.0))  # the table is behind the wall
+    assert scorer.scores(particle, np.array([0]), exact)[0] == pytest.approx(1.0)
+    assert scorer.scores(particle, np.array([0]), with_unexplained)[0] == pytest.approx(0.5)
+
+
+def test_candidates_outside_the_field_of_view_do_not_score(box_prior, box_visibility, smcl_cfg):
+    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
+    facing_east = np.array([[4.0, 3.0, 0.0]])  # the chair is behind the robot
+    assert scorer.scores(facing_east, np.array([0]), observe(("chair", 1.0, 0.0)))[0] == 0.0
+
+
+def test_no_observations_score_zero_for_every_particle(box_prior, box_visibility, smcl_cfg):
+    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
+    empty = Observations(np.zeros((0, 5), np.float32), np.zeros(0), np.zeros(0))
+    np.testing.assert_array_equal(scorer.scores(np.zeros((4, 3)), np.zeros(4, int), empty), np.zeros(4))
+
+
+def brute_force(phi: np.ndarray) -> float:
+    """Best sum over every one-to-one assignment of a (K, C) matrix (rows or columns may stay unmatched)."""
+    K, C = phi.shape
+    if K <= C:
+        return max(sum(phi[k, cols[k]] for k in range(K)) for cols in itertools.permutations(range(C), K))
+    return max(sum(phi[rows[c], c] for c in range(C)) for rows in itertools.permutations(range(K), C))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_assignment_equals_brute_force_on_random_small_cases(seed: int):
+    rng = np.random.default_rng(seed)
+    for _ in range(60):
+        K, C = (int(v) for v in rng.integers(1, 6, 2))
+        density = rng.uniform(0.15, 1.0)
+        phi = rng.random((25, K, C)) * (rng.random((25, K, C)) < density)
+        if rng.random() < 0.3:
+            phi = np.round(phi * 3) / 3  # ties
+        totals, _ = assignment_sums(phi.astype(np.float32))
+        expected = [brute_force(p.astype(np.float32).astype(np.float64)) for p in phi]
+        np.testing.assert_allclose(totals, expected, rtol=1e-6, atol=1e-6)
+
+
+def test_assignment_shortcuts_and_solver_paths():
+    distinct = np.array([[[0.9, 0.1], [0.2, 0.8]]])  # row maxima in different columns: no solver call
+    totals, calls = assignment_sums(distinct)
+    assert totals[0] == pytest.approx(1.7) and calls == 0
+    contested = np.array([[[0.9, 0.8, 0.0], [0.85, 0.1, 0.0], [0.7, 0.6, 0.5]]])  # 3 × 3: Hungarian solver
+    totals, calls = assignment_sums(contested)
+    assert totals[0] == pytest.approx(brute_force(contested[0])) and calls == 1
+    one_column = np.array([[[0.4], [0.6], [0.0]]])
+    assert assignment_sums(one_column)[0][0] == pytest.approx(0.6)

@@ -1,0 +1,59 @@
+"""The kinematic motion model: increments from odometry and velocities, and the noise the paper adds."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bimfactor.localization.motion import odometry_increment, propagate, propagate_velocity, velocity_increment
+
+SIGMA_TRANS_M = 0.2
+SIGMA_ROT_RAD = np.deg2rad(10.0)
+
+
+def test_increment_between_odometry_poses_is_in_the_robot_frame():
+    np.testing.assert_allclose(
+        odometry_increment([1.0, 1.0, 0.0], [1.0, 2.0, np.pi / 2]), [0.0, 1.0, np.pi / 2], atol=1e-12
+    )
+    np.testing.assert_allclose(
+        odometry_increment([0.0, 0.0, np.pi / 2], [0.0, 1.0, np.pi / 2]), [1.0, 0.0, 0.0], atol=1e-12
+    )
+
+
+def test_velocity_increment_is_an_arc_or_a_straight_line():
+    r = 2.0 / np.pi  # a quarter turn at 1 m/s and π/2 rad/s
+    np.testing.assert_allclose(velocity_increment(1.0, np.pi / 2, 1.0), [r, r, np.pi / 2], atol=1e-12)
+    np.testing.assert_allclose(velocity_increment(0.5, 0.0, 2.0), [1.0, 0.0, 0.0])
+
+
+def test_noise_free_propagation_applies_the_increment_in_each_particle_frame():
+    particles = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, np.pi / 2], [2.0, 0.0, np.pi]])
+    moved = propagate(particles, [1.0, 0.0, 0.1], 0.0, 0.0, np.random.default_rng(0))
+    np.testing.assert_allclose(
+        moved, [[1.0, 0.0, 0.1], [1.0, 2.0, np.pi / 2 + 0.1], [1.0, 0.0, -np.pi + 0.1]], atol=1e-12
+    )
+    np.testing.assert_allclose(particles[0], [0.0, 0.0, 0.0])  # the input is not changed
+
+
+def test_noise_mean_and_covariance_match_the_sigmas():
+    n = 200_000
+    start = np.tile([2.0, -1.0, 0.3], (n, 1))
+    moved = propagate(start, [0.5, 0.0, 0.2], SIGMA_TRANS_M, SIGMA_ROT_RAD, np.random.default_rng(42))
+    expected_mean = [2.0 + 0.5 * np.cos(0.3), -1.0 + 0.5 * np.sin(0.3), 0.5]
+    np.testing.assert_allclose(moved.mean(axis=0), expected_mean, atol=3e-3)
+    cov = np.cov(moved.T)
+    expected = np.diag([SIGMA_TRANS_M**2, SIGMA_TRANS_M**2, SIGMA_ROT_RAD**2])
+    np.testing.assert_allclose(cov, expected, rtol=0.03, atol=3e-4)
+
+
+def test_yaw_noise_wraps_across_pi():
+    start = np.tile([0.0, 0.0, np.pi - 0.01], (10_000, 1))
+    moved = propagate(start, [0.0, 0.0, 0.0], 0.0, SIGMA_ROT_RAD, np.random.default_rng(1))
+    assert np.all(moved[:, 2] >= -np.pi) and np.all(moved[:, 2] < np.pi)
+    assert (moved[:, 2] < 0).mean() > 0.4  # about half the particles crossed to −π
+
+
+def test_velocity_form_equals_increment_form_with_the_same_generator():
+    particles = np.array([[0.0, 0.0, 0.0], [3.0, 1.0, -1.0]])
+    a = propagate_velocity(particles, 0.8, 0.3, 0.5, 0.1, 0.05, np.random.default_rng(7))
+    b = propagate(particles, velocity_increment(0.8, 0.3, 0.5), 0.1, 0.05, np.random.default_rng(7))
+    np.testing.assert_array_equal(a, b)

@@ -1,0 +1,208 @@
+"""The particle filter: initialization, prediction with off-map down-weighting, update, resampling, estimate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bimfactor.bim.visibility import VisibilityTable
+from bimfactor.config import SmclConfig
+from bimfactor.localization.smcl import (
+    SemanticMCL,
+    StepResult,
+    benchmark_step,
+    circular_mean,
+    effective_sample_size,
+    systematic_resample,
+    weighted_pose_stats,
+)
+from bimfactor.types import Observations, wrap_angle
+from tests.localization.handmade import embedding, make_prior
+
+
+def observe(*items: tuple[str, float, float]) -> Observations:
+    labels = [label for label, _, _ in items]
+    return Observations(
+        np.stack([embedding(label) for label in labels]),
+        np.array([r for _, r, _ in items]),
+        np.array([b for _, _, b in items]),
+        labels=labels,
+    )
+
+
+def noise_free(cfg: SmclConfig) -> SmclConfig:
+    return cfg.model_copy(update={"sigma_trans_m": 0.0, "sigma_rot_deg": 0.0})
+
+
+# ------------------------------------------------------------------------------------------ pieces
+
+
+def test_circular_mean_across_pi():
+    mean = circular_mean(np.deg2rad([179.0, -179.0]))
+    assert abs(wrap_angle(mean - np.pi)) < 1e-9  # 180°, not 0°
+    assert circular_mean(np.deg2rad([10.0, 30.0]), np.array([3.0, 1.0])) == pytest.approx(
+        np.arctan2(
+            3 * np.sin(np.deg2rad(10)) + np.sin(np.deg2rad(30)), 3 * np.cos(np.deg2rad(10)) + np.cos(np.deg2rad(30))
+        )
+    )
+
+
+def test_pose_covariance_wraps_yaw_residuals():
+    poses = np.array([[1.0, 2.0, np.deg2rad(179.0)], [3.0, 2.0, np.deg2rad(-179.0)]])
+    mean, cov = weighted_pose_stats(poses, np.array([0.5, 0.5]))
+    np.testing.assert_allclose(mean[:2], [2.0, 2.0])
+    assert abs(wrap_angle(mean[2] - np.pi)) < 1e-9
+    assert cov[0, 0] == pytest.approx(1.0) and cov[1, 1] == pytest.approx(0.0)
+    assert np.sqrt(cov[2, 2]) == pytest.approx(np.deg2rad(1.0), rel=1e-6)
+
+
+def test_effective_sample_size():
+    assert effective_sample_size(np.full(100, 0.01)) == pytest.approx(100.0)
+    assert effective_sample_size(np.array([1.0, 0.0, 0.0])) == pytest.approx(1.0)
+    assert effective_sample_size(np.array([0.5, 0.5, 0.0, 0.0])) == pytest.approx(2.0)
+
+
+def test_systematic_resampling_counts_are_proportional_to_weights():
+    weights = np.array([0.1, 0.2, 0.3, 0.4, 0.0])
+    for seed in range(5):
+        idx = systematic_resample(weights, 1000, np.random.default_rng(seed))
+        counts = np.bincount(idx, minlength=5)
+        assert np.all(np.abs(counts - 1000 * weights) <= 1)  # low variance: ⌊n·w⌋ or ⌈n·w⌉
+    idx = systematic_resample(np.array([0.25, 0.25, 0.5]), 7, np.random.default_rng(0))
+    assert np.all(np.diff(idx) >= 0) and len(idx) == 7
+
+
+# ------------------------------------------------------------------------------------------ the filter
+
+
+def test_initialize_spreads_particles_over_navigable_space_of_all_storeys(smcl_cfg: SmclConfig):
+    prior = make_prior(n_storeys=2)
+    table = VisibilityTable.build(prior, smcl_cfg, progress=False)
+    mcl = SemanticMCL(prior, table, smcl_cfg, np.random.default_rng(0), num_particles=4000)
+    mcl.initialize()
+    assert mcl.on_navigable(mcl.particles, mcl.storeys).all()
+    assert abs((mcl.storeys == 1).mean() - 0.5) < 0.04  # identical storeys: half each
+    assert mcl.particles[:, 2].min() >= -np.pi and mcl.particles[:, 2].max() < np.pi
+    assert np.std(mcl.particles[:, 2]) == pytest.approx(2 * np.pi / np.sqrt(12), rel=0.05)  # uniform yaw
+    np.testing.assert_allclose(mcl.weights.sum(), 1.0)
+    mcl.initialize(storeys=[1])
+    assert np.all(mcl.storeys == 1)
+
+
+def test_particles_leaving_navigable_space_are_down_weighted(box_prior, box_visibility, smcl_cfg):
+    mcl = SemanticMCL(box_prior, box_visibility, noise_free(smcl_cfg), np.random.default_rng(0), num_particles=2)
+    mcl.initialize()
+    mcl.particles = np.array([[2.0, 3.0, 0.0], [5.0, 3.0, 0.0]])
+    mcl.storeys = np.zeros(2, np.int64)
+    mcl.predict(np.array([1.05, 0.0, 0.0]))  # the second particle ends inside the dividing wall
+    np.testing.assert_allclose(mcl.particles[:, 0], [3.05, 6.05])
+    assert mcl.weights[1] / mcl.weights[0] == pytest.approx(smcl_cfg.off_map_weight)
+
+
+def test_update_multiplies_by_the_likelihood_and_normalises(box_prior, box_visibility, smcl_cfg):
+    mcl = SemanticMCL(box_prior, box_visibility, smcl_cfg, np.random.default_rng(0), num_particles=2)
+    mcl.initialize()
+    mcl.particles = np.array([[4.0, 3.0, np.pi], [4.0, 3.0, 0.0]])  # sees the chair / looks away from it
+    mcl.storeys = np.zeros(2, np.int64)
+    mcl.update(observe(("chair", 1.0, 0.0)))  # score 1 and 0
+    ratio = np.exp(1.0 / smcl_cfg.temperature)
+    np.testing.assert_allclose(mcl.weights, [ratio / (1 + ratio), 1 / (1 + ratio)])
+    before = mcl.weights.copy()
+    mcl.update(Observations(np.zeros((0, 5), np.float32), np.zeros(0), np.zeros(0)))
+    np.testing.assert_array_equal(mcl.weights, before)
+
+
+def test_all_zero_weights_fall_back_to_uniform(box_prior, box_visibility, smcl_cfg, caplog):
+    cfg = noise_free(smcl_cfg).model_copy(update={"off_map_weight": 0.0})
+    mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0), num_particles=3)
+    mcl.initialize()
+    mcl.particles = np.array([[5.0, 3.0, 0.0], [5.0, 2.0, 0.0], [5.0, 4.0, 0.0]])
+    mcl.storeys = np.zeros(3, np.int64)
+    mcl.predict(np.array([1.05, 0.0, 0.0]))  # all into the wall, weight × 0
+    np.testing.assert_allclose(mcl.weights, np.full(3, 1 / 3))
+    assert "resetting" in caplog.text
+    mcl.update(observe(("chair", 1.0, 0.0)))
+    assert np.all(np.isfinite(mcl.weights)) and mcl.weights.sum() == pytest.approx(1.0)
+
+
+def test_resampling_happens_below_the_ess_threshold_and_resets_weights(box_prior, box_visibility, smcl_cfg):
+    mcl = SemanticMCL(box_prior, box_visibility, smcl_cfg, np.random.default_rng(0), num_particles=100)
+    mcl.initialize()
+    assert mcl.resample_if_needed() == (False, 0)
+    mcl.weights = np.zeros(100)
+    mcl.weights[[3, 7]] = [0.75, 0.25]
+    keep3, keep7 = mcl.particles[3].copy(), mcl.particles[7].copy()
+    assert mcl.resample_if_needed() == (True, 0)
+    np.testing.assert_allclose(mcl.weights, np.full(100, 0.01))
+    assert (mcl.particles == keep3).all(axis=1).sum() == 75
+    assert (mcl.particles == keep7).all(axis=1).sum() == 25
+
+
+def test_augmented_mcl_injects_random_particles_when_the_short_average_drops(box_prior, box_visibility, smcl_cfg):
+    cfg = smcl_cfg.model_copy(update={"augmented": True})
+    mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0), num_particles=1000)
+    mcl.initialize()
+    mcl.w_slow, mcl.w_fast = 1.0, 0.2
+    assert mcl.injection_probability() == pytest.approx(0.8)
+    resampled, injected = mcl.resample_if_needed()
+    assert resampled and abs(injected - 800) < 60
+    paper = SemanticMCL(box_prior, box_visibility, smcl_cfg, np.random.default_rng(0), num_particles=1000)
+    paper.initialize()
+    paper.w_slow, paper.w_fast = 1.0, 0.2
+    assert paper.injection_probability() == 0.0 and paper.resample_if_needed() == (False, 0)
+
+
+def test_estimate_is_the_weighted_circular_mean_on_the_heaviest_storey(smcl_cfg: SmclConfig):
+    prior = make_prior(n_storeys=2)
+    table = VisibilityTable.build(prior, smcl_cfg, progress=False)
+    mcl = SemanticMCL(prior, table, smcl_cfg, np.random.default_rng(0), num_particles=4)
+    mcl.initialize()
+    mcl.particles = np.array(
+        [[3.0, 2.0, np.deg2rad(175.0)], [3.2, 2.2, np.deg2rad(-175.0)], [9.0, 3.0, 0.0], [9.0, 3.0, 0.0]]
+    )
+    mcl.storeys = np.array([1, 1, 0, 0])
+    mcl.weights = np.array([0.47, 0.47, 0.03, 0.03])
+    est = mcl.estimate()
+    assert est.storey == 1 and est.storey_share == pytest.approx(0.94)
+    np.testing.assert_allclose(est.pose[:2], [3.1, 2.1])
+    assert abs(wrap_angle(est.pose[2] - np.pi)) < 1e-9
+    assert est.room_id == 2  # room A of storey 1
+    assert est.converged  # std 0.14 m, 5°, 94 % on one storey
+    assert est.covariance.shape == (3, 3) and np.allclose(est.covariance, est.covariance.T)
+    mcl.weights = np.array([0.4, 0.4, 0.1, 0.1])
+    assert not mcl.estimate().converged  # only 80 % of the weight on the estimated storey
+
+
+def test_observations_decide_the_storey(smcl_cfg: SmclConfig):
+    prior = make_prior(n_storeys=2)  # only storey 1 has a chair beside a table
+    table = VisibilityTable.build(prior, smcl_cfg, progress=False)
+    mcl = SemanticMCL(prior, table, smcl_cfg, np.random.default_rng(5), num_particles=2000)
+    mcl.initialize()
+    # From (4, 3) facing west: the table 1 m ahead, the chair at (2, 3.8) 2.15 m away, 22° to the right.
+    seen = observe(("table", 1.0, 0.0), ("chair", np.hypot(2.0, 0.8), np.arctan2(0.8, -2.0) - np.pi))
+    result = None
+    for _ in range(8):
+        result = mcl.step(np.zeros(3), seen)
+    assert isinstance(result, StepResult)
+    assert result.storey == 1 and result.estimate.storey_share > 0.9
+    assert np.hypot(*(result.pose[:2] - [4.0, 3.0])) < 1.0
+
+
+def test_step_reports_timings_and_ess(box_prior, box_visibility, smcl_cfg):
+    mcl = SemanticMCL(box_prior, box_visibility, smcl_cfg, np.random.default_rng(0), num_particles=200)
+    result = mcl.step(None, observe(("chair", 1.0, 0.0)))
+    assert set(result.timings_ms) == {"predict", "update", "resample", "estimate"}
+    assert 1.0 <= result.ess <= 200.0 and result.n_observations == 1
+    assert result.covariance is result.estimate.covariance
+
+
+def test_filter_needs_initialize_before_predict(box_prior, box_visibility, smcl_cfg):
+    mcl = SemanticMCL(box_prior, box_visibility, smcl_cfg, np.random.default_rng(0))
+    with pytest.raises(RuntimeError, match="initialize"):
+        mcl.predict(np.zeros(3))
+
+
+def test_benchmark_reports_one_row_per_particle_count(box_prior, box_visibility, smcl_cfg):
+    rows = benchmark_step(box_prior, box_visibility, smcl_cfg, n_particles_list=(50, 200), n_obs=4, repeats=2)
+    assert [r["n_particles"] for r in rows] == [50, 200]
+    assert all(r["n_obs"] == 4 and r["total_ms_median"] > 0 for r in rows)
