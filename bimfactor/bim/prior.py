@@ -4,8 +4,8 @@
 keep it on disk in a versioned folder format (see `PRIOR_FORMAT`):
 
     prior.json   metadata, storeys, rooms, doors, objects, edges, room-match statistics
-    arrays.npz   grid layers per storey (structure, furniture, clearance_m, room_labels, navigable)
-                 and the object text embeddings (N, D) float32
+    arrays.npz   grid layers per storey (structure, furniture, clearance_m, room_labels, navigable),
+                 the object text embeddings (N, D) float32, and the visible-object table (visibility_*)
     config.yaml  the resolved configuration that built it
 """
 
@@ -25,6 +25,7 @@ from bimfactor.bim import rooms as room_ops
 from bimfactor.bim.classify import classify_rooms, load_room_category_pool
 from bimfactor.bim.grid import GridSpec, StoreyGrid, build_storey_grid, grid_spec_for, rasterise_polygons
 from bimfactor.bim.ifc import IfcElement, Storey, load_ifc
+from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.bim.vocabulary import Vocabulary, label_elements
 from bimfactor.config import Config, config_file
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
@@ -35,7 +36,7 @@ from bimfactor.progress import progress
 log = logging.getLogger(__name__)
 
 PRIOR_FORMAT = "bimfactor-prior"
-PRIOR_VERSION = 1
+PRIOR_VERSION = 2
 _LAYERS = ("structure", "furniture", "clearance_m", "room_labels", "navigable")
 
 
@@ -152,6 +153,7 @@ class BimPrior:
     object_edges: list[tuple[int, int]]
     room_matches: list[RoomMatch] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
+    visibility: VisibilityTable | None = None
 
     # -------------------------------------------------------------------------------- queries
 
@@ -229,6 +231,8 @@ class BimPrior:
             "timings_s": self.timings_s,
         }
         arrays = {"object_embeddings": self.object_embeddings.astype(np.float32)}
+        if self.visibility is not None:
+            arrays.update(self.visibility.to_arrays())
         for layers in self.storeys:
             for name in _LAYERS:
                 arrays[f"storey{layers.storey.index}_{name}"] = getattr(layers, name)
@@ -261,6 +265,7 @@ class BimPrior:
                     for s in meta["storeys"]
                 ]
                 embeddings = arrays["object_embeddings"]
+                visibility = VisibilityTable.from_arrays(arrays) if "visibility_meta" in arrays else None
         except (KeyError, ValueError, OSError) as exc:
             raise FormatError(f"{array_file}: unreadable or incomplete ({exc})") from exc
         return cls(
@@ -283,6 +288,7 @@ class BimPrior:
             object_edges=[tuple(e) for e in meta["object_edges"]],
             room_matches=[RoomMatch(**m) for m in meta["room_matches"]],
             timings_s=meta.get("timings_s", {}),
+            visibility=visibility,
         )
 
 
@@ -372,7 +378,7 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     )
     object_edges = _proximity_edges(objects, bim.objects.proximity_edge_m)
     lap("edges")
-    return BimPrior(
+    prior = BimPrior(
         source_file=str(ifc_path),
         source_sha256=model.sha256,
         schema=model.schema,
@@ -388,6 +394,9 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
         room_matches=matches,
         timings_s=timings,
     )
+    prior.visibility = VisibilityTable.build(prior, cfg.smcl)
+    lap("visibility")
+    return prior
 
 
 def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_room_id: int, first_door_id: int):

@@ -146,6 +146,9 @@ def test_save_and_load_round_trip(prior_of, tmp_path) -> None:
     assert loaded.grid == prior.grid
     assert loaded.room_edges == prior.room_edges and loaded.object_edges == prior.object_edges
     np.testing.assert_array_equal(loaded.object_embeddings, prior.object_embeddings)
+    assert loaded.visibility is not None and prior.visibility is not None
+    for key, value in prior.visibility.to_arrays().items():
+        np.testing.assert_array_equal(loaded.visibility.to_arrays()[key], value)
     for a, b in zip(loaded.storeys, prior.storeys, strict=True):
         assert a.storey == b.storey
         for name in ("structure", "furniture", "clearance_m", "room_labels", "navigable"):
