@@ -102,11 +102,74 @@ class EmbedConfig(_Strict):
     clip_weights: str = Field(description="Local path of the CLIP checkpoint; '' when not available.")
 
 
+class SimPerceptionErrors(_Strict):
+    """One named error preset of the simulated perception backend (configs/perception_sim.yaml)."""
+
+    range_half_m: float = Field(gt=0.0, description="Distance at which the detection quality falls to one half.")
+    range_width_m: float = Field(gt=0.0, description="Width of that logistic fall-off with distance.")
+    visible_half: float = Field(ge=0.0, le=1.0, description="Visible fraction at which the quality halves.")
+    visible_width: float = Field(gt=0.0, description="Width of the logistic fall-off with occlusion.")
+    area_half_px: float = Field(gt=0.0, description="Visible pixel area at which the quality halves.")
+    area_width_log: float = Field(gt=0.0, description="Width of the fall-off with log(area).")
+    box_score_max: float = Field(gt=0.0, le=1.0, description="Box score of an unoccluded, near, large object.")
+    box_score_std: float = Field(ge=0.0, description="Gaussian noise on the box score.")
+    text_score_mean: float = Field(ge=0.0, le=1.0, description="Mean text (region-label) score.")
+    text_score_std: float = Field(ge=0.0, description="Gaussian noise on the text score.")
+    miss_prob: float = Field(ge=0.0, le=1.0, description="Misses that no geometry explains (appearance).")
+    box_jitter: float = Field(ge=0.0, description="Box corner noise as a share of the box side.")
+    confusion_rate: float = Field(ge=0.0, le=1.0, description="Share of detections given another label.")
+    confusion_temperature: float = Field(gt=0.0, description="τ: confused label drawn ∝ exp(cos(true, other) / τ).")
+    false_positive_candidates: float = Field(ge=0.0, description="Mean false-positive boxes per frame before scoring.")
+    false_positive_score_max: float = Field(gt=0.0, le=1.0, description="False-positive box scores ~ U(0, this).")
+    false_positive_side_px: list[float] = Field(
+        min_length=2, max_length=2, description="Side range of a false-positive box (log-uniform)."
+    )
+    mask_dilate_prob: float = Field(ge=0.0, le=1.0, description="Share of masks grown into the background ...")
+    mask_erode_prob: float = Field(ge=0.0, le=1.0, description="... or shrunk, each by 1..mask_radius_px pixels.")
+    mask_radius_px: int = Field(ge=0, description="Largest dilation / erosion radius.")
+    mask_bleed: float = Field(ge=0.0, le=1.0, description="Random background pixels of the box added, share of mask.")
+    embedding_dprime: float = Field(
+        gt=0.0, description="d' = Δμ/σ of matched vs unmatched crop-to-text cosines (CLIP ViT-L/14: ≈ 3)."
+    )
+    embedding_same_instance: float = Field(gt=0.0, lt=1.0, description="Crop-to-crop cosine, same object.")
+    embedding_same_class: float = Field(gt=0.0, lt=1.0, description="Crop-to-crop cosine, same class, other object.")
+    embedding_other_class: float = Field(gt=0.0, lt=1.0, description="Crop-to-crop cosine, other class.")
+
+
+class VlmConfig(_Strict):
+    """Local weight files of the vision-language backend (CLIP comes from `embed.clip_model` / `clip_weights`)."""
+
+    yolo_world_weights: str = Field(description="YOLO-World checkpoint, e.g. yolov8s-worldv2.pt; '' when absent.")
+    sam_model_type: Literal["vit_h", "vit_l", "vit_b"] = Field(description="Segment Anything backbone.")
+    sam_weights: str = Field(description="SAM checkpoint matching `sam_model_type`; '' when absent.")
+
+
 class PerceptionConfig(_Strict):
+    backend: Literal["sim", "vlm"] = Field(
+        description="sim: detections from the simulator's instance buffer with an error model; vlm: YOLO-World+SAM+CLIP."
+    )
+    device: str = Field(description="torch device of the vlm backend ('cpu', 'cuda', 'cuda:1').")
+    sim_preset: str = Field(description="Error preset of the sim backend: a name in `sim_presets_file`.")
+    sim_presets_file: str = Field(description="Table of sim error presets, relative to configs/.")
+    vlm: VlmConfig
     box_threshold: float = Field(ge=0.0, le=1.0, description="Detector box score threshold (paper: 0.25).")
     text_threshold: float = Field(ge=0.0, le=1.0, description="Detector text score threshold (paper: 0.25).")
     sim_threshold: float = Field(ge=-1.0, le=1.0, description="δ_sim, cosine similarity to fuse (paper: 0.7).")
     iou_threshold: float = Field(ge=0.0, le=1.0, description="δ_IoU, 3D overlap to fuse (paper: 0.7).")
+    voxel_size_m: float = Field(gt=0.0, description="Voxel of the instance point sets (downsampling and fusion).")
+    max_depth_m: float = Field(gt=0.0, description="Depth beyond this is not lifted.")
+    max_points: int = Field(ge=1, description="At most this many masked pixels are lifted per detection.")
+    dbscan_eps_m: float = Field(gt=0.0, description="DBSCAN neighbourhood radius (on voxel centres).")
+    dbscan_min_points: int = Field(ge=1, description="DBSCAN core-point neighbour count.")
+    min_instance_voxels: int = Field(ge=1, description="Lifted instances with fewer voxels are dropped.")
+    iou_padding_m: float = Field(ge=0.0, description="Boxes are grown by this on every side before the 3D IoU.")
+    occlusion_tolerance_m: float = Field(
+        ge=0.0, description="A node voxel this far behind the observed depth counts as hidden in the current view."
+    )
+    prune_every: int = Field(ge=1, description="Prune the graph every this many frames.")
+    prune_size_ratio: float = Field(ge=0.0, description="Prune nodes with fewer voxels than this × the median node.")
+    prune_stale_frames: int = Field(ge=1, description="Prune nodes seen once and not for this many frames.")
+    edge_distance_m: float = Field(gt=0.0, description="Nodes whose centroids are closer than this are joined.")
 
 
 class SmclConfig(_Strict):
@@ -120,7 +183,7 @@ class SmclConfig(_Strict):
     kappa_alpha: float = Field(ge=0.0, description="κ_α, bearing similarity concentration (paper: 5).")
     visibility_cell_m: float = Field(gt=0.0, description="Lattice of the precomputed visible-object table.")
     semantic_threshold: float = Field(
-        ge=-1.0, le=1.0, description="Pairs with cos(f_j, C_k) below this score 0 (depends on the embedding space)."
+        ge=0.0, le=1.0, description="Pairs with cos(f_j, C_k) below this score 0 (depends on the embedding space)."
     )
     temperature: float = Field(gt=0.0, description="T in P(z|x) = exp(score / T); the paper gives no value.")
     off_map_weight: float = Field(
@@ -206,6 +269,81 @@ class IoConfig(_Strict):
     )
 
 
+class RegistrationConfig(_Strict):
+    """Fine registration of depth scans against the BIM's structural surfaces (bimfactor.registration)."""
+
+    surface_classes: list[str] = Field(description="IFC classes (and subclasses) sampled into the surface model.")
+    include_slabs: bool = Field(description="Also sample IfcSlab (floors, ceilings); they constrain no planar DoF.")
+    surface_density_per_m2: float = Field(gt=0.0, description="Surface sample points per square metre of mesh.")
+    top_storey_height_m: float = Field(gt=0.0, description="Band height of the top storey (others: next elevation).")
+    scan_voxel_m: float = Field(gt=0.0, description="Voxel size of the downsampled scan (the default scale).")
+    scan_max_range_m: float = Field(gt=0.0, description="Depth returns beyond this are not used.")
+    scan_min_z_m: float = Field(description="Scan points below this height above the floor are dropped (floor).")
+    scan_max_z_m: float = Field(description="Scan points above this height above the floor are dropped (ceiling).")
+    submap_keyframes: int = Field(ge=1, description="Keyframes stitched into the local submap (1: the scan alone).")
+    max_scan_points: int = Field(ge=10, description="Registrars thin the scan to at most this many points (strided).")
+    method: Literal["planar", "point_to_plane", "point_to_point", "robust", "gicp", "multiscale"] = Field(
+        description="Default registrar (see bimfactor.registration.icp.REGISTRARS)."
+    )
+    max_correspondence_m: float = Field(gt=0.0, description="Largest point-to-surface distance of a correspondence.")
+    final_correspondence_m: float = Field(gt=0.0, description="The planar registrar shrinks the distance to this.")
+    max_iterations: int = Field(ge=1, description="ICP iterations per scale.")
+    multiscale_voxels_m: list[float] = Field(min_length=1, description="Coarse-to-fine scan voxel schedule.")
+    multiscale_correspondence_m: list[float] = Field(
+        min_length=1, description="Max correspondence distance per scale (same length as the voxel schedule)."
+    )
+    robust_kernel: Literal["tukey", "huber"] = Field(description="Robust loss of the 'robust' registrar.")
+    robust_k_m: float = Field(gt=0.0, description="Scale of the robust loss.")
+    noise_sigma_m: float = Field(gt=0.0, description="σ of a point-to-plane residual; information = JᵀJ / σ².")
+    crop_margin_m: float = Field(ge=0.0, description="The surface is cropped to the scan's reach plus this margin.")
+    min_fitness: float = Field(ge=0.0, le=1.0, description="Gate: least share of scan points with a correspondence.")
+    max_rmse_m: float = Field(gt=0.0, description="Gate: largest inlier RMSE.")
+    max_correction_m: float = Field(gt=0.0, description="Gate: largest translation away from the initial pose.")
+    max_correction_deg: float = Field(gt=0.0, description="Gate: largest rotation away from the initial pose.")
+    min_degeneracy_ratio: float = Field(
+        ge=0.0, le=1.0, description="Gate: least λmin/λmax of the translational information (corridor check)."
+    )
+    success_trans_m: float = Field(gt=0.0, description="Comparison: a registration succeeds below this error ...")
+    success_rot_deg: float = Field(gt=0.0, description="... and below this rotation error.")
+    compare_keyframes: int = Field(ge=1, description="Comparison: keyframes per building.")
+    compare_perturbations: int = Field(ge=1, description="Comparison: perturbed starts per keyframe.")
+    compare_max_trans_m: float = Field(ge=0.0, description="Comparison: initial translation errors 0 .. this.")
+    compare_max_rot_deg: float = Field(ge=0.0, description="Comparison: initial rotation errors 0 .. this.")
+
+
+class BackendConfig(_Strict):
+    """Multi-hypothesis back end: particle-filter modes, one GTSAM pose graph per mode."""
+
+    max_modes: int = Field(ge=1, description="K, the strongest particle clusters kept as modes each step.")
+    cluster_radius_m: float = Field(gt=0.0, description="Mean-shift window radius in x, y (also the seed grid cell).")
+    cluster_yaw_deg: float = Field(gt=0.0, le=180.0, description="Mean-shift window half-width in yaw (wrapped).")
+    min_cluster_weight: float = Field(ge=0.0, le=1.0, description="Clusters holding less particle weight are dropped.")
+    spawn_weight: float = Field(ge=0.0, le=1.0, description="An unmatched cluster at least this heavy spawns a mode.")
+    track_gate_m: float = Field(gt=0.0, description="A cluster continues a mode whose predicted pose is this close ...")
+    track_gate_yaw_deg: float = Field(gt=0.0, le=180.0, description="... and whose yaw differs by less than this.")
+    merge_distance_m: float = Field(gt=0.0, description="Two modes on one storey closer than this ...")
+    merge_yaw_deg: float = Field(gt=0.0, le=180.0, description="... and within this yaw are merged into one.")
+    prune_probability: float = Field(ge=0.0, lt=1.0, description="Modes whose probability falls below this are pruned.")
+    missed_decay: float = Field(ge=0.0, le=1.0, description="Particle weight kept by a mode no cluster continues.")
+    prior_min_sigma_m: float = Field(gt=0.0, description="Floor on the position σ of a new mode's pose prior.")
+    prior_min_sigma_deg: float = Field(gt=0.0, description="Floor on the yaw σ of a new mode's pose prior.")
+    odom_sigma_trans_m: float = Field(gt=0.0, description="Odometry translation σ per keyframe, constant part ...")
+    odom_sigma_trans_per_m: float = Field(ge=0.0, description="... plus this × the distance travelled.")
+    odom_sigma_rot_deg: float = Field(gt=0.0, description="Odometry yaw σ per keyframe, constant part ...")
+    odom_sigma_rot_per_rad: float = Field(ge=0.0, description="... plus this × the rotation (rad/rad).")
+    range_sigma_m: float = Field(gt=0.0, description="σ of an observed object's range.")
+    bearing_sigma_deg: float = Field(gt=0.0, description="σ of an observed object's bearing.")
+    landmark_sigma_m: float = Field(gt=0.0, description="σ holding a BIM landmark at its BIM position (as-built drift).")
+    robust_kernel: Literal["huber", "cauchy", "none"] = Field(description="M-estimator on the landmark factors.")
+    robust_k: float = Field(gt=0.0, description="Kernel width in σ units (Huber 1.345, Cauchy 2.385: 95 % efficiency).")
+    outlier_chi2: float = Field(gt=0.0, description="Per-observation χ² cap in a mode's residual; unmatched ones cost it.")
+    residual_temperature: float = Field(gt=0.0, description="τ in p_k ∝ w_k · exp(−C_k / (2τ)).")
+    reassociate_distance_m: float = Field(ge=0.0, description="Re-associate when the estimate moves this far ...")
+    reassociate_yaw_deg: float = Field(ge=0.0, description="... or turns this much from the pose that associated.")
+    relinearize_threshold: float = Field(gt=0.0, description="ISAM2 relinearization threshold.")
+    lm_max_iterations: int = Field(ge=1, description="Levenberg–Marquardt iterations of the offline batch refine.")
+
+
 class EvaluationConfig(_Strict):
     num_trajectories: int = Field(ge=1, description="Trajectories per building (paper: 6).")
     trajectory_length: int = Field(ge=1, description="T, steps per trajectory (paper: 50).")
@@ -218,8 +356,10 @@ class Config(_Strict):
     embed: EmbedConfig
     perception: PerceptionConfig
     smcl: SmclConfig
+    backend: BackendConfig
     sim: SimConfig
     io: IoConfig
+    registration: RegistrationConfig
     evaluation: EvaluationConfig
 
     def dump_yaml(self) -> str:

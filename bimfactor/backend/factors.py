@@ -1,0 +1,136 @@
+"""GTSAM factors and noise models of the per-mode pose graphs, built from config values.
+
+Keys: `X(i)` is the robot pose (gtsam.Pose2) at keyframe i, `L(j)` the BIM object with id j (gtsam.Point2).
+GTSAM's Pose2 tangent space is body-frame (dx, dy, dθ); covariances the rest of bimfactor reads are world-frame
+(x, y, yaw), so `covariance_world_to_body` / `covariance_body_to_world` rotate between the two.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from bimfactor.config import BackendConfig
+from bimfactor.types import Observations
+
+__all__ = [
+    "L",
+    "X",
+    "bearing_range_noise",
+    "covariance_body_to_world",
+    "covariance_world_to_body",
+    "from_pose2",
+    "information_pose_factor",
+    "landmark_factors",
+    "landmark_prior_factor",
+    "odometry_factor",
+    "odometry_sigmas",
+    "pose_prior_factor",
+    "to_pose2",
+]
+
+Association = Sequence[tuple[int, int]]  # (observation index, BIM object id) pairs
+
+
+def to_pose2(pose: np.ndarray) -> gtsam.Pose2:
+    """(3,) x, y, yaw → gtsam.Pose2."""
+    x, y, yaw = np.asarray(pose, np.float64)
+    return gtsam.Pose2(float(x), float(y), float(yaw))
+
+
+def from_pose2(pose: gtsam.Pose2) -> np.ndarray:
+    """gtsam.Pose2 → (3,) x, y, yaw."""
+    return np.array([pose.x(), pose.y(), pose.theta()])
+
+
+def _rotation3(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def covariance_world_to_body(covariance: np.ndarray, yaw: float) -> np.ndarray:
+    """(3, 3) world-frame (x, y, yaw) covariance → GTSAM's body-frame Pose2 tangent covariance at heading `yaw`."""
+    R = _rotation3(yaw)
+    return R.T @ np.asarray(covariance, np.float64) @ R
+
+
+def covariance_body_to_world(covariance: np.ndarray, yaw: float) -> np.ndarray:
+    """(3, 3) GTSAM body-frame Pose2 covariance → world-frame (x, y, yaw) covariance at heading `yaw`."""
+    R = _rotation3(yaw)
+    return R @ np.asarray(covariance, np.float64) @ R.T
+
+
+# ------------------------------------------------------------------------------------------ noise models
+
+
+def odometry_sigmas(increment: np.ndarray, cfg: BackendConfig) -> np.ndarray:
+    """(3,) σ of one (3,) robot-frame odometry increment: a floor plus a share of the distance / rotation."""
+    dist = float(np.hypot(increment[0], increment[1]))
+    sigma_xy = cfg.odom_sigma_trans_m + cfg.odom_sigma_trans_per_m * dist
+    sigma_yaw = np.deg2rad(cfg.odom_sigma_rot_deg) + cfg.odom_sigma_rot_per_rad * abs(float(increment[2]))
+    return np.array([sigma_xy, sigma_xy, sigma_yaw])
+
+
+def _robust(base: gtsam.noiseModel.Base, cfg: BackendConfig) -> gtsam.noiseModel.Base:
+    """Wrap a Gaussian noise model in the configured M-estimator (or return it as is for 'none')."""
+    if cfg.robust_kernel == "none":
+        return base
+    if cfg.robust_kernel == "huber":
+        estimator = gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k)
+    else:
+        estimator = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
+    return gtsam.noiseModel.Robust.Create(estimator, base)
+
+
+def bearing_range_noise(cfg: BackendConfig) -> gtsam.noiseModel.Base:
+    """(bearing, range) noise of an object observation, robust per `cfg.robust_kernel`."""
+    sigmas = np.array([np.deg2rad(cfg.bearing_sigma_deg), cfg.range_sigma_m])
+    return _robust(gtsam.noiseModel.Diagonal.Sigmas(sigmas), cfg)
+
+
+# ------------------------------------------------------------------------------------------ factors
+
+
+def pose_prior_factor(i: int, pose: np.ndarray, covariance_world: np.ndarray) -> gtsam.PriorFactorPose2:
+    """Prior on X(i) at a (3,) pose with a (3, 3) world-frame covariance (rotated into GTSAM's body frame)."""
+    body = covariance_world_to_body(covariance_world, float(pose[2]))
+    return gtsam.PriorFactorPose2(X(i), to_pose2(pose), gtsam.noiseModel.Gaussian.Covariance(body))
+
+
+def information_pose_factor(i: int, pose: np.ndarray, information_body: np.ndarray) -> gtsam.PriorFactorPose2:
+    """Prior on X(i) with a (3, 3) information matrix in GTSAM's body frame (e.g. an ICP registration's Hessian)."""
+    noise = gtsam.noiseModel.Gaussian.Information(np.asarray(information_body, np.float64))
+    return gtsam.PriorFactorPose2(X(i), to_pose2(pose), noise)
+
+
+def odometry_factor(
+    i: int, increment: np.ndarray, cfg: BackendConfig, covariance: np.ndarray | None = None
+) -> gtsam.BetweenFactorPose2:
+    """X(i−1) → X(i) by a (3,) robot-frame increment; noise from `odometry_sigmas` or a given (3, 3) covariance."""
+    if covariance is None:
+        noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(increment, cfg))
+    else:
+        noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, np.float64))
+    return gtsam.BetweenFactorPose2(X(i - 1), X(i), to_pose2(increment), noise)
+
+
+def landmark_prior_factor(object_id: int, position_xy: np.ndarray, cfg: BackendConfig) -> gtsam.PriorFactorPoint2:
+    """Holds L(j) at its (2,) BIM position with σ = `landmark_sigma_m` (as-built deviates from the model)."""
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, cfg.landmark_sigma_m)
+    return gtsam.PriorFactorPoint2(L(object_id), np.asarray(position_xy, np.float64)[:2], noise)
+
+
+def landmark_factors(
+    i: int, observations: Observations, association: Association, noise: gtsam.noiseModel.Base
+) -> list[gtsam.BearingRangeFactor2D]:
+    """One BearingRangeFactor2D X(i) → L(j) per (observation index, object id) pair."""
+    factors = []
+    for k, object_id in association:
+        bearing = gtsam.Rot2(float(observations.bearing_rad[k]))
+        factors.append(
+            gtsam.BearingRangeFactor2D(X(i), L(int(object_id)), bearing, float(observations.range_m[k]), noise)
+        )
+    return factors

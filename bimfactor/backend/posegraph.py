@@ -1,0 +1,515 @@
+"""One GTSAM pose graph per particle-filter mode, with semantic-landmark factors to matched BIM objects.
+
+Per mode k (a `ModeGraph`), keyed by keyframe index i and BIM object id j:
+1. a prior on the mode's first pose X(i0) from its cluster mean and covariance (σ floored);
+2. BetweenFactorPose2 X(i−1) → X(i) per odometry increment;
+3. for every observation matched to object j: a robust BearingRangeFactor2D X(i) → L(j), and once per object a
+   tight PriorFactorPoint2 holding L(j) at its BIM position (σ = `landmark_sigma_m`: as-built reality deviates);
+4. optionally a PriorFactorPose2 from a fine registrar (`add_pose_factor`).
+Online, ISAM2 takes one update per keyframe (one more only when re-association changes the matches).
+
+Mode probability (`MultiHypothesisBackend.step`): with w_k the mode's particle-weight share and, over the K
+observations of the step, C_k = Σ_j min(χ²_kj, c_out) where χ²_kj = (Δbearing/σ_b)² + (Δrange/σ_r)² of a matched
+observation at the updated estimate and an unmatched observation costs c_out = `outlier_chi2`,
+
+    p_k = w_k · exp(−C_k / (2τ)) / Σ_m w_m · exp(−C_m / (2τ)),   ν_k = C_k / (2K)  (normalised residual, ≈ 1 when
+                                                                                    the matches fit their noise).
+Offline, `batch_refine` builds the same factors for a whole trajectory and optimises with Levenberg–Marquardt.
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from bimfactor.backend.factors import (
+    Association,
+    L,
+    X,
+    bearing_range_noise,
+    covariance_body_to_world,
+    from_pose2,
+    information_pose_factor,
+    landmark_factors,
+    landmark_prior_factor,
+    odometry_factor,
+    pose_prior_factor,
+)
+from bimfactor.backend.modes import Mode, ModeTracker, TrackedMode
+from bimfactor.config import BackendConfig
+from bimfactor.localization.likelihood import SemanticLikelihood, polar_coordinates
+from bimfactor.types import Observations, se2_compose, wrap_angle
+
+log = logging.getLogger(__name__)
+
+AssociateFn = Callable[[np.ndarray, int], list[tuple[int, int]]]
+"""(3,) pose, storey → (observation index, BIM object id) pairs for the current step's observations."""
+
+
+def floored_covariance(covariance: np.ndarray, cfg: BackendConfig) -> np.ndarray:
+    """(3, 3) covariance with its position and yaw variances raised to at least the configured prior floor."""
+    cov = 0.5 * (np.asarray(covariance, np.float64) + np.asarray(covariance, np.float64).T)
+    floor = np.array([cfg.prior_min_sigma_m, cfg.prior_min_sigma_m, np.deg2rad(cfg.prior_min_sigma_deg)]) ** 2
+    return cov + np.diag(np.maximum(floor - np.diag(cov), 0.0)) + 1e-12 * np.eye(3)
+
+
+def observation_cost(
+    pose: np.ndarray,
+    landmark_xy: dict[int, np.ndarray],
+    observations: Observations,
+    association: Association,
+    cfg: BackendConfig,
+) -> float:
+    """C = Σ_j min(χ²_j, c_out) over the step's observations; unmatched ones cost c_out (see module docstring)."""
+    n_obs = len(observations)
+    cost = cfg.outlier_chi2 * (n_obs - len(association))
+    if not association:
+        return float(cost)
+    obs_idx = np.array([k for k, _ in association])
+    points = np.array([landmark_xy[j] for _, j in association])
+    d, alpha = polar_coordinates(pose, points)
+    db = wrap_angle(np.asarray(observations.bearing_rad)[obs_idx] - alpha) / np.deg2rad(cfg.bearing_sigma_deg)
+    dr = (np.asarray(observations.range_m)[obs_idx] - d) / cfg.range_sigma_m
+    return float(cost + np.minimum(db**2 + dr**2, cfg.outlier_chi2).sum())
+
+
+def semantic_associator(
+    likelihood: SemanticLikelihood, observations: Observations, min_score: float = 0.05
+) -> AssociateFn:
+    """An `AssociateFn` from the S-MCL score: the Hungarian assignment maximising φ = φ_sem·φ_dist·φ_ang at a pose.
+
+    Pairs scoring at most `min_score` are left unmatched (φ_dist is a loose gate: exp(−|Δd| / σ_d)).
+    """
+
+    def associate(pose: np.ndarray, storey: int) -> list[tuple[int, int]]:
+        phi, ids = likelihood.pair_scores(np.asarray(pose, np.float64)[None], np.array([storey]), observations)
+        if phi.shape[2] == 0:
+            return []
+        rows, cols = linear_sum_assignment(phi[0], maximize=True)
+        return [
+            (int(k), int(ids[0, c]))
+            for k, c in zip(rows, cols, strict=True)
+            if phi[0, k, c] > min_score and ids[0, c] >= 0
+        ]
+
+    return associate
+
+
+class ModeGraph:
+    """The ISAM2 pose graph of one mode; `landmark_xy` (N, 2) holds BIM object positions, row = object id."""
+
+    def __init__(
+        self,
+        mode_id: int,
+        first_index: int,
+        pose: np.ndarray,
+        covariance_world: np.ndarray,
+        landmark_xy: np.ndarray,
+        cfg: BackendConfig,
+        storey: int = 0,
+    ) -> None:
+        self.mode_id = mode_id
+        self.storey = storey
+        self.cfg = cfg
+        self.landmark_xy = np.asarray(landmark_xy, np.float64)
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(cfg.relinearize_threshold)
+        params.relinearizeSkip = 1
+        self.isam = gtsam.ISAM2(params)
+        self.noise = bearing_range_noise(cfg)
+        self.first_index = first_index
+        self.last_index: int | None = None
+        self.pose = np.asarray(pose, np.float64).copy()
+        self.covariance = floored_covariance(covariance_world, cfg)
+        self.poses: dict[int, np.ndarray] = {}
+        self.associations: dict[int, list[tuple[int, int]]] = {}
+        self._landmarks: set[int] = set()
+        self._landmark_factor_indices: dict[int, list[int]] = {}
+        self._pending = gtsam.NonlinearFactorGraph()
+        self._pending.add(pose_prior_factor(first_index, self.pose, self.covariance))
+
+    # -------------------------------------------------------------------------------- online
+
+    def predict(self, increment: np.ndarray | None) -> np.ndarray:
+        """(3,) the current estimate moved by a (3,) robot-frame odometry increment (None: not moved)."""
+        return self.pose.copy() if increment is None else se2_compose(self.pose, np.asarray(increment, np.float64))
+
+    def add_keyframe(
+        self,
+        i: int,
+        observations: Observations,
+        association: Association,
+        increment: np.ndarray | None = None,
+        odom_covariance: np.ndarray | None = None,
+    ) -> None:
+        """Add X(i) (by the increment from X(i−1), or the prior at the first keyframe) and its landmark factors."""
+        values = gtsam.Values()
+        if self.last_index is None:
+            if i != self.first_index:
+                raise ValueError(f"mode {self.mode_id}: first keyframe is {self.first_index}, got {i}")
+            guess = self.pose
+        else:
+            if increment is None or i != self.last_index + 1:
+                raise ValueError(f"mode {self.mode_id}: keyframe {i} needs an increment from {self.last_index}")
+            self._pending.add(odometry_factor(i, increment, self.cfg, odom_covariance))
+            guess = self.predict(increment)
+        values.insert(X(i), gtsam.Pose2(*guess))
+        graph, first_landmark = self._pending, self._pending.size()
+        self._pending = gtsam.NonlinearFactorGraph()
+        self._add_landmarks(graph, values, i, observations, association)
+        result = self.isam.update(graph, values)
+        new_indices = list(result.getNewFactorsIndices())
+        self._landmark_factor_indices[i] = new_indices[first_landmark : first_landmark + len(association)]
+        self.associations[i] = list(association)
+        self.last_index = i
+        self._refresh()
+
+    def reassociate(self, observations: Observations, associate_fn: AssociateFn, associated_at: np.ndarray) -> bool:
+        """Re-run `associate_fn` at the new estimate if it moved past the thresholds from `associated_at`.
+
+        When the matches change, the latest keyframe's landmark factors are swapped in one ISAM2 update; returns
+        whether they were.
+        """
+        moved_m = float(np.hypot(*(self.pose[:2] - associated_at[:2])))
+        turned = abs(float(wrap_angle(self.pose[2] - associated_at[2])))
+        if moved_m < self.cfg.reassociate_distance_m and turned < np.deg2rad(self.cfg.reassociate_yaw_deg):
+            return False
+        i = self.last_index
+        association = list(associate_fn(self.pose.copy(), self.storey))
+        if i is None or set(association) == set(self.associations[i]):
+            return False
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        self._add_landmarks(graph, values, i, observations, association)
+        result = self.isam.update(graph, values, self._landmark_factor_indices[i])
+        self._landmark_factor_indices[i] = list(result.getNewFactorsIndices())[: len(association)]
+        self.associations[i] = association
+        self._refresh()
+        log.debug("mode %d keyframe %d re-associated: %d matches", self.mode_id, i, len(association))
+        return True
+
+    def add_pose_factor(self, i: int, pose: np.ndarray, information: np.ndarray) -> None:
+        """A PriorFactorPose2 on X(i) at a (3,) pose with (3, 3) body-frame information (the fine registrar's result).
+
+        Applied now (one ISAM2 update) when X(i) is in the graph, else with keyframe i.
+        """
+        factor = information_pose_factor(i, pose, information)
+        if i in self.poses:
+            graph = gtsam.NonlinearFactorGraph()
+            graph.add(factor)
+            self.isam.update(graph, gtsam.Values())
+            self._refresh()
+        else:
+            self._pending.add(factor)
+
+    # -------------------------------------------------------------------------------- outputs
+
+    def cost(self, observations: Observations, association: Association) -> float:
+        """C_k of the latest keyframe at the current estimates (see `observation_cost`)."""
+        landmarks = {j: self.landmark_estimate(j) for _, j in association}
+        return observation_cost(self.pose, landmarks, observations, association, self.cfg)
+
+    def landmark_estimate(self, object_id: int) -> np.ndarray:
+        """(2,) the current estimate of L(object_id)."""
+        return np.asarray(self.isam.calculateEstimatePoint2(L(object_id)), np.float64).reshape(2)
+
+    def trajectory(self) -> np.ndarray:
+        """(n, 3) smoothed poses of all keyframes of this mode, in keyframe order."""
+        estimate = self.isam.calculateEstimate()
+        return np.array([from_pose2(estimate.atPose2(X(i))) for i in sorted(self.poses)])
+
+    # -------------------------------------------------------------------------------- helpers
+
+    def _add_landmarks(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        i: int,
+        observations: Observations,
+        association: Association,
+    ) -> None:
+        """Bearing-range factors first (their indices are recorded), then priors + values of first-seen landmarks."""
+        for factor in landmark_factors(i, observations, association, self.noise):
+            graph.add(factor)
+        for _, j in association:
+            j = int(j)
+            if j not in self._landmarks:
+                self._landmarks.add(j)
+                graph.add(landmark_prior_factor(j, self.landmark_xy[j], self.cfg))
+                values.insert(L(j), self.landmark_xy[j, :2].copy())
+
+    def _refresh(self) -> None:
+        i = self.last_index
+        self.pose = from_pose2(self.isam.calculateEstimatePose2(X(i)))
+        self.poses[i] = self.pose
+        self.covariance = covariance_body_to_world(self.isam.marginalCovariance(X(i)), float(self.pose[2]))
+
+
+# ------------------------------------------------------------------------------------------ all modes
+
+
+@dataclass
+class ModeEstimate:
+    """One mode after a step: (3,) pose, (3, 3) world-frame covariance, probability and its two ingredients."""
+
+    mode_id: int
+    pose: np.ndarray
+    covariance: np.ndarray
+    probability: float
+    particle_weight: float
+    normalised_residual: float
+    storey: int
+    n_matches: int
+
+
+@dataclass
+class BackendStep:
+    """One back-end step: the most probable mode, all modes (most probable first), what changed, timings."""
+
+    index: int
+    best: ModeEstimate
+    modes: list[ModeEstimate]
+    spawned: list[int] = field(default_factory=list)
+    merged: list[tuple[int, int]] = field(default_factory=list)
+    pruned: list[int] = field(default_factory=list)
+    reassociated: list[int] = field(default_factory=list)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def pose(self) -> np.ndarray:
+        return self.best.pose
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.best.covariance
+
+
+class MultiHypothesisBackend:
+    """Per-mode pose graphs driven by the particle filter's modes; `step` once per keyframe."""
+
+    def __init__(self, landmark_xy: np.ndarray, cfg: BackendConfig) -> None:
+        self.cfg = cfg
+        self.landmark_xy = np.asarray(landmark_xy, np.float64)[:, :2]
+        self.tracker = ModeTracker(cfg)
+        self.graphs: dict[int, ModeGraph] = {}
+        self.index = -1
+
+    @classmethod
+    def from_prior(cls, prior: Any, cfg: BackendConfig) -> MultiHypothesisBackend:
+        """A back end whose landmarks are a BimPrior's objects (row = object id)."""
+        return cls(prior.object_positions()[:, :2], cfg)
+
+    def step(
+        self,
+        modes: list[Mode],
+        odom_increment: np.ndarray | None,
+        observations: Observations,
+        associate_fn: AssociateFn,
+        odom_covariance: np.ndarray | None = None,
+    ) -> BackendStep:
+        """Track the modes, update every mode's graph with the keyframe, weigh the modes; see the module docstring."""
+        self.index += 1
+        i = self.index
+        clock = time.perf_counter()
+        # 1. Mode identities: continue / spawn / merge; graphs of absorbed modes are dropped.
+        events = self.tracker.update(modes, None if i == 0 else odom_increment)
+        for _, absorbed in events.merged:
+            self.graphs.pop(absorbed, None)
+        t_track = time.perf_counter()
+        # 2. One ISAM2 update per mode graph (new modes start a graph at this keyframe from their cluster).
+        costs: dict[int, float] = {}
+        reassociated: list[int] = []
+        for mode in self.tracker.modes:
+            graph = self.graphs.get(mode.id)
+            if graph is None:
+                graph = ModeGraph(mode.id, i, mode.mean, mode.covariance, self.landmark_xy, self.cfg, mode.storey)
+                self.graphs[mode.id] = graph
+                predicted, increment = graph.pose.copy(), None
+            else:
+                predicted, increment = graph.predict(odom_increment), odom_increment
+            association = list(associate_fn(predicted, mode.storey))
+            graph.add_keyframe(i, observations, association, increment, odom_covariance)
+            if graph.reassociate(observations, associate_fn, predicted):
+                reassociated.append(mode.id)
+            costs[mode.id] = graph.cost(observations, graph.associations[i])
+            mode.mean, mode.covariance = graph.pose.copy(), graph.covariance.copy()
+        t_graphs = time.perf_counter()
+        # 3. Probabilities p_k ∝ w_k · exp(−C_k / 2τ); merge converged graphs, prune improbable modes.
+        self.tracker.set_probabilities(self._probabilities(costs))
+        merged = self.tracker.merge_converged()
+        for _, absorbed in merged:
+            self.graphs.pop(absorbed, None)
+        pruned = self.tracker.prune()
+        for mode_id in pruned:
+            self.graphs.pop(mode_id, None)
+        estimates = [self._estimate(mode, costs[mode.id], len(observations)) for mode in self.tracker.modes]
+        estimates.sort(key=lambda e: -e.probability)
+        t_end = time.perf_counter()
+        timings = {
+            "track": (t_track - clock) * 1e3,
+            "graphs": (t_graphs - t_track) * 1e3,
+            "weigh": (t_end - t_graphs) * 1e3,
+            "total": (t_end - clock) * 1e3,
+        }
+        return BackendStep(
+            i, estimates[0], estimates, events.spawned, events.merged + merged, pruned, reassociated, timings
+        )
+
+    def add_pose_factor(self, mode_id: int, i: int, pose: np.ndarray, information: np.ndarray) -> None:
+        """Feed a fine registrar's (3,) pose with (3, 3) body-frame information into one mode's graph."""
+        self.graphs[mode_id].add_pose_factor(i, pose, information)
+
+    def _probabilities(self, costs: dict[int, float]) -> dict[int, float]:
+        ids = [m.id for m in self.tracker.modes]
+        weights = np.array([max(self.tracker.get(k).weight, 1e-300) for k in ids])
+        log_p = np.log(weights) - np.array([costs[k] for k in ids]) / (2 * self.cfg.residual_temperature)
+        p = np.exp(log_p - log_p.max())
+        return dict(zip(ids, (p / p.sum()).tolist(), strict=True))
+
+    def _estimate(self, mode: TrackedMode, cost: float, n_obs: int) -> ModeEstimate:
+        graph = self.graphs[mode.id]
+        n_matches = len(graph.associations[graph.last_index])
+        nu = cost / (2 * n_obs) if n_obs else 0.0
+        return ModeEstimate(
+            mode.id,
+            graph.pose.copy(),
+            graph.covariance.copy(),
+            mode.probability,
+            mode.weight,
+            nu,
+            mode.storey,
+            n_matches,
+        )
+
+
+# ------------------------------------------------------------------------------------------ offline
+
+
+@dataclass
+class BatchResult:
+    """Levenberg–Marquardt refinement of a trajectory: (T, 3) poses, (T, 3, 3) world-frame covariances."""
+
+    poses: np.ndarray
+    covariances: np.ndarray
+    error_before: float
+    error_after: float
+    iterations: int
+
+
+def batch_refine(
+    first_pose: np.ndarray,
+    first_covariance: np.ndarray,
+    increments: np.ndarray,
+    observations: Sequence[Observations],
+    associations: Sequence[Association],
+    landmark_xy: np.ndarray,
+    cfg: BackendConfig,
+    initial_poses: np.ndarray | None = None,
+    odom_covariances: np.ndarray | None = None,
+    pose_factors: Sequence[tuple[int, np.ndarray, np.ndarray]] = (),
+) -> BatchResult:
+    """Full graph of a T-keyframe trajectory optimised with Levenberg–Marquardt.
+
+    `increments` (T−1, 3) robot-frame odometry; `observations` / `associations` one per keyframe; `landmark_xy`
+    (N, 2) BIM positions by object id; `initial_poses` (T, 3) (default: dead reckoning); `odom_covariances`
+    (T−1, 3, 3) optional; `pose_factors` (i, (3,) pose, (3, 3) body information) from a fine registrar.
+    """
+    increments = np.asarray(increments, np.float64).reshape(-1, 3)
+    T = len(increments) + 1
+    if len(observations) != T or len(associations) != T:
+        raise ValueError(f"{T} keyframes need {T} observations and associations")
+    landmark_xy = np.asarray(landmark_xy, np.float64)[:, :2]
+    if initial_poses is None:
+        initial_poses = np.empty((T, 3))
+        initial_poses[0] = first_pose
+        for t, inc in enumerate(increments, start=1):
+            initial_poses[t] = se2_compose(initial_poses[t - 1], inc)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    noise = bearing_range_noise(cfg)
+    graph.add(pose_prior_factor(0, np.asarray(first_pose, np.float64), floored_covariance(first_covariance, cfg)))
+    seen: set[int] = set()
+    for t in range(T):
+        values.insert(X(t), gtsam.Pose2(*initial_poses[t]))
+        if t > 0:
+            cov = None if odom_covariances is None else odom_covariances[t - 1]
+            graph.add(odometry_factor(t, increments[t - 1], cfg, cov))
+        for factor in landmark_factors(t, observations[t], associations[t], noise):
+            graph.add(factor)
+        for _, j in associations[t]:
+            if int(j) not in seen:
+                seen.add(int(j))
+                graph.add(landmark_prior_factor(int(j), landmark_xy[int(j)], cfg))
+                values.insert(L(int(j)), landmark_xy[int(j)].copy())
+    for i, pose, information in pose_factors:
+        graph.add(information_pose_factor(i, pose, information))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(cfg.lm_max_iterations)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    error_before = graph.error(values)
+    result = optimizer.optimize()
+    marginals = gtsam.Marginals(graph, result)
+    poses = np.array([from_pose2(result.atPose2(X(t))) for t in range(T)])
+    covariances = np.array(
+        [covariance_body_to_world(marginals.marginalCovariance(X(t)), float(poses[t, 2])) for t in range(T)]
+    )
+    return BatchResult(poses, covariances, float(error_before), float(graph.error(result)), optimizer.iterations())
+
+
+# ------------------------------------------------------------------------------------------ benchmark
+
+
+def benchmark_backend(
+    cfg: BackendConfig,
+    n_modes: int = 5,
+    n_keyframes: int = 60,
+    n_landmarks: int = 12,
+    n_obs: int = 6,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Median ms of `MultiHypothesisBackend.step` (all modes' ISAM2 updates) per keyframe on a synthetic loop.
+
+    A symmetric building: `n_modes` copies of the loop world 100 m apart, one mode in each, every mode matching
+    `n_obs` landmarks per keyframe in its own copy, so all modes stay alive (none is pruned or merged).
+    """
+    from bimfactor.backend.synthetic import loop_scenario
+
+    rng = np.random.default_rng(seed)
+    scenario = loop_scenario(rng, cfg, n_poses=n_keyframes, n_landmarks=n_landmarks, n_obs=n_obs)
+    spacing_m = 100.0
+    offsets = [np.array([spacing_m * k, 0.0]) for k in range(n_modes)]
+    landmark_xy = np.concatenate([scenario.landmark_xy + off for off in offsets])
+    backend = MultiHypothesisBackend(landmark_xy, cfg)
+    per_step, per_graph = [], []
+    for t in range(n_keyframes):
+        clusters = [
+            Mode(scenario.true_poses[t] + np.append(off, 0.0), np.diag([0.01, 0.01, 0.001]), 1.0 / n_modes)
+            for off in offsets
+        ]
+        assoc = scenario.associations[t]
+
+        def associate(pose: np.ndarray, storey: int, assoc: list[tuple[int, int]] = assoc) -> list[tuple[int, int]]:
+            copy = int(np.floor(pose[0] / spacing_m + 0.5))
+            return [(k, j + copy * n_landmarks) for k, j in assoc]
+
+        increment = None if t == 0 else scenario.increments[t - 1]
+        step = backend.step(clusters, increment, scenario.observations[t], associate)
+        per_step.append(step.timings_ms["total"])
+        per_graph.append(step.timings_ms["graphs"])
+    row = {
+        "n_modes": n_modes,
+        "n_keyframes": n_keyframes,
+        "n_obs": n_obs,
+        "step_ms_median": statistics.median(per_step[1:]),
+        "step_ms_p90": float(np.percentile(per_step[1:], 90)),
+        "graphs_ms_median": statistics.median(per_graph[1:]),
+        "modes_alive_end": len(backend.graphs),
+    }
+    log.info("back end, %d modes: %.2f ms median per keyframe", n_modes, row["step_ms_median"])
+    return row

@@ -1,0 +1,94 @@
+"""The multi-hypothesis back end over particle-filter modes: the true mode wins, a wrong one is pruned, modes merge."""
+
+import numpy as np
+import pytest
+
+from bimfactor.backend.modes import Mode
+from bimfactor.backend.posegraph import MultiHypothesisBackend, semantic_associator
+from bimfactor.backend.synthetic import loop_scenario
+from bimfactor.bim.visibility import VisibilityTable
+from bimfactor.config import load_config
+from bimfactor.localization.likelihood import SemanticLikelihood
+from bimfactor.types import Observations, wrap_angle
+from tests.localization.handmade import embedding, make_prior, object_id
+
+CFG = load_config().backend
+CLUSTER_COV = np.diag([0.2, 0.2, np.deg2rad(5.0)]) ** 2
+GATE_M = 1.0
+
+
+def _nearest_landmark_associator(landmark_xy: np.ndarray, observations: Observations):
+    """Each observation → the BIM landmark nearest to where the pose puts it, within GATE_M."""
+
+    def associate(pose: np.ndarray, storey: int) -> list[tuple[int, int]]:
+        angle = pose[2] + np.asarray(observations.bearing_rad)
+        xy = pose[:2] + np.asarray(observations.range_m)[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+        gaps = np.linalg.norm(xy[:, None, :] - landmark_xy[None, :, :], axis=2)
+        return [(k, int(np.argmin(g))) for k, g in enumerate(gaps) if g.min() < GATE_M]
+
+    return associate
+
+
+def _rotate_about_origin(pose: np.ndarray, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([c * pose[0] - s * pose[1], s * pose[0] + c * pose[1], wrap_angle(pose[2] + angle)])
+
+
+def test_the_true_mode_wins_and_a_wrong_mode_is_pruned():
+    sc = loop_scenario(np.random.default_rng(0), CFG)
+    backend = MultiHypothesisBackend(sc.landmark_xy, CFG)
+    wrong_rotation = np.pi / 3  # maps the landmark ring's inner landmarks onto outer ones: nothing fits
+    pruned, best_ids = [], []
+    for t in range(len(sc.true_poses)):
+        clusters = [
+            Mode(sc.true_poses[t], CLUSTER_COV, 0.5),
+            Mode(_rotate_about_origin(sc.true_poses[t], wrong_rotation), CLUSTER_COV, 0.5),
+        ]
+        increment = None if t == 0 else sc.increments[t - 1]
+        step = backend.step(
+            clusters, increment, sc.observations[t], _nearest_landmark_associator(sc.landmark_xy, sc.observations[t])
+        )
+        pruned += step.pruned
+        best_ids.append(step.best.mode_id)
+        assert np.linalg.norm(step.pose[:2] - sc.true_poses[t, :2]) < 0.3
+        assert abs(wrap_angle(step.pose[2] - sc.true_poses[t, 2])) < np.deg2rad(5.0)
+        assert step.best.normalised_residual < 2.0
+    assert best_ids == [0] * len(sc.true_poses)
+    assert 1 in pruned
+    # The wrong cluster keeps arriving, spawns again and is pruned again: never more than the true mode survives.
+    assert [m.mode_id for m in step.modes] == [0]
+    assert step.best.probability == pytest.approx(1.0)
+
+
+def test_modes_whose_graphs_converge_are_merged():
+    sc = loop_scenario(np.random.default_rng(1), CFG)
+    backend = MultiHypothesisBackend(sc.landmark_xy, CFG)
+    offset = np.array([0.6, 0.0, 0.0])  # beyond merge_distance_m: the clusters are distinct at first
+    assert offset[0] > CFG.merge_distance_m
+    merged = []
+    for t in range(3):
+        clusters = [Mode(sc.true_poses[t], CLUSTER_COV, 0.6), Mode(sc.true_poses[t] + offset, CLUSTER_COV, 0.4)]
+        increment = None if t == 0 else sc.increments[t - 1]
+        step = backend.step(
+            clusters, increment, sc.observations[t], _nearest_landmark_associator(sc.landmark_xy, sc.observations[t])
+        )
+        merged += step.merged
+    assert merged and merged[0] == (0, 1)
+    assert len(backend.graphs) == 1
+
+
+def test_semantic_associator_reuses_the_smcl_score():
+    prior = make_prior()
+    smcl_cfg = load_config().smcl
+    visibility = VisibilityTable.build(prior, smcl_cfg, progress=False)
+    likelihood = SemanticLikelihood(prior, visibility, smcl_cfg)
+    pose = np.array([3.0, 1.5, np.pi / 2])  # in room A, facing the chair at (3, 3)
+    observations = Observations(
+        np.stack([embedding("chair"), embedding("table")]).astype(np.float32),
+        np.array([1.5, 2.0]),
+        np.array([0.0, 0.3]),
+        labels=["chair", "table"],
+    )
+    associate = semantic_associator(likelihood, observations)
+    # The table is in the other room, behind the wall: only the chair is matched.
+    assert associate(pose, 0) == [(0, object_id(prior, "chair"))]

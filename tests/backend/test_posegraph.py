@@ -1,0 +1,152 @@
+"""Per-mode pose graphs on a synthetic loop: ISAM2 and batch LM accuracy, robust kernels, covariance honesty."""
+
+import numpy as np
+import pytest
+
+from bimfactor.backend.factors import covariance_body_to_world, covariance_world_to_body
+from bimfactor.backend.posegraph import ModeGraph, batch_refine
+from bimfactor.backend.synthetic import LoopScenario, loop_scenario
+from bimfactor.config import load_config
+from bimfactor.types import se2_compose, wrap_angle
+
+BASE = load_config().backend
+# A precise sensor and BIM for the accuracy tests (σ_r 5 cm, σ_b 1°, BIM σ 2 cm; truth = BIM).
+PRECISE = BASE.model_copy(update={"range_sigma_m": 0.05, "bearing_sigma_deg": 1.0, "landmark_sigma_m": 0.02})
+FIRST_COV = np.diag([0.1, 0.1, np.deg2rad(2.0)]) ** 2
+CHI2_3DOF_95 = 7.815
+WRONG_MATCH_STEP = 10
+
+
+def _errors(poses: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """RMS position error (m) and RMS yaw error (deg) of (T, 3) poses."""
+    err = poses - truth
+    err[:, 2] = wrap_angle(err[:, 2])
+    return float(np.sqrt((err[:, :2] ** 2).sum(axis=1).mean())), float(np.rad2deg(np.sqrt((err[:, 2] ** 2).mean())))
+
+
+def _run_isam(sc: LoopScenario, cfg, associations=None) -> ModeGraph:
+    associations = sc.associations if associations is None else associations
+    graph = ModeGraph(0, 0, sc.true_poses[0], FIRST_COV, sc.landmark_xy, cfg)
+    for t in range(len(sc.true_poses)):
+        graph.add_keyframe(t, sc.observations[t], associations[t], None if t == 0 else sc.increments[t - 1])
+    return graph
+
+
+def _run_batch(sc: LoopScenario, cfg, associations=None):
+    associations = sc.associations if associations is None else associations
+    return batch_refine(sc.true_poses[0], FIRST_COV, sc.increments, sc.observations, associations, sc.landmark_xy, cfg)
+
+
+def _wrong_associations(sc: LoopScenario) -> tuple[list, float]:
+    """The true associations with one observation matched to a landmark ≈ 3 m from its true one."""
+    associations = [list(a) for a in sc.associations]
+    k, true_j = associations[WRONG_MATCH_STEP][0]
+    gaps = np.linalg.norm(sc.landmark_xy - sc.landmark_xy[true_j], axis=1)
+    wrong_j = int(np.argmin(np.abs(gaps - 3.0)))
+    associations[WRONG_MATCH_STEP][0] = (k, wrong_j)
+    return associations, float(gaps[wrong_j])
+
+
+def test_covariance_frame_round_trip():
+    cov = np.array([[0.04, 0.01, 0.001], [0.01, 0.01, 0.0], [0.001, 0.0, 0.002]])
+    body = covariance_world_to_body(cov, 0.7)
+    np.testing.assert_allclose(covariance_body_to_world(body, 0.7), cov, atol=1e-12)
+    # At heading 90° the body x axis points along world y: a world-x uncertainty is a body-y one.
+    np.testing.assert_allclose(
+        covariance_world_to_body(np.diag([1.0, 0.0, 0.0]), np.pi / 2), np.diag([0, 1.0, 0]), atol=1e-12
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_isam2_converges_to_the_true_loop(seed):
+    sc = loop_scenario(np.random.default_rng(seed), PRECISE)
+    graph = _run_isam(sc, PRECISE)
+    trans_rms_m, yaw_rms_deg = _errors(graph.trajectory(), sc.true_poses)
+    assert trans_rms_m < 0.05
+    assert yaw_rms_deg < 1.0
+    # The online (filtered) estimate of the last pose beats dead reckoning, which drifts.
+    dead = sc.true_poses[0]
+    for inc in sc.increments:
+        dead = se2_compose(dead, inc)
+    online_err_m = np.linalg.norm(graph.pose[:2] - sc.true_poses[-1, :2])
+    assert online_err_m < 0.1
+    assert online_err_m < np.linalg.norm(dead[:2] - sc.true_poses[-1, :2])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_batch_lm_converges_and_agrees_with_isam2(seed):
+    sc = loop_scenario(np.random.default_rng(seed), PRECISE)
+    result = _run_batch(sc, PRECISE)
+    trans_rms_m, yaw_rms_deg = _errors(result.poses, sc.true_poses)
+    assert trans_rms_m < 0.05
+    assert yaw_rms_deg < 1.0
+    assert result.error_after < result.error_before
+    assert result.covariances.shape == (20, 3, 3)
+    assert np.all(np.linalg.eigvalsh(result.covariances) > 0)
+    # ISAM2's smoothed trajectory is near the same optimum (one relinearization per keyframe: not all the way).
+    gap = _run_isam(sc, PRECISE).trajectory()[:, :2] - result.poses[:, :2]
+    assert np.sqrt((gap**2).sum(axis=1).mean()) < 0.02
+
+
+@pytest.mark.parametrize("kernel", ["cauchy", "huber"])
+def test_robust_kernel_down_weights_a_wrong_match_that_drags_the_plain_graph(kernel):
+    sc = loop_scenario(np.random.default_rng(1), PRECISE)
+    wrong, gap_m = _wrong_associations(sc)
+    assert 2.5 < gap_m < 4.0
+    k = {"cauchy": 2.385, "huber": 1.345}[kernel]
+    robust = PRECISE.model_copy(update={"robust_kernel": kernel, "robust_k": k})
+    plain = PRECISE.model_copy(update={"robust_kernel": "none"})
+    for run in (lambda s, c, a=None: _run_isam(s, c, a).trajectory(), lambda s, c, a=None: _run_batch(s, c, a).poses):
+        shift_robust = np.abs(run(sc, robust, wrong) - run(sc, robust))[:, :2].max()
+        shift_plain = np.abs(run(sc, plain, wrong) - run(sc, plain))[:, :2].max()
+        assert shift_robust < 0.06
+        assert shift_plain > 0.3
+
+
+def test_covariance_is_honest_on_the_synthetic_loop():
+    """The true pose lies inside the online estimate's 95 % ellipse on roughly 95 % of the steps."""
+    inside, total = 0, 0
+    for seed in range(6):
+        sc = loop_scenario(np.random.default_rng(100 + seed), BASE, as_built=True)
+        graph = ModeGraph(0, 0, sc.true_poses[0], FIRST_COV, sc.landmark_xy, BASE)
+        for t in range(len(sc.true_poses)):
+            graph.add_keyframe(t, sc.observations[t], sc.associations[t], None if t == 0 else sc.increments[t - 1])
+            err = sc.true_poses[t] - graph.pose
+            err[2] = wrap_angle(err[2])
+            inside += int(err @ np.linalg.solve(graph.covariance, err) <= CHI2_3DOF_95)
+            total += 1
+    assert 0.8 <= inside / total <= 1.0
+
+
+def test_reassociation_swaps_the_factors_when_the_estimate_moves():
+    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    graph = ModeGraph(0, 0, sc.true_poses[0], FIRST_COV, sc.landmark_xy, PRECISE)
+    graph.add_keyframe(0, sc.observations[0], sc.associations[0])
+    graph.add_keyframe(1, sc.observations[1], sc.associations[1], sc.increments[0])
+    calls = []
+
+    def associate(pose, storey):
+        calls.append(pose)
+        return sc.associations[1]
+
+    # Close to where it associated: nothing is re-run.
+    assert not graph.reassociate(sc.observations[1], associate, graph.pose)
+    assert calls == []
+    # Far from where it associated: the callback runs; same matches, so nothing is swapped.
+    far = graph.pose + np.array([1.0, 0.0, 0.0])
+    assert not graph.reassociate(sc.observations[1], associate, far)
+    assert len(calls) == 1
+    # Different matches: the keyframe's landmark factors are replaced.
+    n_before = graph.isam.getFactorsUnsafe().nrFactors()
+    assert graph.reassociate(sc.observations[1], lambda p, s: sc.associations[1][:2], far)
+    assert graph.associations[1] == sc.associations[1][:2]
+    assert graph.isam.getFactorsUnsafe().nrFactors() == n_before - (len(sc.associations[1]) - 2)
+
+
+def test_pose_factor_pulls_the_estimate():
+    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    graph = _run_isam(sc, PRECISE)
+    target = graph.pose + np.array([0.3, 0.0, 0.0])
+    graph.add_pose_factor(19, target, np.diag([1e6, 1e6, 1e6]))
+    np.testing.assert_allclose(graph.pose, target, atol=0.01)
+    assert np.sqrt(graph.covariance[0, 0]) < 0.01
