@@ -1,0 +1,95 @@
+"""The paper's evaluation metrics (Sec. III.A, Eq. 5) and what a pose prior's users also need.
+
+One function per metric, shared by the CLI and the library. Errors are per step; a trajectory is summarised
+as mean ± std over its steps, as Table I does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from bimfactor.types import wrap_angle
+
+CONVERGED_TRANS_M = 1.0
+CONVERGED_ORIENT_DEG = 15.0
+
+
+def translation_errors_m(estimates: np.ndarray, ground_truth: np.ndarray) -> np.ndarray:
+    """(T,) ‖xy − x̂ŷ‖ per step for (T, 3) poses."""
+    return np.hypot(*(np.asarray(estimates)[:, :2] - np.asarray(ground_truth)[:, :2]).T)
+
+
+def orientation_errors_deg(estimates: np.ndarray, ground_truth: np.ndarray) -> np.ndarray:
+    """(T,) |yaw − ŷaw| per step in degrees, wrapped."""
+    return np.rad2deg(np.abs(wrap_angle(np.asarray(estimates)[:, 2] - np.asarray(ground_truth)[:, 2])))
+
+
+def steps_to_converge(trans_err_m: np.ndarray, orient_err_deg: np.ndarray) -> int | None:
+    """First step after which the error stays below 1 m and 15° to the end; None if it never does."""
+    ok = (trans_err_m < CONVERGED_TRANS_M) & (orient_err_deg < CONVERGED_ORIENT_DEG)
+    if not ok[-1]:
+        return None
+    bad = np.flatnonzero(~ok)
+    return int(bad[-1] + 1) if len(bad) else 0
+
+
+def ellipse_coverage(
+    estimates: np.ndarray, covariances: np.ndarray, ground_truth: np.ndarray, p: float = 0.95
+) -> float:
+    """Share of steps whose true position lies inside the reported p-probability position ellipse."""
+    from scipy.stats import chi2
+
+    d = np.asarray(ground_truth)[:, :2] - np.asarray(estimates)[:, :2]
+    cov = np.asarray(covariances)[:, :2, :2] + 1e-9 * np.eye(2)
+    m2 = np.einsum("ti,tij,tj->t", d, np.linalg.inv(cov), d)
+    return float(np.mean(m2 <= chi2.ppf(p, 2)))
+
+
+@dataclass
+class TrajectoryMetrics:
+    """Table I's columns for one run plus convergence; errors in metres and degrees, room accuracy 0–1."""
+
+    trans_err_m: float
+    trans_err_std_m: float
+    orient_err_deg: float
+    orient_err_std_deg: float
+    room_acc: float
+    room_acc_std: float
+    steps_to_converge: int | None
+    trans_err_conv_m: float | None
+    orient_err_conv_deg: float | None
+    ellipse95_coverage: float
+    step_ms_median: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def trajectory_metrics(
+    estimates: np.ndarray,
+    ground_truth: np.ndarray,
+    rooms_estimated: np.ndarray,
+    rooms_true: np.ndarray,
+    covariances: np.ndarray,
+    step_ms: np.ndarray,
+) -> TrajectoryMetrics:
+    """Every metric of one localized trajectory (T steps)."""
+    trans = translation_errors_m(estimates, ground_truth)
+    orient = orientation_errors_deg(estimates, ground_truth)
+    room_hit = (np.asarray(rooms_estimated) == np.asarray(rooms_true)).astype(float)
+    k = steps_to_converge(trans, orient)
+    return TrajectoryMetrics(
+        trans_err_m=float(trans.mean()),
+        trans_err_std_m=float(trans.std()),
+        orient_err_deg=float(orient.mean()),
+        orient_err_std_deg=float(orient.std()),
+        room_acc=float(room_hit.mean()),
+        room_acc_std=float(room_hit.std()),
+        steps_to_converge=k,
+        trans_err_conv_m=None if k is None else float(trans[k:].mean()),
+        orient_err_conv_deg=None if k is None else float(orient[k:].mean()),
+        ellipse95_coverage=ellipse_coverage(estimates, covariances, ground_truth),
+        step_ms_median=float(np.median(step_ms)),
+    )

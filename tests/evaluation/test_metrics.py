@@ -1,0 +1,54 @@
+"""The paper's metrics (Eq. 5) and convergence, against hand-computed values."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bimfactor.evaluation.metrics import (
+    ellipse_coverage,
+    orientation_errors_deg,
+    steps_to_converge,
+    trajectory_metrics,
+    translation_errors_m,
+)
+
+
+def test_errors_per_step() -> None:
+    truth = np.array([[0.0, 0.0, np.deg2rad(179.0)], [1.0, 1.0, 0.0]])
+    estimate = np.array([[3.0, 4.0, np.deg2rad(-179.0)], [1.0, 1.0, np.deg2rad(10.0)]])
+    np.testing.assert_allclose(translation_errors_m(estimate, truth), [5.0, 0.0])
+    np.testing.assert_allclose(orientation_errors_deg(estimate, truth), [2.0, 10.0])  # wrapped across ±180°
+
+
+@pytest.mark.parametrize(
+    ("trans", "orient", "expected"),
+    [
+        ([5, 3, 0.5, 0.4, 0.2], [90, 40, 10, 5, 1], 2),
+        ([0.5, 0.4], [1, 1], 0),
+        ([0.5, 2.0, 0.5], [1, 1, 1], 2),
+        ([0.5, 0.5, 2.0], [1, 1, 1], None),
+        ([0.5, 0.5], [1, 20], None),
+    ],
+)
+def test_steps_to_converge(trans: list, orient: list, expected: int | None) -> None:
+    assert steps_to_converge(np.asarray(trans, float), np.asarray(orient, float)) == expected
+
+
+def test_ellipse_coverage_counts_points_inside_the_95_percent_ellipse() -> None:
+    cov = np.tile(np.diag([1.0, 1.0, 0.1]), (3, 1, 1))
+    estimates = np.zeros((3, 3))
+    truth = np.array([[1.0, 1.0, 0.0], [2.0, 2.0, 0.0], [0.0, 2.4, 0.0]])  # m² = 2, 8, 5.76; χ²₂(0.95) = 5.99
+    assert ellipse_coverage(estimates, cov, truth) == pytest.approx(2 / 3)
+
+
+def test_trajectory_metrics_mean_and_std_over_steps() -> None:
+    truth = np.zeros((4, 3))
+    estimates = np.array([[2.0, 0, 0], [0.5, 0, 0], [0.5, 0, 0], [0.0, 0, 0]])
+    m = trajectory_metrics(
+        estimates, truth, np.array([1, 2, 2, 2]), np.array([2, 2, 2, 2]), np.tile(np.eye(3), (4, 1, 1)), np.ones(4)
+    )
+    assert m.trans_err_m == pytest.approx(0.75) and m.trans_err_std_m == pytest.approx(np.std([2, 0.5, 0.5, 0]))
+    assert m.room_acc == pytest.approx(0.75) and m.room_acc_std == pytest.approx(np.std([0, 1, 1, 1]))
+    assert m.steps_to_converge == 1 and m.trans_err_conv_m == pytest.approx(1 / 3)
+    assert m.step_ms_median == 1.0
