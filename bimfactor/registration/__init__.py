@@ -1,0 +1,1 @@
+"""Fine registration against the BIM: surface model, scans, SE(2) registrars, gating, registrar comparison."""

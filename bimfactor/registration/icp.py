@@ -1,0 +1,376 @@
+"""Fine registrars: align a base-frame scan with a storey's BIM surface model, starting from a planar pose.
+
+The robot is planar, so every registrar returns an SE(2) pose (x, y, yaw) at the storey's floor height.
+Two ways of keeping to SE(2) are implemented:
+
+- `PlanarIcp` (the default, "planar") solves point-to-plane ICP directly over the three planar parameters:
+  Gauss–Newton on r_i = n_iᵀ(R(yaw)·s_i + t − m_i), correspondences from a KD-tree over the visible
+  surface around the initial pose, the correspondence distance shrinking from `max_correspondence_m`
+  to `final_correspondence_m`.
+  No roll, pitch or z ever enters, so walls alone (normals in the xy-plane) give a well-posed problem.
+- `Open3dIcp` runs Open3D's 6-DoF registration (point-to-point, point-to-plane, robust point-to-plane,
+  generalized ICP, or a coarse-to-fine schedule of point-to-plane) and projects the result onto
+  (x, y, yaw) at the floor height after every scale. With vertical walls only, z is in the null space
+  of the 6-DoF problem, and z, roll and pitch left free couple back into x, y and yaw (without the two
+  fixes below, runs diverged by metres on the paper floor). A virtual floor pins them: the scan's points dropped
+  to z = 0 and the target's samples dropped to the storey elevation, both with normal +z, enter the
+  problem; in the horizontal they duplicate the walls' footprint, so x, y and yaw are unaffected.
+  Open3D works in a frame centred on the initial pose (its rotation linearisation is about the origin).
+
+Both see only surface samples facing the initial position (`SurfaceModel.facing`): otherwise a scan of
+a wall's near face locks onto its far face, one wall thickness off, with a perfect fit (measured).
+
+Every result carries the same diagnostics, computed at the final pose by `evaluate_planar` so registrars
+compare fairly: fitness, point-to-plane inlier RMSE and the planar information matrix JᵀJ / σ². Open3D's
+`get_information_matrix_from_point_clouds` is not used: it models point-to-point residuals, so its
+translational block is (count · I) and cannot see that a corridor leaves its own axis unconstrained.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from bimfactor.config import RegistrationConfig
+from bimfactor.errors import ConfigError
+from bimfactor.registration.scan import voxel_downsample
+from bimfactor.registration.surface import SurfaceModel, to_point_cloud
+from bimfactor.types import matrix_to_se2, se2_to_matrix, wrap_angle
+
+log = logging.getLogger(__name__)
+
+# A final pose is a fixed point of the planar point-to-plane problem when one more Gauss–Newton step is this small.
+CONVERGED_STEP_M = 0.005
+CONVERGED_STEP_RAD = np.deg2rad(0.1)
+# Fewer scan or surface points than this: nothing to register (the result fails the gate).
+MIN_POINTS = 10
+# Gauss–Newton stops a stage when its step falls below these.
+_STEP_TOL_M = 1e-4
+_STEP_TOL_RAD = 1e-5
+
+
+@dataclass
+class RegistrationResult:
+    """One registration: `pose` (3,) T_world_base as x, y, yaw; `T` (4, 4) at the storey's floor height.
+
+    `information` (3, 3) is over world-frame (x, y, yaw) increments, JᵀJ / σ² of the point-to-plane
+    residuals; `iterations` is -1 for Open3D registrars (Open3D does not report it).
+    """
+
+    method: str
+    pose: np.ndarray
+    T: np.ndarray
+    fitness: float
+    inlier_rmse: float
+    n_correspondences: int
+    information: np.ndarray
+    iterations: int
+    time_ms: float
+    converged: bool
+
+
+class Registrar(Protocol):
+    """Aligns a base-frame scan (N, 3) with a surface model from an initial planar pose (3,)."""
+
+    name: str
+
+    def register(
+        self,
+        scan_base: np.ndarray,
+        surface: SurfaceModel,
+        T_world_base_init: np.ndarray,
+        storey_elevation: float | None = None,
+    ) -> RegistrationResult: ...
+
+
+# ------------------------------------------------------------------------------------ planar point-to-plane
+
+
+@dataclass
+class PlanarTerms:
+    """Point-to-plane terms at a pose: residuals (K,), Jacobian (K, 3) over x, y, yaw, and which scan rows matched."""
+
+    residuals: np.ndarray
+    jacobian: np.ndarray
+    matched: np.ndarray
+    n_scan: int
+
+
+def planar_terms(
+    scan_base: np.ndarray, surface: SurfaceModel, pose: np.ndarray, z_m: float, max_dist_m: float
+) -> PlanarTerms:
+    """Correspondences of the scan at `pose` with the nearest surface samples within `max_dist_m`, linearised."""
+    x, y, yaw = pose
+    c, s = np.cos(yaw), np.sin(yaw)
+    q = np.empty_like(scan_base)
+    q[:, 0] = c * scan_base[:, 0] - s * scan_base[:, 1] + x
+    q[:, 1] = s * scan_base[:, 0] + c * scan_base[:, 1] + y
+    q[:, 2] = scan_base[:, 2] + z_m
+    dist, idx = surface.nn_tree.query(q, distance_upper_bound=max_dist_m)
+    matched = np.isfinite(dist)
+    q, idx = q[matched], idx[matched]
+    n = surface.normals[idx]
+    residuals = np.einsum("ij,ij->i", n, q - surface.points[idx])
+    # ∂r/∂yaw = nᵀ · (dR/dyaw · s) = n_x·(−(q_y − y)) + n_y·(q_x − x)
+    dyaw = -n[:, 0] * (q[:, 1] - y) + n[:, 1] * (q[:, 0] - x)
+    return PlanarTerms(residuals, np.column_stack([n[:, 0], n[:, 1], dyaw]), matched, len(scan_base))
+
+
+def _gauss_newton_step(terms: PlanarTerms, robust_k_m: float | None) -> np.ndarray:
+    """The damped Gauss–Newton step (3,) of the (optionally Huber-weighted) planar point-to-plane problem."""
+    r, J = terms.residuals, terms.jacobian
+    w = np.ones_like(r)
+    if robust_k_m is not None:
+        big = np.abs(r) > robust_k_m
+        w[big] = robust_k_m / np.abs(r[big])
+    H = J.T @ (J * w[:, None])
+    g = J.T @ (w * r)
+    # A tiny Levenberg damping keeps a degenerate corridor from producing a wild step along its axis.
+    H += 1e-6 * max(np.trace(H), 1.0) * np.eye(3)
+    return -np.linalg.solve(H, g)
+
+
+@dataclass
+class PlanarEvaluation:
+    """Diagnostics of a planar pose against the surface (see `evaluate_planar`)."""
+
+    fitness: float
+    inlier_rmse: float
+    n_correspondences: int
+    information: np.ndarray
+    step: np.ndarray
+
+
+def evaluate_planar(
+    scan_base: np.ndarray, surface: SurfaceModel, pose: np.ndarray, z_m: float, max_dist_m: float, sigma_m: float
+) -> PlanarEvaluation:
+    """Fitness (share of scan points matched within `max_dist_m`), point-to-plane RMSE, JᵀJ/σ² (3, 3), next GN step."""
+    terms = planar_terms(scan_base, surface, pose, z_m, max_dist_m)
+    k = len(terms.residuals)
+    if k < 3:
+        return PlanarEvaluation(k / max(terms.n_scan, 1), float("inf"), k, np.zeros((3, 3)), np.zeros(3))
+    J = terms.jacobian
+    return PlanarEvaluation(
+        fitness=k / terms.n_scan,
+        inlier_rmse=float(np.sqrt(np.mean(terms.residuals**2))),
+        n_correspondences=k,
+        information=J.T @ J / sigma_m**2,
+        step=_gauss_newton_step(terms, None),
+    )
+
+
+def evaluate_pose(
+    scan_base: np.ndarray, surface: SurfaceModel, pose: np.ndarray, cfg: RegistrationConfig
+) -> PlanarEvaluation:
+    """`evaluate_planar` of the (N, 3) scan at a (3,) pose against the storey surface as seen from there."""
+    visible = surface.facing(pose[:2], _reach(scan_base) + cfg.final_correspondence_m + cfg.crop_margin_m)
+    return evaluate_planar(scan_base, visible, pose, surface.elevation_m, cfg.final_correspondence_m, cfg.noise_sigma_m)
+
+
+def _result(
+    method: str,
+    scan_base: np.ndarray,
+    surface: SurfaceModel,
+    pose: np.ndarray,
+    z_m: float,
+    cfg: RegistrationConfig,
+    iterations: int,
+    t0: float,
+) -> RegistrationResult:
+    pose = np.array([pose[0], pose[1], wrap_angle(pose[2])], dtype=np.float64)
+    ev = evaluate_planar(scan_base, surface, pose, z_m, cfg.final_correspondence_m, cfg.noise_sigma_m)
+    converged = bool(
+        ev.n_correspondences >= 3
+        and np.hypot(ev.step[0], ev.step[1]) < CONVERGED_STEP_M
+        and abs(ev.step[2]) < CONVERGED_STEP_RAD
+    )
+    return RegistrationResult(
+        method=method,
+        pose=pose,
+        T=se2_to_matrix(pose, z_m),
+        fitness=ev.fitness,
+        inlier_rmse=ev.inlier_rmse,
+        n_correspondences=ev.n_correspondences,
+        information=ev.information,
+        iterations=iterations,
+        time_ms=(time.perf_counter() - t0) * 1000,
+        converged=converged,
+    )
+
+
+class PlanarIcp:
+    """Point-to-plane ICP solved over SE(2) by Gauss–Newton (the default registrar, "planar").
+
+    The correspondence distance halves from `max_correspondence_m` to `final_correspondence_m` each time
+    Gauss–Newton settles; `robust_k_m` (optional) adds Huber weights.
+    """
+
+    def __init__(self, cfg: RegistrationConfig, name: str = "planar", robust_k_m: float | None = None):
+        self.cfg = cfg
+        self.name = name
+        self.robust_k_m = robust_k_m
+
+    def register(
+        self,
+        scan_base: np.ndarray,
+        surface: SurfaceModel,
+        T_world_base_init: np.ndarray,
+        storey_elevation: float | None = None,
+    ) -> RegistrationResult:
+        t0 = time.perf_counter()
+        z = surface.elevation_m if storey_elevation is None else storey_elevation
+        pose = np.asarray(T_world_base_init, dtype=np.float64).copy()
+        scan = thin(np.asarray(scan_base, dtype=np.float64), self.cfg.max_scan_points)
+        dist = max(self.cfg.max_correspondence_m, self.cfg.final_correspondence_m)
+        surface = surface.facing(pose[:2], _reach(scan) + dist + self.cfg.crop_margin_m)
+        iterations = 0
+        while iterations < self.cfg.max_iterations:
+            iterations += 1
+            terms = planar_terms(scan, surface, pose, z, dist)
+            if len(terms.residuals) < 3:
+                break
+            step = _gauss_newton_step(terms, self.robust_k_m)
+            pose += step
+            if np.hypot(step[0], step[1]) < _STEP_TOL_M and abs(step[2]) < _STEP_TOL_RAD:
+                if dist <= self.cfg.final_correspondence_m:
+                    break
+                dist = max(dist / 2, self.cfg.final_correspondence_m)
+        return _result(self.name, np.asarray(scan_base, float), surface, pose, z, self.cfg, iterations, t0)
+
+
+# ------------------------------------------------------------------------------------ Open3D 6-DoF + projection
+
+
+def _reach(scan: np.ndarray) -> float:
+    """How far the (N, 3) base-frame scan reaches in the xy-plane."""
+    return float(np.sqrt(np.max(np.sum(scan[:, :2] ** 2, axis=1)))) if len(scan) else 0.0
+
+
+def thin(points: np.ndarray, max_points: int) -> np.ndarray:
+    """At most `max_points` of the (N, 3) points, evenly strided (deterministic)."""
+    if len(points) <= max_points:
+        return points
+    return points[np.linspace(0, len(points) - 1, max_points).astype(int)]
+
+
+def with_virtual_floor(points: np.ndarray, normals: np.ndarray | None, floor_z_m: float):
+    """Open3D cloud of the (N, 3) points plus their copy dropped to `floor_z_m` (normal +z): pins z, roll, pitch."""
+    floor = points.copy()
+    floor[:, 2] = floor_z_m
+    both = np.concatenate([points, floor])
+    if normals is None:
+        return to_point_cloud(both)
+    up = np.zeros_like(normals)
+    up[:, 2] = 1.0
+    return to_point_cloud(both, np.concatenate([normals, up]))
+
+
+@dataclass(frozen=True)
+class Scale:
+    """One stage of an Open3D registrar: scan voxel size and max correspondence distance (metres)."""
+
+    voxel_m: float
+    max_correspondence_m: float
+
+
+class Open3dIcp:
+    """Open3D's 6-DoF ICP (`kind`: point_to_point, point_to_plane, robust, gicp), projected onto SE(2) per scale.
+
+    The target is the surface cropped around the initial pose to the scan's reach (back faces culled), so
+    Open3D's per-call KD-tree stays small.
+    """
+
+    def __init__(self, cfg: RegistrationConfig, kind: str, scales: list[Scale] | None = None, name: str | None = None):
+        if kind not in ("point_to_point", "point_to_plane", "robust", "gicp"):
+            raise ConfigError(f"unknown Open3D ICP kind '{kind}'")
+        self.cfg = cfg
+        self.kind = kind
+        self.scales = scales if scales is not None else [Scale(cfg.scan_voxel_m, cfg.max_correspondence_m)]
+        self.name = name if name is not None else kind
+
+    def _estimation(self):
+        import open3d as o3d
+
+        reg = o3d.pipelines.registration
+        if self.kind == "point_to_point":
+            return reg.TransformationEstimationPointToPoint()
+        if self.kind == "point_to_plane":
+            return reg.TransformationEstimationPointToPlane()
+        if self.kind == "robust":
+            loss = (
+                reg.TukeyLoss(self.cfg.robust_k_m)
+                if self.cfg.robust_kernel == "tukey"
+                else reg.HuberLoss(self.cfg.robust_k_m)
+            )
+            return reg.TransformationEstimationPointToPlane(loss)
+        return reg.TransformationEstimationForGeneralizedICP()
+
+    def register(
+        self,
+        scan_base: np.ndarray,
+        surface: SurfaceModel,
+        T_world_base_init: np.ndarray,
+        storey_elevation: float | None = None,
+    ) -> RegistrationResult:
+        import open3d as o3d
+
+        reg = o3d.pipelines.registration
+        t0 = time.perf_counter()
+        z = surface.elevation_m if storey_elevation is None else storey_elevation
+        full_scan = np.asarray(scan_base, dtype=np.float64)
+        scan = thin(full_scan, self.cfg.max_scan_points)
+        pose = np.asarray(T_world_base_init, dtype=np.float64).copy()
+        widest = max(s.max_correspondence_m for s in self.scales)
+        local = surface.facing(pose[:2], _reach(scan) + widest + self.cfg.crop_margin_m)
+        if len(scan) < MIN_POINTS or len(local) < MIN_POINTS:
+            return _result(self.name, full_scan, local, pose, z, self.cfg, 0, t0)
+        # Work in a frame centred on the initial pose: Open3D linearises rotations about the origin, and lever
+        # arms of tens of metres (a large floor) made it diverge by metres from a 13° start.
+        center = np.array([pose[0], pose[1], 0.0])
+        target = with_virtual_floor(local.points - center, local.normals, z)
+        estimation = self._estimation()
+        criteria = reg.ICPConvergenceCriteria(max_iteration=self.cfg.max_iterations)
+        for scale in self.scales:
+            source_points = voxel_downsample(scan, scale.voxel_m) if scale.voxel_m > self.cfg.scan_voxel_m else scan
+            source = with_virtual_floor(source_points, None, 0.0)
+            init = se2_to_matrix(pose - center, z)
+            if self.kind == "gicp":
+                source.estimate_covariances(o3d.geometry.KDTreeSearchParamKNN(20))
+                out = reg.registration_generalized_icp(
+                    source, target, scale.max_correspondence_m, init, estimation, criteria
+                )
+            else:
+                out = reg.registration_icp(source, target, scale.max_correspondence_m, init, estimation, criteria)
+            # Projection onto SE(2): keep x, y and the heading; drop z, roll and pitch.
+            pose = matrix_to_se2(np.asarray(out.transformation)) + center
+        return _result(self.name, full_scan, local, pose, z, self.cfg, -1, t0)
+
+
+# ------------------------------------------------------------------------------------ registry
+
+REGISTRARS: dict[str, Callable[[RegistrationConfig], Registrar]] = {
+    "planar": lambda cfg: PlanarIcp(cfg),
+    "point_to_plane": lambda cfg: Open3dIcp(cfg, "point_to_plane"),
+    "point_to_point": lambda cfg: Open3dIcp(cfg, "point_to_point"),
+    "robust": lambda cfg: Open3dIcp(cfg, "robust"),
+    "gicp": lambda cfg: Open3dIcp(cfg, "gicp"),
+    "multiscale": lambda cfg: Open3dIcp(
+        cfg,
+        "point_to_plane",
+        [Scale(v, d) for v, d in zip(cfg.multiscale_voxels_m, cfg.multiscale_correspondence_m, strict=True)],
+        name="multiscale",
+    ),
+}
+
+
+def make_registrar(cfg: RegistrationConfig, method: str | None = None) -> Registrar:
+    """The registrar named `method` (default: `cfg.method`); names are the keys of `REGISTRARS`."""
+    method = cfg.method if method is None else method
+    if method not in REGISTRARS:
+        raise ConfigError(f"unknown registrar '{method}' (known: {', '.join(REGISTRARS)})")
+    return REGISTRARS[method](cfg)

@@ -1,0 +1,73 @@
+"""Scans for registration: depth images back-projected into the robot base frame, and local submaps.
+
+The base frame sits on the floor (z up), so the floor and ceiling are cut away by height: only what
+the surface model holds (walls, columns, doors, windows) is left to align.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bimfactor.config import RegistrationConfig
+from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta, se2_between, se2_to_matrix
+
+
+def backproject_depth(
+    depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, max_range_m: float = np.inf
+) -> np.ndarray:
+    """(H, W) depth (NaN: no return) → (N, 3) points in the base frame; depth is the camera z (OpenCV)."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    v, u = np.nonzero(np.isfinite(depth) & (depth > 0) & (depth <= max_range_m))
+    z = depth[v, u]
+    x = (u - intrinsics.cx) / intrinsics.fx * z
+    y = (v - intrinsics.cy) / intrinsics.fy * z
+    points_camera = np.column_stack([x, y, z])
+    return points_camera @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
+
+
+def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """(N, 3) → (M, 3) voxel centroids (Open3D's voxel grid filter)."""
+    import open3d as o3d
+
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64)))
+    return np.asarray(cloud.voxel_down_sample(voxel_m).points)
+
+
+def height_band(points: np.ndarray, min_z_m: float, max_z_m: float) -> np.ndarray:
+    """The (N, 3) base-frame points whose height above the floor lies in [min_z_m, max_z_m]."""
+    keep = (points[:, 2] >= min_z_m) & (points[:, 2] <= max_z_m)
+    return points[keep]
+
+
+def frame_scan(frame: Frame, meta: SequenceMeta, cfg: RegistrationConfig, voxel_m: float | None = None) -> np.ndarray:
+    """One frame's registration scan: (N, 3) base-frame wall points, voxel-downsampled (default voxel from cfg)."""
+    points = backproject_depth(frame.depth_m, meta.intrinsics, meta.T_base_camera, cfg.scan_max_range_m)
+    points = height_band(points, cfg.scan_min_z_m, cfg.scan_max_z_m)
+    return voxel_downsample(points, cfg.scan_voxel_m if voxel_m is None else voxel_m)
+
+
+def stitch_submap(scans_base: list[np.ndarray], poses: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Scans (each (N_k, 3) in its own base frame) taken at (K, 3) poses of one frame (e.g. odometry) → (M, 3).
+
+    The result is in the base frame of the last scan, voxel-downsampled once more so overlaps do not weigh double.
+    """
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    if len(scans_base) != len(poses) or not scans_base:
+        raise ValueError(f"stitch_submap: {len(scans_base)} scans but {len(poses)} poses")
+    relative = se2_between(poses[-1], poses)  # (K, 3): each keyframe in the current base frame
+    parts = []
+    for scan, rel in zip(scans_base, relative, strict=True):
+        T = se2_to_matrix(rel)
+        parts.append(scan @ T[:3, :3].T + T[:3, 3])
+    return voxel_downsample(np.concatenate(parts), voxel_m)
+
+
+def frames_submap(frames: list[Frame], meta: SequenceMeta, cfg: RegistrationConfig) -> np.ndarray:
+    """Submap of the last `cfg.submap_keyframes` frames, stitched with their odometry, in the last frame's base."""
+    recent = frames[-cfg.submap_keyframes :]
+    scans = [frame_scan(f, meta, cfg) for f in recent]
+    if len(scans) == 1:
+        return scans[0]
+    return stitch_submap(scans, np.stack([f.odom_pose for f in recent]), cfg.scan_voxel_m)

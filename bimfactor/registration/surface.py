@@ -1,0 +1,249 @@
+"""The BIM surface model: points with normals sampled from each storey's structural surfaces.
+
+Fine registration aligns depth scans with what the BIM says is solid and fixed (walls, columns, doors,
+windows, plates, members); furniture is left out because the as-built building moves it. One
+`SurfaceModel` per storey holds world-frame points and unit normals, an Open3D point cloud and KD-tree
+built on demand, and round-trips through plain arrays so the prior can store it.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bimfactor.bim.ifc import IfcElement, IfcModel
+from bimfactor.config import RegistrationConfig
+from bimfactor.errors import InputError
+
+log = logging.getLogger(__name__)
+
+SLAB_CLASS = "IfcSlab"
+# Elements touching a storey band only at its boundary (the slab below, the walls of the storey underneath)
+# are not part of it.
+_BAND_EPS_M = 0.02
+
+
+@dataclass
+class SurfaceModel:
+    """World-frame surface samples of one storey: `points` (N, 3) metres, `normals` (N, 3) unit vectors.
+
+    `element_index` (N,) int32 says which element of the source model each point came from.
+    """
+
+    storey_index: int
+    elevation_m: float
+    height_m: float
+    points: np.ndarray
+    normals: np.ndarray
+    element_index: np.ndarray
+    _cloud: object = field(default=None, init=False, repr=False)
+    _kdtree: object = field(default=None, init=False, repr=False)
+    _nn_tree: object = field(default=None, init=False, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @property
+    def cloud(self):
+        """The samples as an `open3d.geometry.PointCloud` with normals and planar covariances (for GICP)."""
+        if self._cloud is None:
+            self._cloud = to_point_cloud(self.points, self.normals)
+        return self._cloud
+
+    @property
+    def kdtree(self):
+        """An `open3d.geometry.KDTreeFlann` over the samples, built once."""
+        if self._kdtree is None:
+            import open3d as o3d
+
+            self._kdtree = o3d.geometry.KDTreeFlann(self.cloud)
+        return self._kdtree
+
+    @property
+    def nn_tree(self):
+        """A `scipy.spatial.cKDTree` over the samples: vectorised nearest-neighbour queries for the planar solver."""
+        if self._nn_tree is None:
+            from scipy.spatial import cKDTree
+
+            # Unbalanced, uncompacted: ~3x faster to build, barely slower to query (crops are built per call).
+            self._nn_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+        return self._nn_tree
+
+    def crop_indices(self, center_xy: np.ndarray, radius_m: float) -> np.ndarray:
+        """(K,) indices of the samples within `radius_m` of `center_xy` (2,) in the xy-plane."""
+        d2 = np.sum((self.points[:, :2] - np.asarray(center_xy, float)[:2]) ** 2, axis=1)
+        return np.flatnonzero(d2 <= radius_m**2)
+
+    def crop(self, center_xy: np.ndarray, radius_m: float) -> SurfaceModel:
+        """The samples within `radius_m` of `center_xy` in the xy-plane, as a new (smaller) model."""
+        keep = self.crop_indices(center_xy, radius_m)
+        return SurfaceModel(
+            self.storey_index,
+            self.elevation_m,
+            self.height_m,
+            self.points[keep],
+            self.normals[keep],
+            self.element_index[keep],
+        )
+
+    def facing(self, center_xy: np.ndarray, radius_m: float) -> SurfaceModel:
+        """The samples within `radius_m` of `center_xy` (2,) whose normals face it (back faces culled).
+
+        A scan sees a wall's near face only; without culling, ICP can lock onto the far face one wall
+        thickness away with a perfect fit. Near-horizontal faces (|n_z| > 0.9) are kept.
+        """
+        keep = self.crop_indices(center_xy, radius_m)
+        n, m = self.normals[keep], self.points[keep]
+        to_center = np.asarray(center_xy, float)[:2] - m[:, :2]
+        front = (np.einsum("ij,ij->i", n[:, :2], to_center) > 0) | (np.abs(n[:, 2]) > 0.9)
+        keep = keep[front]
+        return SurfaceModel(
+            self.storey_index,
+            self.elevation_m,
+            self.height_m,
+            self.points[keep],
+            self.normals[keep],
+            self.element_index[keep],
+        )
+
+    def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
+        """Plain arrays for `np.savez` (keys prefixed with `prefix`)."""
+        return {
+            f"{prefix}points": self.points.astype(np.float32),
+            f"{prefix}normals": self.normals.astype(np.float32),
+            f"{prefix}element_index": self.element_index.astype(np.int32),
+            f"{prefix}meta": np.array([self.storey_index, self.elevation_m, self.height_m], dtype=np.float64),
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays, prefix: str = "") -> SurfaceModel:
+        """Inverse of `to_arrays` (accepts a dict or an `np.load` archive)."""
+        meta = np.asarray(arrays[f"{prefix}meta"], dtype=np.float64)
+        return cls(
+            storey_index=int(meta[0]),
+            elevation_m=float(meta[1]),
+            height_m=float(meta[2]),
+            points=np.asarray(arrays[f"{prefix}points"], dtype=np.float64),
+            normals=np.asarray(arrays[f"{prefix}normals"], dtype=np.float64),
+            element_index=np.asarray(arrays[f"{prefix}element_index"], dtype=np.int32),
+        )
+
+
+def to_point_cloud(points: np.ndarray, normals: np.ndarray | None = None, planar_covariance: bool = True):
+    """(N, 3) points (+ (N, 3) normals) → Open3D PointCloud; normals also give GICP's plane covariances."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64)))
+    if normals is not None:
+        normals = np.ascontiguousarray(normals, dtype=np.float64)
+        cloud.normals = o3d.utility.Vector3dVector(normals)
+        if planar_covariance:
+            # GICP's surface prior: unit variance in the plane, ε along the normal (Segal et al. 2009).
+            eps = 1e-3
+            cov = np.eye(3)[None] - (1 - eps) * normals[:, :, None] * normals[:, None, :]
+            cloud.covariances = o3d.utility.Matrix3dVector(cov)
+    return cloud
+
+
+def sample_mesh(
+    vertices: np.ndarray, faces: np.ndarray, density_per_m2: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Area-weighted uniform samples on a triangle mesh: (K, 3) points and (K, 3) unit face normals.
+
+    Each triangle gets floor(area·density) points plus one more with probability of the remainder, so the
+    expected count is density × area exactly; normals follow the face winding (sign is irrelevant to ICP).
+    """
+    tri = np.asarray(vertices, float)[np.asarray(faces, int)]  # (F, 3, 3)
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    double_area = np.linalg.norm(cross, axis=1)
+    ok = double_area > 1e-12
+    tri, cross, area = tri[ok], cross[ok], 0.5 * double_area[ok]
+    expected = area * density_per_m2
+    counts = np.floor(expected).astype(np.int64)
+    counts += rng.random(len(counts)) < (expected - counts)
+    if counts.sum() == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    owner = np.repeat(np.arange(len(tri)), counts)
+    # Uniform barycentric samples: reflect (u, v) outside the triangle back inside.
+    u, v = rng.random(len(owner)), rng.random(len(owner))
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    t = tri[owner]
+    points = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
+    normals = cross[owner] / np.linalg.norm(cross[owner], axis=1, keepdims=True)
+    return points, normals
+
+
+def outward_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3) vertices and (F, 3) faces rewound consistently so that each closed body's normals point outward.
+
+    IFC meshes mix windings (measured on duplex.ifc: a party wall with half its faces inward) and mirrored
+    placements flip whole elements; back-face culling needs outward normals. trimesh merges duplicate
+    vertices, makes the winding consistent across shared edges and flips bodies of negative volume.
+    """
+    import trimesh
+
+    mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64), process=True)
+    trimesh.repair.fix_normals(mesh, multibody=True)
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def storey_bands(model: IfcModel, top_storey_height_m: float) -> list[tuple[float, float]]:
+    """(z_lo, z_hi) world heights of each storey: its elevation up to the next storey's (top: a fixed height)."""
+    elevations = [s.elevation_m for s in model.storeys]
+    return [
+        (z, elevations[i + 1] if i + 1 < len(elevations) else z + top_storey_height_m) for i, z in enumerate(elevations)
+    ]
+
+
+def _surface_elements(model: IfcModel, cfg: RegistrationConfig) -> list[tuple[int, IfcElement]]:
+    classes = [*cfg.surface_classes, *([SLAB_CLASS] if cfg.include_slabs else [])]
+    return [(i, e) for i, e in enumerate(model.elements) if e.mesh is not None and any(e.is_a(c) for c in classes)]
+
+
+def build_surface_models(model: IfcModel, cfg: RegistrationConfig, seed: int = 0) -> list[SurfaceModel]:
+    """One `SurfaceModel` per storey of `model` (list index = storey index), deterministic for a seed.
+
+    An element belongs to every storey band its z-range crosses; its samples are clipped to the band.
+    Normals point out of each element (see `outward_mesh`).
+    """
+    if not model.storeys:
+        raise InputError(f"{model.source_path}: the model has no storeys; cannot build a surface model")
+    elements = _surface_elements(model, cfg)
+    surfaces = []
+    for index, (z_lo, z_hi) in enumerate(storey_bands(model, cfg.top_storey_height_m)):
+        rng = np.random.default_rng([seed, index])
+        pts, nrm, owner = [], [], []
+        for element_index, element in elements:
+            lo, hi = element.mesh.bounds[:, 2]
+            if hi <= z_lo + _BAND_EPS_M or lo >= z_hi - _BAND_EPS_M:
+                continue
+            vertices, faces = outward_mesh(element.mesh.vertices, element.mesh.faces)
+            p, n = sample_mesh(vertices, faces, cfg.surface_density_per_m2, rng)
+            inside = (p[:, 2] >= z_lo) & (p[:, 2] <= z_hi)
+            pts.append(p[inside])
+            nrm.append(n[inside])
+            owner.append(np.full(int(inside.sum()), element_index, dtype=np.int32))
+        if pts:
+            points, normals, element_index = np.concatenate(pts), np.concatenate(nrm), np.concatenate(owner)
+        else:
+            points, normals, element_index = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=np.int32)
+        storey = model.storeys[index]
+        surfaces.append(SurfaceModel(storey.index, storey.elevation_m, z_hi - z_lo, points, normals, element_index))
+        log.info("surface model of storey %d: %d points from %d elements", index, len(points), len(pts))
+    return surfaces
+
+
+def surface_models_to_arrays(surfaces: list[SurfaceModel]) -> dict[str, np.ndarray]:
+    """All storeys' arrays in one dict (keys `s{index}_...`), for one `np.savez` beside the prior."""
+    out: dict[str, np.ndarray] = {"num_storeys": np.array(len(surfaces))}
+    for i, surface in enumerate(surfaces):
+        out.update(surface.to_arrays(prefix=f"s{i}_"))
+    return out
+
+
+def surface_models_from_arrays(arrays) -> list[SurfaceModel]:
+    """Inverse of `surface_models_to_arrays`."""
+    return [SurfaceModel.from_arrays(arrays, prefix=f"s{i}_") for i in range(int(arrays["num_storeys"]))]

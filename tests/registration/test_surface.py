@@ -1,0 +1,113 @@
+"""Surface sampling: density, normals, storey bands, determinism, and the array round trip."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bimfactor.bim.ifc import IfcElement, IfcModel, Mesh, Storey
+from bimfactor.config import Config
+from bimfactor.registration.surface import (
+    SurfaceModel,
+    build_surface_models,
+    outward_mesh,
+    sample_mesh,
+    surface_models_from_arrays,
+    surface_models_to_arrays,
+)
+
+from .synthetic import box_mesh
+
+DENSITY = 200.0
+
+
+def test_sample_count_matches_density_times_area() -> None:
+    vertices, faces = box_mesh((0, 0, 0), (4.0, 0.2, 2.6))
+    area = 2 * (4.0 * 0.2 + 4.0 * 2.6 + 0.2 * 2.6)
+    points, _ = sample_mesh(vertices, faces, DENSITY, np.random.default_rng(0))
+    expected = DENSITY * area
+    # floor(a·d) per triangle plus one Bernoulli draw each: at most 12 triangles of slack, σ < 2.
+    assert abs(len(points) - expected) <= 12
+    assert np.all(points >= -1e-9) and np.all(points <= [4.0 + 1e-9, 0.2 + 1e-9, 2.6 + 1e-9])
+
+
+def test_normals_are_perpendicular_to_their_wall_face() -> None:
+    vertices, faces = box_mesh((0, 0, 0), (4.0, 0.2, 2.6))
+    points, normals = sample_mesh(vertices, faces, DENSITY, np.random.default_rng(1))
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-12)
+    on_front = np.abs(points[:, 1]) < 1e-9  # the face y = 0 of the wall
+    assert on_front.sum() > 0.9 * DENSITY * 4.0 * 2.6
+    np.testing.assert_allclose(np.abs(normals[on_front]), np.tile([0.0, 1.0, 0.0], (on_front.sum(), 1)), atol=1e-12)
+    on_end = np.abs(points[:, 0] - 4.0) < 1e-9  # the end face x = 4
+    np.testing.assert_allclose(np.abs(normals[on_end, 0]), 1.0, atol=1e-12)
+    # Points on a face are uniform over it: the mean lies at the face centre.
+    np.testing.assert_allclose(points[on_front][:, [0, 2]].mean(axis=0), [2.0, 1.3], atol=0.05)
+
+
+def _element(guid: str, ifc_class: str, ancestry: tuple[str, ...], lo, hi, storey: int) -> IfcElement:
+    mesh = Mesh(*box_mesh(lo, hi))
+    return IfcElement(guid, ifc_class, (ifc_class, *ancestry), guid, "", "", "", "", "", storey, None, mesh)
+
+
+def _two_storey_model() -> IfcModel:
+    elements = [
+        _element("wall0", "IfcWall", ("IfcBuildingElement",), (0, 0, 0), (5, 0.2, 3.0), 0),
+        _element("wall1", "IfcWallStandardCase", ("IfcWall",), (0, 2, 3.0), (5, 2.2, 6.0), 1),
+        _element("tall", "IfcColumn", ("IfcBuildingElement",), (2, 1, 0), (2.3, 1.3, 6.0), 0),
+        _element("slab", "IfcSlab", ("IfcBuildingElement",), (0, 0, 2.8), (5, 3, 3.0), 1),
+        _element("sofa", "IfcFurniture", ("IfcFurnishingElement",), (1, 1, 0), (2, 2, 0.8), 0),
+    ]
+    storeys = [Storey(0, "s0", "ground", 0.0), Storey(1, "s1", "first", 3.0)]
+    return IfcModel("two.ifc", "0" * 64, "IFC4", 1.0, storeys, elements)
+
+
+def test_surface_per_storey_bands_and_classes(test_config: Config) -> None:
+    model = _two_storey_model()
+    surfaces = build_surface_models(model, test_config.registration, seed=0)
+    assert [s.storey_index for s in surfaces] == [0, 1]
+    owners = [{model.elements[i].guid for i in np.unique(s.element_index)} for s in surfaces]
+    # Storey 0: its wall and the column (which crosses both bands); never the sofa nor the slab (off by default).
+    assert owners[0] == {"wall0", "tall"}
+    assert owners[1] == {"wall1", "tall"}
+    for surface, (lo, hi) in zip(surfaces, [(0.0, 3.0), (3.0, 6.0)], strict=True):
+        assert surface.points[:, 2].min() >= lo and surface.points[:, 2].max() <= hi
+        assert surface.elevation_m == lo and surface.height_m == hi - lo
+    with_slabs = build_surface_models(model, test_config.registration.model_copy(update={"include_slabs": True}))
+    assert "slab" in {model.elements[i].guid for i in np.unique(with_slabs[0].element_index)}
+
+
+def test_surface_is_deterministic_and_round_trips(test_config: Config) -> None:
+    model = _two_storey_model()
+    a = build_surface_models(model, test_config.registration, seed=3)
+    b = build_surface_models(model, test_config.registration, seed=3)
+    np.testing.assert_array_equal(a[0].points, b[0].points)
+    back = surface_models_from_arrays(surface_models_to_arrays(a))
+    assert len(back) == 2
+    np.testing.assert_allclose(back[1].points, a[1].points, atol=1e-5)  # stored as float32
+    np.testing.assert_allclose(back[1].normals, a[1].normals, atol=1e-6)
+    assert back[1].elevation_m == 3.0 and back[1].storey_index == 1
+    single = SurfaceModel.from_arrays(a[0].to_arrays())
+    assert len(single) == len(a[0])
+    cloud = single.cloud
+    assert cloud.has_normals() and cloud.has_covariances() and len(cloud.points) == len(single)
+    assert single.kdtree.search_knn_vector_3d(single.points[0], 1)[1][0] == 0
+
+
+def test_normals_point_out_of_the_element_even_when_wound_inward() -> None:
+    vertices, faces = box_mesh((0, 0, 0), (4.0, 0.2, 2.6))
+    inward = faces[:, [0, 2, 1]]
+    mixed = np.where(np.arange(len(faces))[:, None] % 2 == 0, inward, faces)  # every other face flipped
+    for wound in (faces, inward, mixed):
+        points, normals = sample_mesh(*outward_mesh(vertices, wound), DENSITY, np.random.default_rng(2))
+        centre = np.array([2.0, 0.1, 1.3])
+        assert np.all(np.einsum("ij,ij->i", normals, points - centre) > 0)
+
+
+def test_facing_culls_back_faces() -> None:
+    vertices, faces = box_mesh((0, 0, 0), (4.0, 0.2, 2.6))
+    points, normals = sample_mesh(*outward_mesh(vertices, faces), DENSITY, np.random.default_rng(3))
+    surface = SurfaceModel(0, 0.0, 3.0, points, normals, np.zeros(len(points), np.int32))
+    seen = surface.facing(np.array([2.0, -3.0]), radius_m=10.0)  # in front of the face y = 0
+    assert len(seen) > 0
+    assert not np.any(np.abs(seen.points[:, 1] - 0.2) < 1e-9)  # the far face y = 0.2 is culled
+    assert np.any(np.abs(seen.points[:, 1]) < 1e-9)
+    assert len(surface.facing(np.array([2.0, -3.0]), radius_m=1.0)) == 0  # nothing within 1 m
