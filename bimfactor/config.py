@@ -146,7 +146,7 @@ class VlmConfig(_Strict):
 
 class PerceptionConfig(_Strict):
     backend: Literal["sim", "vlm"] = Field(
-        description="sim: detections from the simulator's instance buffer with an error model; vlm: YOLO-World+SAM+CLIP."
+        description="sim: the simulator's instance buffer with an error model; vlm: YOLO-World + SAM + CLIP."
     )
     device: str = Field(description="torch device of the vlm backend ('cpu', 'cuda', 'cuda:1').")
     sim_preset: str = Field(description="Error preset of the sim backend: a name in `sim_presets_file`.")
@@ -162,6 +162,9 @@ class PerceptionConfig(_Strict):
     dbscan_eps_m: float = Field(gt=0.0, description="DBSCAN neighbourhood radius (on voxel centres).")
     dbscan_min_points: int = Field(ge=1, description="DBSCAN core-point neighbour count.")
     min_instance_voxels: int = Field(ge=1, description="Lifted instances with fewer voxels are dropped.")
+    overlap_measure: Literal["iou", "overlap"] = Field(
+        description="IoU_3 of the boxes, or their overlap coefficient (intersection / smaller volume)."
+    )
     iou_padding_m: float = Field(ge=0.0, description="Boxes are grown by this on every side before the 3D IoU.")
     occlusion_tolerance_m: float = Field(
         ge=0.0, description="A node voxel this far behind the observed depth counts as hidden in the current view."
@@ -333,10 +336,10 @@ class BackendConfig(_Strict):
     odom_sigma_rot_per_rad: float = Field(ge=0.0, description="... plus this × the rotation (rad/rad).")
     range_sigma_m: float = Field(gt=0.0, description="σ of an observed object's range.")
     bearing_sigma_deg: float = Field(gt=0.0, description="σ of an observed object's bearing.")
-    landmark_sigma_m: float = Field(gt=0.0, description="σ holding a BIM landmark at its BIM position (as-built drift).")
+    landmark_sigma_m: float = Field(gt=0.0, description="σ tying a BIM landmark to its BIM position (as-built drift).")
     robust_kernel: Literal["huber", "cauchy", "none"] = Field(description="M-estimator on the landmark factors.")
     robust_k: float = Field(gt=0.0, description="Kernel width in σ units (Huber 1.345, Cauchy 2.385: 95 % efficiency).")
-    outlier_chi2: float = Field(gt=0.0, description="Per-observation χ² cap in a mode's residual; unmatched ones cost it.")
+    outlier_chi2: float = Field(gt=0.0, description="Cap on one observation's χ² in a mode's residual.")
     residual_temperature: float = Field(gt=0.0, description="τ in p_k ∝ w_k · exp(−C_k / (2τ)).")
     reassociate_distance_m: float = Field(ge=0.0, description="Re-associate when the estimate moves this far ...")
     reassociate_yaw_deg: float = Field(ge=0.0, description="... or turns this much from the pose that associated.")

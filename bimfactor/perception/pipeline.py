@@ -1,0 +1,110 @@
+"""The perception runner: detect ▸ segment ▸ embed ▸ lift ▸ online scene graph, frame by frame.
+
+`make_perception` picks the backend that `perception.backend` names and wires it to an `OnlineSceneGraph`;
+`Perception.step` runs one frame and returns what the graph did and what the localizer should see.
+"""
+
+from __future__ import annotations
+
+import logging
+import zlib
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from bimfactor.bim.vocabulary import Vocabulary
+from bimfactor.config import Config, config_file
+from bimfactor.embed.text import TextEmbedder
+from bimfactor.perception.base import Detection, Detector, Embedder, Segmenter
+from bimfactor.perception.scene_graph import OnlineSceneGraph, UpdateStats
+from bimfactor.perception.sim import LabelConfusion, SimDetector, SimEmbedder, SimSegmenter, load_sim_errors
+from bimfactor.progress import progress
+from bimfactor.types import Frame, Observations, SequenceMeta
+
+log = logging.getLogger(__name__)
+
+# Independent random streams of the sim backend within one (seed, sequence).
+DETECTOR_STREAM, SEGMENTER_STREAM, EMBEDDER_STREAM = 0xDE7, 0x5E6, 0xE3B
+
+
+def household_vocabulary(cfg: Config) -> list[str]:
+    """The open-vocabulary detector's classes: every label of configs/vocabulary.yaml's rules, in table order."""
+    return Vocabulary.load(config_file(cfg.bim.objects.vocabulary_file)).labels
+
+
+@dataclass
+class FrameResult:
+    """One frame through perception: the detections, masks (N, H, W), embeddings (N, D), graph stats, view."""
+
+    detections: list[Detection]
+    masks: np.ndarray
+    embeddings: np.ndarray
+    stats: UpdateStats
+    observations: Observations
+
+
+class Perception:
+    """Detector, segmenter and visual embedder feeding one online scene graph."""
+
+    def __init__(self, detector: Detector, segmenter: Segmenter, embedder: Embedder, graph: OnlineSceneGraph) -> None:
+        self.detector = detector
+        self.segmenter = segmenter
+        self.embedder = embedder
+        self.graph = graph
+
+    def perceive(self, frame: Frame) -> tuple[list[Detection], np.ndarray, np.ndarray]:
+        """The 2D front end alone: detections, (N, H, W) masks, (N, D) embeddings."""
+        detections = self.detector.detect(frame)
+        masks = self.segmenter.segment(frame, detections)
+        embeddings = self.embedder.embed(frame, detections, masks)
+        return detections, masks, embeddings
+
+    def step(self, frame: Frame) -> FrameResult:
+        """Perceive one frame, update the graph at the frame's odometry pose, and list the nodes in view."""
+        detections, masks, embeddings = self.perceive(frame)
+        stats = self.graph.update(frame, detections, masks, embeddings, frame.odom_pose)
+        view = self.graph.view(frame.depth_m, frame.odom_pose)
+        observations = self.graph.observations(frame.odom_pose, view=view)
+        return FrameResult(detections, masks, embeddings, stats, observations)
+
+    def run(self, frames: Iterable[Frame], show_progress: bool = False) -> list[FrameResult]:
+        """`step` over a sequence of frames."""
+        frames = list(frames)
+        it = progress(frames, desc="perception", unit="frame") if show_progress else frames
+        return [self.step(frame) for frame in it]
+
+
+def sim_rng(seed: int, meta: SequenceMeta, stream: int) -> np.random.Generator:
+    """The generator of one sim-backend stream for a (seed, sequence)."""
+    return np.random.default_rng([seed, zlib.crc32(meta.name.encode()), stream])
+
+
+def make_perception(
+    cfg: Config,
+    meta: SequenceMeta,
+    text_embedder: TextEmbedder,
+    seed: int | None = None,
+    sim_preset: str | None = None,
+) -> Perception:
+    """The perception stack `cfg.perception.backend` names for a sequence; `seed` defaults to `cfg.seed`.
+
+    The sim backend needs the simulator's instance table in `meta`; `sim_preset` overrides `perception.sim_preset`.
+    """
+    p = cfg.perception
+    seed = cfg.seed if seed is None else seed
+    vocabulary = household_vocabulary(cfg)
+    graph = OnlineSceneGraph(p, meta.intrinsics, meta.T_base_camera)
+    if p.backend == "vlm":
+        from bimfactor.perception.vlm import make_vlm_backends
+
+        vlm = make_vlm_backends(cfg, vocabulary, text_embedder)
+        return Perception(vlm.detector, vlm.segmenter, vlm.embedder, graph)
+    errors = load_sim_errors(p, sim_preset)
+    confusion = LabelConfusion(vocabulary, text_embedder, errors.confusion_temperature)
+    detector = SimDetector(
+        meta, errors, confusion, p.box_threshold, p.text_threshold, sim_rng(seed, meta, DETECTOR_STREAM)
+    )
+    segmenter = SimSegmenter(errors, sim_rng(seed, meta, SEGMENTER_STREAM))
+    embedder = SimEmbedder(meta, text_embedder, vocabulary, errors, seed, sim_rng(seed, meta, EMBEDDER_STREAM))
+    return Perception(detector, segmenter, embedder, graph)
