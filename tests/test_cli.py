@@ -366,3 +366,30 @@ def demo_prior(tmp_path_factory: pytest.TempPathFactory, cli_config_args: list[s
     result = invoke("prior", folder / "paper-floor.ifc", "-o", folder / "prior", *cli_config_args)
     assert result.exit_code == 0, result.output
     return folder / "prior"
+
+
+def test_localize_writes_the_run(demo_prior: Path, tmp_path: Path) -> None:
+    sequence = tmp_path / "seq"
+    assert invoke("simulate", demo_prior, "-o", sequence, "--trajectory", "1").exit_code == 0
+    run = tmp_path / "run"
+    result = invoke("localize", demo_prior, sequence, "-o", run, "--set", "smcl.num_particles=300")
+    assert result.exit_code == 0, result.output
+    for name in ("estimate.txt", "steps.csv", "metrics.json", "snapshots.npz", "config.yaml", "trajectory.png"):
+        assert (run / name).is_file(), name
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert set(metrics) >= {"trans_err_m", "orient_err_deg", "room_acc", "step_ms_median", "steps_to_converge"}
+    assert 0.0 <= metrics["room_acc"] <= 1.0
+    assert len((run / "steps.csv").read_text().splitlines()) == 51
+    assert_one_line_error(invoke("localize", demo_prior, tmp_path / "none", "-o", run), contains="sequence")
+
+
+def test_compare_registrars_writes_summary_and_figure(demo_prior: Path, tmp_path: Path) -> None:
+    out = tmp_path / "compare"
+    result = invoke(
+        "compare-registrars", demo_prior, "-o", out, "-m", "planar", "--set", "registration.compare_keyframes=2"
+    )
+    assert result.exit_code == 0, result.output
+    (row,) = json.loads((out / "summary.json").read_text())
+    assert row["registrar"] == "planar" and 0.0 <= row["success_rate"] <= 1.0
+    assert (out / "basins.png").stat().st_size > 5_000
+    assert_one_line_error(invoke("compare-registrars", demo_prior, "-o", out, "-m", "nope"), contains="nope")

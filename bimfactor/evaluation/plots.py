@@ -139,3 +139,66 @@ def save_trajectory_plot(
         fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
     plt.close(fig)
     return path
+
+
+def save_particle_snapshots(
+    prior: BimPrior,
+    snapshots: dict[int, tuple[np.ndarray, np.ndarray]],
+    gt_poses: np.ndarray | None,
+    estimates: np.ndarray,
+    storey_index: int,
+    path: str | Path,
+) -> Path:
+    """Like the paper's Fig. 2: particles over the floor plan at several steps, with the truth and the estimate."""
+    steps = sorted(snapshots)
+    cols = min(3, len(steps))
+    rows = int(np.ceil(len(steps) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(5.5 * cols, 5.5 * rows), squeeze=False)
+    for ax, step in zip(axes.ravel(), steps, strict=False):
+        particles, weights = snapshots[step]
+        draw_floorplan(ax, prior, storey_index, label_objects=False)
+        size = 2 + 60 * weights / max(float(weights.max()), 1e-12)
+        ax.scatter(particles[:, 0], particles[:, 1], s=size, c="tab:purple", alpha=0.35, lw=0, zorder=4)
+        if step >= 0:
+            if gt_poses is not None:
+                ax.plot(*gt_poses[step, :2], "*", color="tab:green", ms=14, zorder=5, label="truth")
+            ax.plot(*estimates[step, :2], "X", color="tab:red", ms=10, zorder=5, label="estimate")
+            ax.legend(loc="upper right", fontsize=7)
+        ax.set_title("initial particles" if step < 0 else f"after step {step}")
+    for ax in axes.ravel()[len(steps) :]:
+        ax.axis("off")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
+    return path
+
+
+def save_estimate_plot(
+    prior: BimPrior, estimates: np.ndarray, gt_poses: np.ndarray | None, storey_index: int, path: str | Path, title: str
+) -> Path:
+    """Estimate against ground truth over the floor plan, and the error per step below it."""
+    from bimfactor.evaluation.metrics import orientation_errors_deg, translation_errors_m
+
+    fig, (ax, ax_err) = plt.subplots(2, 1, figsize=(9, 12), gridspec_kw={"height_ratios": [3, 1]})
+    draw_floorplan(ax, prior, storey_index, label_objects=False)
+    if gt_poses is not None:
+        ax.plot(gt_poses[:, 0], gt_poses[:, 1], "-", color="black", lw=1.5, label="ground truth")
+    ax.plot(estimates[:, 0], estimates[:, 1], ".-", color="tab:red", lw=1, ms=4, label="estimate")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(title)
+    if gt_poses is not None:
+        ax_err.plot(translation_errors_m(estimates, gt_poses), color="tab:red", label="translation error [m]")
+        ax_twin = ax_err.twinx()
+        ax_twin.plot(orientation_errors_deg(estimates, gt_poses), color="tab:blue", label="orientation error [°]")
+        ax_err.set_yscale("symlog", linthresh=1.0)
+        ax_err.set_xlabel("step")
+        ax_err.set_ylabel("translation error [m]", color="tab:red")
+        ax_twin.set_ylabel("orientation error [°]", color="tab:blue")
+    else:
+        ax_err.axis("off")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
+    return path
