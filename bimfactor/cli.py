@@ -9,6 +9,7 @@ code (2 for bad input or configuration); anything else is `error: internal: ...`
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import sys
 import time
@@ -264,8 +265,6 @@ def prior(
             log.info("prior built and saved in %.1f s", time.perf_counter() - started)
         summary = _prior_summary(built, out_dir)
         if as_json:
-            import json
-
             typer.echo(json.dumps(summary, indent=2, ensure_ascii=False))
         else:
             typer.echo(_format_prior_summary(built, summary))
@@ -355,7 +354,7 @@ def _counts(counts: dict[str, int]) -> str:
 # ------------------------------------------------------------------------------------------ demo
 
 
-@app.command(short_help="Run the demo: paper-floor building → prior with floor plans.")
+@app.command(short_help="Run the demo: paper-floor building → prior → simulated drive → localization.")
 def demo(
     output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = DEFAULT_DEMO_OUT,
     config: ConfigOption = None,
@@ -365,7 +364,8 @@ def demo(
 ) -> None:
     """Run the end-to-end demo on the procedural "paper-floor" building.
 
-    Steps: synth (OUT/paper-floor.ifc, seed from the config) and prior (OUT/prior/ with floor plans).
+    Steps: synth (OUT/paper-floor.ifc, seed from the config), prior (OUT/prior/ with floor plans), simulate
+    (OUT/sequence/, trajectory 0) and localize (OUT/localize/ with metrics and figures).
     OUT/config.yaml holds the resolved config.
 
     \b
@@ -715,3 +715,37 @@ def bench_paper(
         report = run_paper_bench(prior_dir, cfg, output, workers=workers)
         typer.echo(format_table_one(report))
         typer.echo(f"results: {output / 'results.json'}")
+
+
+@bench_app.command("graph", short_help="Online scene graph quality (precision, recall, segmentation) and speed.")
+def bench_graph(
+    building: Annotated[
+        str, typer.Option("--building", metavar="PRESET_OR_IFC", help="Synth preset name or IFC path.")
+    ] = "paper-floor",
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
+        "runs/bench-graph"
+    ),
+    preset: Annotated[str | None, typer.Option("--preset", help="Sim perception preset: clean, paper, harsh.")] = None,
+    tour: Annotated[int, typer.Option("--tour", min=0, help="Orbit every furniture group with N frames instead.")] = 0,
+    true_odometry: Annotated[bool, typer.Option("--true-odometry", help="Drift-free odometry (a diagnostic).")] = False,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Build the online graph over the standard trajectories of a building and score it against the BIM objects;
+    writes OUT/report.json and one PNG of the final graph over the floor plan per sequence.
+
+    \b
+    Examples:
+      bimfactor bench graph --building ../shared/data/ifc/duplex.ifc -o runs/graph-duplex
+      bimfactor bench graph --building paper-floor --tour 12 -o runs/graph-tour
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose)
+        from bimfactor.perception.evaluate import run_graph_bench
+
+        result = run_graph_bench(building, cfg, output, preset, None, tour, None, true_odometry)
+        summary, speed = result["summary"], result["speed"]
+        typer.echo(json.dumps({"summary": summary, "speed": speed}, indent=1, default=float))
+        typer.echo(f"results: {output / 'report.json'}")

@@ -1,4 +1,4 @@
-"""The demo: a list of named steps from a procedural building to its BIM prior and a simulated sequence.
+"""The demo: named steps from a procedural building to its prior, a simulated sequence and its localization.
 
 Each step reads what earlier steps left in the `DemoContext`, writes its files under the output folder and
 returns one line that says what it did. Later stages (simulation, localization) are added as further steps.
@@ -88,10 +88,32 @@ def _simulate(ctx: DemoContext) -> str:
     return f"wrote {ctx.sequence_dir}/: {len(result.frames)} RGB-D keyframes with odometry and ground truth"
 
 
+def _localize(ctx: DemoContext) -> str:
+    from bimfactor.evaluation.report import run_metrics, write_run
+    from bimfactor.io.sequence import read_sequence
+    from bimfactor.pipeline import localize_sequence
+
+    assert ctx.prior is not None and ctx.sequence_dir is not None, "the localize step needs a prior and a sequence"
+    sequence = read_sequence(ctx.sequence_dir)
+    n = len(sequence)
+    run = localize_sequence(
+        ctx.prior, sequence.meta, sequence, ctx.cfg, ctx.cfg.seed, snapshot_steps=sorted({0, n // 4, n // 2, n - 1})
+    )
+    run_dir = ctx.out_dir / "localize"
+    ctx.figures.extend(write_run(run, ctx.prior, run_dir, ctx.cfg.dump_yaml(), title=f"{sequence.meta.name}"))
+    m = run_metrics(run)
+    assert m is not None
+    return (
+        f"wrote {run_dir}/: translation {m.trans_err_m:.2f} ± {m.trans_err_std_m:.2f} m, orientation "
+        f"{m.orient_err_deg:.1f} ± {m.orient_err_std_deg:.1f}°, room accuracy {100 * m.room_acc:.0f} %"
+    )
+
+
 STEPS: tuple[DemoStep, ...] = (
     DemoStep("synth", _synth),
     DemoStep("prior", _prior),
     DemoStep("simulate", _simulate),
+    DemoStep("localize", _localize),
 )
 
 

@@ -275,9 +275,10 @@ def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: 
     for name in PRIOR_FILES:
         assert (out / "prior" / name).is_file(), name
     assert load_config(out / "config.yaml") == load_config(out / "prior" / "config.yaml")
-    assert result.stdout.startswith("[1/3] synth: ")
-    assert "[2/3] prior: " in result.stdout
-    assert "[3/3] simulate: wrote" in result.stdout
+    assert result.stdout.startswith("[1/4] synth: ")
+    assert "[2/4] prior: " in result.stdout
+    assert "[3/4] simulate: wrote" in result.stdout
+    assert "[4/4] localize: wrote" in result.stdout and (out / "localize" / "metrics.json").is_file()
     assert f"figure: {out / 'prior' / 'floorplan_0.png'}" in result.stdout
     assert f"figure: {out / 'sequence' / 'preview.png'}" in result.stdout
     sequence = read_sequence(out / "sequence")

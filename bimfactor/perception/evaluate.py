@@ -542,17 +542,34 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     cfg = load_config(args.config, args.overrides)
-    seed = cfg.seed if args.seed is None else args.seed
-    n = cfg.evaluation.num_trajectories if args.trajectories is None else args.trajectories
+    return run_graph_bench(
+        args.building, cfg, args.out, args.preset, args.trajectories, args.tour, args.seed, args.true_odometry
+    )
+
+
+def run_graph_bench(
+    building: str,
+    cfg: Config,
+    out_dir: str | Path,
+    preset: str | None = None,
+    trajectories: int | None = None,
+    tour: int = 0,
+    seed: int | None = None,
+    true_odometry: bool = False,
+) -> dict[str, Any]:
+    """The perception report of one building (synth preset name or IFC path) over its standard trajectories
+    (or a furniture tour): graph precision/recall/segmentation/labels, detector rates, update speed."""
+    seed = cfg.seed if seed is None else seed
+    n = cfg.evaluation.num_trajectories if trajectories is None else trajectories
     text_embedder = make_text_embedder(cfg.embed)
     with tempfile.TemporaryDirectory() as work:
-        prior, sims = _simulate_building(args.building, cfg, text_embedder, n, seed, Path(work), args.tour)
-    if args.true_odometry:
+        prior, sims = _simulate_building(building, cfg, text_embedder, n, seed, Path(work), tour)
+    if true_odometry:
         for frame in (f for sim in sims for f in sim.frames):
             frame.odom_pose = frame.gt_pose.copy()
-    result = evaluate_building(prior, sims, cfg, text_embedder, args.preset, args.out)
-    result["speed"] = benchmark_graph_update(sims, cfg, text_embedder, args.preset)
-    write_text_atomic(Path(args.out) / "report.json", json.dumps(result, indent=1, default=float))
+    result = evaluate_building(prior, sims, cfg, text_embedder, preset, out_dir)
+    result["speed"] = benchmark_graph_update(sims, cfg, text_embedder, preset)
+    write_text_atomic(Path(out_dir) / "report.json", json.dumps(result, indent=1, default=float))
     log.info("summary: %s", json.dumps(result["summary"]))
     log.info("detector: %s", json.dumps({k: v for k, v in result["detector"].items() if not isinstance(v, dict)}))
     log.info("speed: %s", json.dumps(result["speed"]))
