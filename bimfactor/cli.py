@@ -749,3 +749,73 @@ def bench_graph(
         summary, speed = result["summary"], result["speed"]
         typer.echo(json.dumps({"summary": summary, "speed": speed}, indent=1, default=float))
         typer.echo(f"results: {output / 'report.json'}")
+
+
+@bench_app.command("smcl", short_help="Particle-filter step time (predict + update + resample) against M.")
+def bench_smcl(
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
+        "runs/bench-smcl"
+    ),
+    observations: Annotated[int, typer.Option("--observations", min=1, help="Observations per step.")] = 12,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Median step time of the semantic MCL on the paper-floor building for M = 100 ... 20000 particles, from a
+    uniform start (every particle with its own candidate set); writes OUT/results.json.
+
+    \b
+    Examples:
+      bimfactor bench smcl
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose)
+        from bimfactor.bim.prior import build_prior
+        from bimfactor.bim.synth import write_building
+        from bimfactor.io.atomic import write_text_atomic
+        from bimfactor.localization.smcl import benchmark_step
+
+        output.mkdir(parents=True, exist_ok=True)
+        write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
+        prior = build_prior(output / "paper-floor.ifc", cfg)
+        assert prior.visibility is not None
+        rows = benchmark_step(prior, prior.visibility, cfg.smcl, n_obs=observations)
+        write_text_atomic(output / "results.json", json.dumps({"benchmark": "smcl", "rows": rows}, indent=2))
+        write_text_atomic(output / "config.yaml", cfg.dump_yaml())
+        for row in rows:
+            typer.echo("  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
+        typer.echo(f"results: {output / 'results.json'}")
+
+
+@bench_app.command("backend", short_help="Pose-graph back-end update time of all modes per keyframe.")
+def bench_backend(
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
+        "runs/bench-backend"
+    ),
+    modes: Annotated[int, typer.Option("--modes", min=1, help="Modes (one GTSAM graph each).")] = 5,
+    keyframes: Annotated[int, typer.Option("--keyframes", min=2, help="Keyframes per run.")] = 100,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Median time of the multi-hypothesis back end's step (ISAM2 update of every mode's graph) per keyframe, on a
+    synthetic loop with landmarks; writes OUT/results.json.
+
+    \b
+    Examples:
+      bimfactor bench backend --modes 5
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose)
+        from bimfactor.backend import benchmark_backend
+        from bimfactor.io.atomic import write_text_atomic
+
+        result = benchmark_backend(cfg.backend, n_modes=modes, n_keyframes=keyframes)
+        output.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(
+            output / "results.json", json.dumps({"benchmark": "backend", **result}, indent=2, default=float)
+        )
+        write_text_atomic(output / "config.yaml", cfg.dump_yaml())
+        typer.echo(json.dumps(result, indent=1, default=float))
