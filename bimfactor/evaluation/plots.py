@@ -11,11 +11,21 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.figure import Figure
 
 from bimfactor.io.atomic import atomic_path
 
 if TYPE_CHECKING:
     from bimfactor.bim.prior import BimPrior
+
+
+def save_figure(fig: Figure, path: str | Path, dpi: int = 120, tight: bool = True) -> Path:
+    """Write a figure as PNG atomically and close it."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format="png")
+    plt.close(fig)
+    return path
 
 
 def draw_floorplan(ax: Axes, prior: BimPrior, storey_index: int, label_objects: bool = True) -> None:
@@ -84,11 +94,7 @@ def save_floorplans(prior: BimPrior, out_dir: str | Path) -> list[Path]:
             f"{Path(prior.source_file).name} — {layers.storey.name} "
             f"({layers.storey.elevation_m:+.2f} m), {n_rooms} rooms"
         )
-        path = out_dir / f"floorplan_{layers.storey.index}.png"
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=130, bbox_inches="tight", format="png")
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save_figure(fig, out_dir / f"floorplan_{layers.storey.index}.png", dpi=130))
     return paths
 
 
@@ -134,11 +140,7 @@ def save_trajectory_plot(
     ax.set_ylim(max(lo[1], y0), min(hi[1], y1))
     ax.legend(loc="upper right", fontsize=7)
     ax.set_title(title)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=120)
 
 
 def save_particle_snapshots(
@@ -167,11 +169,7 @@ def save_particle_snapshots(
         ax.set_title("initial particles" if step < 0 else f"after step {step}")
     for ax in axes.ravel()[len(steps) :]:
         ax.axis("off")
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def save_estimate_plot(
@@ -197,8 +195,4 @@ def save_estimate_plot(
         ax_twin.set_ylabel("orientation error [°]", color="tab:blue")
     else:
         ax_err.axis("off")
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)

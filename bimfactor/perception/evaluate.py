@@ -35,7 +35,7 @@ from scipy.optimize import linear_sum_assignment
 
 from bimfactor.config import Config, load_config
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
-from bimfactor.io.atomic import atomic_path, write_text_atomic
+from bimfactor.io.atomic import write_text_atomic
 from bimfactor.perception.pipeline import Perception, household_vocabulary, make_perception
 from bimfactor.perception.scene_graph import OnlineSceneGraph, SceneNode
 from bimfactor.perception.sim import label_cosine_statistics
@@ -250,14 +250,12 @@ def save_scene_graph_figure(
     """Write `plot_scene_graph` as a PNG, atomically."""
     import matplotlib.pyplot as plt
 
+    from bimfactor.evaluation.plots import save_figure
+
     fig, ax = plt.subplots(figsize=(9, 9))
     plot_scene_graph(ax, graph, report, prior, storey_index, trajectory_xy)
     ax.set_title(title, fontsize=9)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=130, bbox_inches="tight", format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=130)
 
 
 # ------------------------------------------------------------------------------------------ runners

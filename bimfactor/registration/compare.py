@@ -19,7 +19,6 @@ import numpy as np
 from bimfactor.bim.ifc import IfcModel
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import Config, RegistrationConfig
-from bimfactor.io.atomic import atomic_path
 from bimfactor.progress import progress
 from bimfactor.registration.gate import degeneracy_ratio, gate_registration
 from bimfactor.registration.icp import REGISTRARS, Registrar, evaluate_pose, make_registrar
@@ -190,6 +189,8 @@ def plot_basins(records: list[dict], path: str | Path, title: str = "") -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from bimfactor.evaluation.plots import save_figure
+
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
     for name in dict.fromkeys(r["registrar"] for r in records):
         for ax, key in zip(axes, ("init_trans_m", "init_rot_deg"), strict=True):
@@ -204,11 +205,7 @@ def plot_basins(records: list[dict], path: str | Path, title: str = "") -> Path:
     axes[1].legend(loc="lower left", fontsize=8)
     fig.suptitle(title or "basin of convergence")
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=120, tight=False)
 
 
 def benchmark_registration(
