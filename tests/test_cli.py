@@ -312,15 +312,17 @@ def test_prior_refuses_to_replace_a_folder_that_is_not_a_prior(tmp_path: Path) -
     assert (keep / "thesis.txt").read_text() == "precious"
 
 
-def test_simulate_writes_a_sequence_with_preview_and_config(demo_prior: Path, tmp_path: Path) -> None:
+def test_simulate_writes_a_sequence_with_preview_and_config(
+    demo_prior: Path, tmp_path: Path, cli_config_args: list[str]
+) -> None:
     out = tmp_path / "seq"
-    result = invoke("simulate", demo_prior, "-o", out, "--trajectory", "2", "--seed", "4")
+    result = invoke("simulate", demo_prior, "-o", out, "--trajectory", "2", "--seed", "4", *cli_config_args)
     assert result.exit_code == 0, result.output
     assert "50 keyframes of trajectory 2 (seed 4)" in result.stdout
     sequence = read_sequence(out)
     assert sequence.meta.extras["trajectory_index"] == 2 and sequence.meta.extras["seed"] == 4
     assert (out / "preview.png").stat().st_size > 10_000 and (out / "config.yaml").is_file()
-    again = invoke("simulate", demo_prior, "-o", out)
+    again = invoke("simulate", demo_prior, "-o", out, *cli_config_args)
     assert_one_line_error(again, contains="exists")
 
 
@@ -369,9 +371,9 @@ def demo_prior(tmp_path_factory: pytest.TempPathFactory, cli_config_args: list[s
     return folder / "prior"
 
 
-def test_localize_writes_the_run(demo_prior: Path, tmp_path: Path) -> None:
+def test_localize_writes_the_run(demo_prior: Path, tmp_path: Path, cli_config_args: list[str]) -> None:
     sequence = tmp_path / "seq"
-    assert invoke("simulate", demo_prior, "-o", sequence, "--trajectory", "1").exit_code == 0
+    assert invoke("simulate", demo_prior, "-o", sequence, "--trajectory", "1", *cli_config_args).exit_code == 0
     run = tmp_path / "run"
     result = invoke("localize", demo_prior, sequence, "-o", run, "--set", "smcl.num_particles=300")
     assert result.exit_code == 0, result.output
@@ -384,10 +386,20 @@ def test_localize_writes_the_run(demo_prior: Path, tmp_path: Path) -> None:
     assert_one_line_error(invoke("localize", demo_prior, tmp_path / "none", "-o", run), contains="sequence")
 
 
-def test_compare_registrars_writes_summary_and_figure(demo_prior: Path, tmp_path: Path) -> None:
+def test_compare_registrars_writes_summary_and_figure(
+    demo_prior: Path, tmp_path: Path, cli_config_args: list[str]
+) -> None:
     out = tmp_path / "compare"
     result = invoke(
-        "compare-registrars", demo_prior, "-o", out, "-m", "planar", "--set", "registration.compare_keyframes=2"
+        "compare-registrars",
+        demo_prior,
+        "-o",
+        out,
+        "-m",
+        "planar",
+        "--set",
+        "registration.compare_keyframes=2",
+        *cli_config_args,
     )
     assert result.exit_code == 0, result.output
     (row,) = json.loads((out / "summary.json").read_text())
