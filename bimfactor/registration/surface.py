@@ -79,6 +79,10 @@ class SurfaceModel:
     def crop(self, center_xy: np.ndarray, radius_m: float) -> SurfaceModel:
         """The samples within `radius_m` of `center_xy` in the xy-plane, as a new (smaller) model."""
         keep = self.crop_indices(center_xy, radius_m)
+        return self.subset(keep)
+
+    def subset(self, keep: np.ndarray) -> SurfaceModel:
+        """The samples at indices (or mask) `keep`, as a new model of the same storey."""
         return SurfaceModel(
             self.storey_index,
             self.elevation_m,
@@ -99,14 +103,7 @@ class SurfaceModel:
         to_center = np.asarray(center_xy, float)[:2] - m[:, :2]
         front = (np.einsum("ij,ij->i", n[:, :2], to_center) > 0) | (np.abs(n[:, 2]) > 0.9)
         keep = keep[front]
-        return SurfaceModel(
-            self.storey_index,
-            self.elevation_m,
-            self.height_m,
-            self.points[keep],
-            self.normals[keep],
-            self.element_index[keep],
-        )
+        return self.subset(keep)
 
     def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
         """Plain arrays for `np.savez` (keys prefixed with `prefix`)."""

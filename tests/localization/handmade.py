@@ -14,6 +14,7 @@ from bimfactor.bim.grid import GridSpec
 from bimfactor.bim.ifc import Storey
 from bimfactor.bim.prior import BimObject, BimPrior, StoreyLayers
 from bimfactor.bim.rooms import NO_ROOM, OUTSIDE
+from bimfactor.types import Observations
 
 RESOLUTION_M = 0.05
 ROBOT_RADIUS_M = 0.25
@@ -110,3 +111,14 @@ def object_id(prior: BimPrior, label: str, storey: int = 0) -> int:
     """Id of the (only) object with this label on a storey."""
     (found,) = [o.id for o in prior.objects if o.label == label and o.storey_index == storey]
     return found
+
+
+def observe(*items: tuple[str, float, float]) -> Observations:
+    """Observations of (label, range m, bearing rad) with exact one-hot embeddings."""
+    labels = [label for label, _, _ in items]
+    return Observations(
+        np.stack([embedding(label) for label in labels]),
+        np.array([r for _, r, _ in items]),
+        np.array([b for _, _, b in items]),
+        labels=labels,
+    )

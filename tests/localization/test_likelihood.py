@@ -19,18 +19,7 @@ from bimfactor.localization.likelihood import (
     semantic_similarity,
 )
 from bimfactor.types import Observations
-from tests.localization.handmade import embedding, object_id
-
-
-def observe(*items: tuple[str, float, float]) -> Observations:
-    """Observations of (label, range m, bearing rad) with exact one-hot embeddings."""
-    labels = [label for label, _, _ in items]
-    return Observations(
-        np.stack([embedding(label) for label in labels]),
-        np.array([r for _, r, _ in items]),
-        np.array([b for _, _, b in items]),
-        labels=labels,
-    )
+from tests.localization.handmade import object_id, observe
 
 
 def test_polar_coordinates_are_counter_clockwise_from_the_heading():

@@ -17,17 +17,7 @@ from bimfactor.localization.smcl import (
     weighted_pose_stats,
 )
 from bimfactor.types import Observations, wrap_angle
-from tests.localization.handmade import embedding, make_prior
-
-
-def observe(*items: tuple[str, float, float]) -> Observations:
-    labels = [label for label, _, _ in items]
-    return Observations(
-        np.stack([embedding(label) for label in labels]),
-        np.array([r for _, r, _ in items]),
-        np.array([b for _, _, b in items]),
-        labels=labels,
-    )
+from tests.localization.handmade import make_prior, observe
 
 
 def noise_free(cfg: SmclConfig) -> SmclConfig:
