@@ -20,8 +20,8 @@ from bimfactor.bim.prior import BimPrior
 from bimfactor.config import Config
 from bimfactor.errors import InputError
 from bimfactor.sim.sensors import RgbdCamera, simulate_odometry
-from bimfactor.sim.simulate import SimResult, build_world
-from bimfactor.types import Frame, SequenceMeta
+from bimfactor.sim.simulate import SimResult, build_world, sim_sequence_meta
+from bimfactor.types import Frame
 
 TOUR_STREAM = 0x70C
 _ARC_STEP_DEG = 10.0
@@ -129,14 +129,8 @@ def render_poses(
         frames.append(
             Frame(i, 0.5 * i, image.rgb, image.depth_m, odom[i], pose.copy(), storey_index, image.instance_ids)
         )
-    meta = SequenceMeta(
-        name=f"{name}-s{seed}",
-        source="sim",
-        intrinsics=camera.intrinsics,
-        T_base_camera=camera.T_base_camera.copy(),
-        prior_sha256=prior.source_sha256,
-        instances=[dict(rec) for rec in world.instances],
-        extras={"storey_index": storey_index, "seed": seed, "poses": "given"},
+    meta = sim_sequence_meta(
+        f"{name}-s{seed}", prior, world, camera, {"storey_index": storey_index, "seed": seed, "poses": "given"}
     )
     return SimResult(meta, frames, None)  # type: ignore[arg-type]  # no planned trajectory behind given poses
 

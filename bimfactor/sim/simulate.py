@@ -105,14 +105,12 @@ def simulate_sequence(
                 instance_ids=image.instance_ids,
             )
         )
-    meta = SequenceMeta(
-        name=f"sim-{Path(prior.source_file).stem}-t{trajectory_index}-s{seed}",
-        source="sim",
-        intrinsics=camera.intrinsics,
-        T_base_camera=camera.T_base_camera.copy(),
-        prior_sha256=prior.source_sha256,
-        instances=[dict(rec) for rec in world.instances],
-        extras={
+    meta = sim_sequence_meta(
+        f"sim-{Path(prior.source_file).stem}-t{trajectory_index}-s{seed}",
+        prior,
+        world,
+        camera,
+        {
             "trajectory_index": trajectory_index,
             "seed": seed,
             "storey_index": storey,
@@ -124,6 +122,19 @@ def simulate_sequence(
     )
     log.info("simulated %s: %d frames on storey %d", meta.name, len(frames), storey)
     return SimResult(meta, frames, trajectory)
+
+
+def sim_sequence_meta(name: str, prior: BimPrior, world: SimWorld, camera: RgbdCamera, extras: dict) -> SequenceMeta:
+    """The metadata of a simulated sequence: camera, mount, building, the world's instance table."""
+    return SequenceMeta(
+        name=name,
+        source="sim",
+        intrinsics=camera.intrinsics,
+        T_base_camera=camera.T_base_camera.copy(),
+        prior_sha256=prior.source_sha256,
+        instances=[dict(rec) for rec in world.instances],
+        extras=extras,
+    )
 
 
 def load_world_inputs(prior_dir: str | Path, cfg: Config | None = None) -> tuple[BimPrior, IfcModel]:
