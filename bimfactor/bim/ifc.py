@@ -195,7 +195,7 @@ def _parse(path: Path, schema: str, sha: str, threads: int) -> IfcModel:
 
 
 def _has_entity(schema: str, ifc_class: str) -> bool:
-    return ifc_class in _ancestry_names(schema, ifc_class) if _declaration(schema, ifc_class) else False
+    return _declaration(schema, ifc_class) is not None
 
 
 @cache

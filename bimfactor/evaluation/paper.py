@@ -83,7 +83,7 @@ def _pooled(runs: list[RunResult]) -> dict:
         "room_acc": float(room.mean()),
         "room_acc_std": float(room.std()),
         "step_ms_median": float(np.median(np.concatenate([r.step_ms for r in runs]))),
-        "steps_to_converge": [c for c in converged],
+        "steps_to_converge": converged,
         "converged_runs": sum(c is not None for c in converged),
         "runs": len(runs),
         "trans_err_conv_m": float(np.mean(conv_trans)) if conv_trans else None,
