@@ -238,6 +238,12 @@ class TrajectorySimConfig(_Strict):
     keyframe_angle_deg: float = Field(gt=0.0, description="... or this much rotation.")
     min_start_goal_m: float = Field(ge=0.0, description="Start and goal at least this far apart.")
     inflation_m: float = Field(ge=0.0, description="Obstacle inflation for path planning.")
+    route: Literal["viewpoints", "rooms"] = Field(
+        description="viewpoints: start and goals where objects are in view, facing them on arrival; "
+        "rooms: any roomy place of another room."
+    )
+    view_radius_m: float = Field(gt=0.0, description="A viewpoint sees objects (not doors) within this distance.")
+    min_view_objects: int = Field(ge=1, description="A viewpoint sees at least this many objects.")
 
 
 class AsBuiltConfig(_Strict):

@@ -740,32 +740,112 @@ def _check_storey(storey: StoreySpec) -> None:
 # Presets
 
 
-def paper_floor(rng: np.random.Generator) -> BuildingSpec:
-    """The CoarseBIMLoc floor: 86 x 86 m, 7 rooms around a 16 m wide hallway, 43 objects in 14 categories.
+def _ccw(polygon: Sequence[Point]) -> list[Point]:
+    """The polygon with its vertices in counter-clockwise order."""
+    area = sum(a[0] * b[1] - b[0] * a[1] for a, b in zip(polygon, [*polygon[1:], polygon[0]], strict=True))
+    return list(polygon) if area > 0 else list(reversed(polygon))
 
-    South: living room, study room, bathroom (20 m deep, the hallway wraps north of it); north: bedroom,
-    kitchen, meeting room. 6 room doors + 1 entrance, 8 windows; the seed moves doors, windows and objects.
+
+def _room_windows(
+    walls: Sequence[WallSpec],
+    room: str,
+    side: str,
+    span: tuple[float, float],
+    at: float,
+    count: int,
+    first: int,
+    rng: np.random.Generator,
+) -> list[WindowSpec]:
+    """`count` windows spread over the span (lo, hi centreline) of the exterior wall on line `at` ("h" or "v")."""
+    t = WALL_THICKNESS_M
+    slot = (span[1] - span[0] - t) / max(count, 1)
+    windows = []
+    for k in range(count):
+        width = _r(rng.uniform(1.2, 2.0))
+        play = max(slot / 2 - width / 2 - OPENING_END_MARGIN_M, 0.0) / 2
+        along = _r(span[0] + t / 2 + slot * (k + 0.5) + rng.uniform(-play, play))
+        center = (along, at) if side == "h" else (at, along)
+        windows.append(_window(walls, center, width, room, first + k))
+    return windows
+
+
+def paper_floor(rng: np.random.Generator) -> BuildingSpec:
+    """The CoarseBIMLoc floor: 86 x 86 m, 7 rooms, 43 objects in 14 categories.
+
+    A courtyard building, a common form of large Hong Kong floors: a 12 m deep ring around a 62 x 62 m
+    courtyard, a 3.5 m corridor (the hallway) along the courtyard, the rest of the ring's 8.5 m outer band
+    rooms. Six rooms are modelled, five along the south band (living room, study room, bathroom, bedroom,
+    kitchen) and a meeting room across the whole ring in the east, with a door to each side, so the hallway is
+    a 280 m loop; the rest of the band is walled, unmodelled space (no IfcSpace: not navigable). 7 doors,
+    8 windows, 28 furnishing elements; the seed moves doors, windows and objects.
     """
-    storey = _corridor_storey(
-        rng,
+    t = WALL_THICKNESS_M
+    lo, hi = t / 2, 86.0 - t / 2  # outer wall centrelines
+    band, ring = 8.5, 12.0  # outer band depth; band + corridor
+    b_lo, b_hi = lo + band, hi - band  # the band's inner face (corridor's outer wall)
+    c_lo, c_hi = lo + ring, hi - ring  # courtyard walls
+    m_y0, m_y1 = 16.1, 28.1  # the meeting room, across the east ring
+
+    south = (("living room", 20.1, 32.1, 2), ("study room", 32.1, 42.1, 1), ("bathroom", 42.1, 48.1, 0),
+             ("bedroom", 48.1, 58.1, 1), ("kitchen", 58.1, 70.1, 2))  # fmt: skip
+    rects = {f"R{i + 1:02d}": (x0, lo, x1, b_lo) for i, (_, x0, x1, _) in enumerate(south)}
+    rects["R06"] = (c_hi, m_y0, hi, m_y1)
+    types = {**{f"R{i + 1:02d}": kind for i, (kind, *_rest) in enumerate(south)}, "R06": "meeting room"}
+    blocks = [  # unmodelled space of the outer band
+        (lo, lo, south[0][1], b_lo),
+        (south[-1][2], lo, hi, b_lo),
+        (b_hi, b_lo, hi, m_y0),
+        (b_hi, m_y1, hi, b_hi),
+        (lo, b_hi, hi, hi),
+        (lo, b_lo, b_lo, b_hi),
+    ]
+    outer_loop = [(b_hi, m_y0), (b_hi, b_lo), (b_lo, b_lo), (b_lo, b_hi), (b_hi, b_hi), (b_hi, m_y1)]
+    court_loop = [(c_hi, m_y1), (c_hi, c_hi), (c_lo, c_hi), (c_lo, c_lo), (c_hi, c_lo), (c_hi, m_y0)]
+    hall = _ccw(outer_loop + court_loop)  # the corridor: a C from the meeting room's south door to its north one
+    boxes = [*rects.values(), *blocks]
+    centrelines = [_ccw([(x0, y0), (x1, y0), (x1, y1), (x0, y1)]) for x0, y0, x1, y1 in boxes] + [hall]
+    walls = list(_walls_from_polygons(centrelines, t, WALL_HEIGHT_M, (lo, lo, hi, hi)))
+    for i, wall in enumerate(walls):  # the courtyard's walls are exterior walls too
+        (x0, y0), (x1, y1) = wall.start, wall.end
+        on_court = (y0 == y1 and y0 in (_r(c_lo), _r(c_hi))) or (x0 == x1 and x0 in (_r(c_lo), _r(c_hi)))
+        if on_court:
+            walls[i] = dataclasses.replace(wall, exterior=True)
+
+    rooms = [RoomSpec(name, types[name], _inset(_ccw(centrelines[i]), t / 2)) for i, name in enumerate(rects)]
+    hallway = RoomSpec("R07", "hallway", _inset(hall, t / 2))
+
+    def door_at(room: str, span: tuple[float, float], at: float, side: str) -> DoorSpec:
+        width = _r(rng.uniform(0.9, 1.2))
+        margin = t / 2 + OPENING_END_MARGIN_M + width / 2
+        along = _r(rng.uniform(span[0] + margin, span[1] - margin))
+        center = (along, _r(at)) if side == "h" else (_r(at), along)
+        return DoorSpec("", _wall_at(walls, center, width), center, width, DOOR_HEIGHT_M, (room, hallway.name))
+
+    doors = [door_at(name, (x0, x1), b_lo, "h") for name, (x0, _, x1, _) in list(rects.items())[:5]]
+    doors += [door_at("R06", (c_hi, b_hi), m_y0, "h"), door_at("R06", (c_hi, b_hi), m_y1, "h")]
+    doors = [dataclasses.replace(d, name=f"D{i + 1:02d}") for i, d in enumerate(doors)]
+
+    windows: list[WindowSpec] = []
+    for (name, (x0, _, x1, _)), (_, _, _, count) in zip(list(rects.items())[:5], south, strict=True):
+        windows += _room_windows(walls, name, "h", (x0, x1), lo, count, len(windows) + 1, rng)
+    windows += _room_windows(walls, "R06", "v", (m_y0, m_y1), hi, 2, len(windows) + 1, rng)
+
+    keepouts = [_door_keepout(door, walls[door.wall_index]) for door in doors]
+    objects: list[ObjectSpec] = []
+    for room in (*rooms, hallway):
+        objects += _place_groups(ROOM_CONTENTS[room.room_type], room, (0.0, 0.0, 0.0), keepouts, rng)
+
+    storey = StoreySpec(
         name="Ground floor",
         elevation=0.0,
-        width=86.0,
-        south_depth=34.9,
-        corridor_width=16.0,
-        north_depth=34.9,
-        south=(
-            _RoomPlan("living room", 32.0, end_window=True),
-            _RoomPlan("study room", 28.0),
-            _RoomPlan("bathroom", depth=20.0, outer_windows=0),
-        ),
-        north=(
-            _RoomPlan("bedroom", 28.0, end_window=True),
-            _RoomPlan("kitchen", 30.0),
-            _RoomPlan("meeting room", end_window=True),
-        ),
-        entrance=True,
+        height=STOREY_HEIGHT_M,
+        walls=tuple(walls),
+        rooms=(*rooms, hallway),
+        doors=tuple(doors),
+        windows=tuple(windows),
+        objects=tuple(objects),
     )
+    _check_storey(storey)
     return BuildingSpec(name="Paper floor", preset="paper-floor", seed=0, storeys=(storey,))
 
 
