@@ -386,11 +386,14 @@ class _Driver:
         raise SimulationError(f"the robot got stuck: {len(self.keyframes)} of {self.steps} keyframes after many goals")
 
     def _pick_goal(self, xy: np.ndarray, current_room: int, dist: np.ndarray, rooms: list[int]) -> int:
-        """A node in another room: preferably ≥ min_start_goal_m away and within the remaining travel budget."""
+        """A node in another room (a viewpoint in any room on `viewpoints` routes): preferably ≥ min_start_goal_m
+        away and within the remaining travel budget."""
         graph = self.graph
         remaining = self.steps - len(self.keyframes)
         budget = max(FIRST_GOAL_BUDGET * remaining * self.kf_distance, MIN_GOAL_BUDGET_M)
-        nodes = np.flatnonzero(np.isin(graph.node_room, [r for r in rooms if r != current_room]) & np.isfinite(dist))
+        if self.sim.cfg.sim.trajectory.route == "rooms":
+            rooms = [r for r in rooms if r != current_room]
+        nodes = np.flatnonzero(np.isin(graph.node_room, rooms) & np.isfinite(dist))
         roomy = nodes[graph.node_clearance[nodes] >= graph.inflation_m]
         nodes = self.sim.viewpoints(graph.storey_index, roomy if len(roomy) else nodes)
         far = np.hypot(*(graph.node_xy[nodes] - xy).T) >= self.min_goal_distance
