@@ -291,6 +291,11 @@ class TrajectorySimulator:
                 centroid[:, axis] = np.bincount(owner, xy[ids, axis], len(graph.node_xy)) / count
         return count, centroid
 
+    def _has_viewpoint(self, storey: int, room: int) -> bool:
+        graph = self.graphs[storey]
+        in_room = graph.node_room == room
+        return bool((self.views[storey][0][in_room] >= self.cfg.sim.trajectory.min_view_objects).any())
+
     def viewpoints(self, storey: int, nodes: np.ndarray) -> np.ndarray:
         """The nodes among `nodes` that are viewpoints, or all of them when none is (or routes are `rooms`)."""
         good = nodes[self.views[storey][0][nodes] >= self.cfg.sim.trajectory.min_view_objects]
@@ -300,6 +305,7 @@ class TrajectorySimulator:
         """(storey, component, room) of every usable room, in the seed's order, alternating between components."""
         rng = np.random.default_rng([seed, _START_ORDER_STREAM])
         groups = [[(s, c, r) for r in rng.permutation(rooms)] for (s, c), rooms in sorted(self.rooms.items())]
+        groups = [sorted(g, key=lambda scr: not self._has_viewpoint(scr[0], scr[2])) for g in groups]  # stable
         groups = [groups[i] for i in rng.permutation(len(groups))]
         order = []
         for k in range(max(len(g) for g in groups)):

@@ -9,7 +9,7 @@ import numpy as np
 from bimfactor.bim.rooms import NO_ROOM, OUTSIDE
 from bimfactor.sim.trajectory import SimTrajectory, standard_trajectories
 
-from .conftest import Building
+from .conftest import Building, config_with
 
 DOORWAY_REACH_M = 1.0  # a pose in no room must be this close to a door of its storey
 
@@ -35,14 +35,33 @@ def test_every_pose_on_indoor_free_space(building: Building, six_trajectories: l
             assert gap.max() <= DOORWAY_REACH_M
 
 
-def test_each_trajectory_visits_two_rooms_in_exactly_t_steps(
-    building: Building, six_trajectories: list[SimTrajectory]
-) -> None:
-    steps = building.cfg.evaluation.trajectory_length
+def test_each_trajectory_has_exactly_t_steps(building: Building, six_trajectories: list[SimTrajectory]) -> None:
     for trajectory in six_trajectories:
-        assert len(trajectory.keyframe_indices) == steps == 50
+        assert len(trajectory.keyframe_indices) == building.cfg.evaluation.trajectory_length == 50
+
+
+def test_room_routes_visit_two_rooms(building: Building, config_overrides: list[str]) -> None:
+    cfg = config_with(config_overrides, "sim.trajectory.route=rooms")
+    for trajectory in standard_trajectories(building.prior, n=3, seed=0, cfg=cfg):
+        assert len(trajectory.keyframe_indices) == 50
         rooms = building.prior.room_at(trajectory.keyframe_poses[:, :2], trajectory.storey_index)
         assert len(set(rooms[rooms >= 0].tolist())) >= 2, f"trajectory {trajectory.index} stays in one room"
+
+
+def test_viewpoint_routes_start_looking_at_objects(building: Building, six_trajectories: list[SimTrajectory]) -> None:
+    """The default routes start where ≥ 2 objects lie within the view radius in line of sight, facing them."""
+    prior, tcfg = building.prior, building.cfg.sim.trajectory
+    xy = prior.object_positions()[:, :2]
+    lookable = np.asarray([o.label != "door" for o in prior.objects])
+    facing = 0
+    for trajectory in six_trajectories:
+        start = trajectory.poses[0]
+        _, ids = prior.visibility.candidates(start[None, :2], trajectory.storey_index)
+        ids = ids[lookable[ids] & (np.linalg.norm(xy[ids] - start[:2], axis=1) <= tcfg.view_radius_m + 0.3)]
+        assert len(ids) >= tcfg.min_view_objects, f"trajectory {trajectory.index} starts with nothing in view"
+        bearing = np.arctan2(*(xy[ids] - start[:2]).mean(axis=0)[::-1]) - start[2]
+        facing += abs((bearing + np.pi) % (2 * np.pi) - np.pi) < math.radians(60)
+    assert facing >= 5  # the start heading is the look direction plus 20° (1 σ) noise
 
 
 def test_starts_are_distinct_rooms(building: Building, six_trajectories: list[SimTrajectory]) -> None:
