@@ -351,6 +351,9 @@ class BackendConfig(_Strict):
     reassociate_yaw_deg: float = Field(ge=0.0, description="... or turns this much from the pose that associated.")
     relinearize_threshold: float = Field(gt=0.0, description="ISAM2 relinearization threshold.")
     lm_max_iterations: int = Field(ge=1, description="Levenberg–Marquardt iterations of the offline batch refine.")
+    refine_rounds: int = Field(
+        ge=0, description="Offline refine: rounds of re-association at the refined poses (0: the forward matches)."
+    )
 
 
 class EvaluationConfig(_Strict):

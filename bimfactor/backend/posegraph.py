@@ -46,7 +46,7 @@ from bimfactor.backend.factors import (
 from bimfactor.backend.modes import Mode, ModeTracker, TrackedMode
 from bimfactor.config import BackendConfig
 from bimfactor.localization.likelihood import SemanticLikelihood, polar_coordinates
-from bimfactor.types import Observations, se2_compose, wrap_angle
+from bimfactor.types import Observations, se2_compose, se2_inverse, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -129,6 +129,7 @@ class ModeGraph:
         self.last_index: int | None = None
         self.pose = np.asarray(pose, np.float64).copy()
         self.covariance = floored_covariance(covariance_world, cfg)
+        self.prior_pose, self.prior_covariance = self.pose.copy(), self.covariance.copy()
         self.poses: dict[int, np.ndarray] = {}
         self.associations: dict[int, list[tuple[int, int]]] = {}
         self._landmarks: set[int] = set()
@@ -225,6 +226,19 @@ class ModeGraph:
         estimate = self.isam.calculateEstimate()
         return np.array([from_pose2(estimate.atPose2(X(i))) for i in sorted(self.poses)])
 
+    def history(self, probability: float) -> ModeHistory:
+        """What this mode's graph holds, as plain data: birth prior, smoothed poses, matches per keyframe."""
+        return ModeHistory(
+            self.mode_id,
+            self.storey,
+            float(probability),
+            self.first_index,
+            self.prior_pose.copy(),
+            self.prior_covariance.copy(),
+            self.trajectory(),
+            [list(self.associations[i]) for i in sorted(self.poses)],
+        )
+
     # -------------------------------------------------------------------------------- helpers
 
     def _add_landmarks(
@@ -267,6 +281,21 @@ class ModeEstimate:
     normalised_residual: float
     storey: int
     n_matches: int
+
+
+@dataclass
+class ModeHistory:
+    """A mode's whole graph as plain data: its birth prior on X(first_index) ((3,) pose, (3, 3) world-frame
+    covariance), (n, 3) ISAM2-smoothed poses of keyframes first_index … first_index + n − 1 and their matches."""
+
+    mode_id: int
+    storey: int
+    probability: float
+    first_index: int
+    prior_pose: np.ndarray
+    prior_covariance: np.ndarray
+    poses: np.ndarray
+    associations: list[list[tuple[int, int]]]
 
 
 @dataclass
@@ -313,8 +342,11 @@ class MultiHypothesisBackend:
         observations: Observations,
         associate_fn: AssociateFn,
         odom_covariance: np.ndarray | None = None,
-    ) -> BackendStep:
-        """Track the modes, update every mode's graph with the keyframe, weigh the modes; see the module docstring."""
+    ) -> BackendStep | None:
+        """Track the modes, update every mode's graph with the keyframe, weigh the modes; see the module docstring.
+
+        Returns None when there is no mode at all (no cluster heavy enough to spawn one and none tracked).
+        """
         self.index += 1
         i = self.index
         clock = time.perf_counter()
@@ -322,6 +354,8 @@ class MultiHypothesisBackend:
         events = self.tracker.update(modes, None if i == 0 else odom_increment)
         for _, absorbed in events.merged:
             self.graphs.pop(absorbed, None)
+        if not self.tracker.modes:
+            return None
         t_track = time.perf_counter()
         # 2. One ISAM2 update per mode graph (new modes start a graph at this keyframe from their cluster).
         costs: dict[int, float] = {}
@@ -366,6 +400,11 @@ class MultiHypothesisBackend:
         """Feed a fine registrar's (3,) pose with (3, 3) body-frame information into one mode's graph."""
         self.graphs[mode_id].add_pose_factor(i, pose, information)
 
+    def histories(self) -> list[ModeHistory]:
+        """Every tracked mode's graph as a `ModeHistory`, most probable first."""
+        modes = sorted(self.tracker.modes, key=lambda m: (-m.probability, m.id))
+        return [self.graphs[m.id].history(m.probability) for m in modes]
+
     def _probabilities(self, costs: dict[int, float]) -> dict[int, float]:
         ids = [m.id for m in self.tracker.modes]
         weights = np.array([max(self.tracker.get(k).weight, 1e-300) for k in ids])
@@ -403,6 +442,19 @@ class BatchResult:
     iterations: int
 
 
+def dead_reckoning(anchor_pose: np.ndarray, anchor_index: int, increments: np.ndarray) -> np.ndarray:
+    """(T, 3) poses chained from a (3,) pose at keyframe `anchor_index` by (T−1, 3) robot-frame increments, forwards
+    after the anchor and backwards (inverse increments) before it."""
+    increments = np.asarray(increments, np.float64).reshape(-1, 3)
+    poses = np.empty((len(increments) + 1, 3))
+    poses[anchor_index] = anchor_pose
+    for t in range(anchor_index + 1, len(poses)):
+        poses[t] = se2_compose(poses[t - 1], increments[t - 1])
+    for t in range(anchor_index - 1, -1, -1):
+        poses[t] = se2_compose(poses[t + 1], se2_inverse(increments[t]))
+    return poses
+
+
 def batch_refine(
     first_pose: np.ndarray,
     first_covariance: np.ndarray,
@@ -414,26 +466,30 @@ def batch_refine(
     initial_poses: np.ndarray | None = None,
     odom_covariances: np.ndarray | None = None,
     pose_factors: Sequence[tuple[int, np.ndarray, np.ndarray]] = (),
+    prior_index: int = 0,
 ) -> BatchResult:
     """Full graph of a T-keyframe trajectory optimised with Levenberg–Marquardt.
 
+    `first_pose` / `first_covariance` are the pose prior on X(prior_index) (default: the first keyframe);
     `increments` (T−1, 3) robot-frame odometry; `observations` / `associations` one per keyframe; `landmark_xy`
-    (N, 2) BIM positions by object id; `initial_poses` (T, 3) (default: dead reckoning); `odom_covariances`
-    (T−1, 3, 3) optional; `pose_factors` (i, (3,) pose, (3, 3) body information) from a fine registrar.
+    (N, 2) BIM positions by object id; `initial_poses` (T, 3) (default: dead reckoning from the prior);
+    `odom_covariances` (T−1, 3, 3) optional; `pose_factors` (i, (3,) pose, (3, 3) body information) from a fine
+    registrar.
     """
     increments = np.asarray(increments, np.float64).reshape(-1, 3)
     T = len(increments) + 1
     if len(observations) != T or len(associations) != T:
         raise ValueError(f"{T} keyframes need {T} observations and associations")
+    if not 0 <= prior_index < T:
+        raise ValueError(f"prior index {prior_index} is outside the {T} keyframes")
     landmark_xy = np.asarray(landmark_xy, np.float64)[:, :2]
     if initial_poses is None:
-        initial_poses = np.empty((T, 3))
-        initial_poses[0] = first_pose
-        for t, inc in enumerate(increments, start=1):
-            initial_poses[t] = se2_compose(initial_poses[t - 1], inc)
+        initial_poses = dead_reckoning(first_pose, prior_index, increments)
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     noise = bearing_range_noise(cfg)
-    graph.add(pose_prior_factor(0, np.asarray(first_pose, np.float64), floored_covariance(first_covariance, cfg)))
+    graph.add(
+        pose_prior_factor(prior_index, np.asarray(first_pose, np.float64), floored_covariance(first_covariance, cfg))
+    )
     seen: set[int] = set()
     for t in range(T):
         values.insert(X(t), gtsam.Pose2(*initial_poses[t]))
@@ -500,6 +556,7 @@ def benchmark_backend(
 
         increment = None if t == 0 else scenario.increments[t - 1]
         step = backend.step(clusters, increment, scenario.observations[t], associate)
+        assert step is not None, "every keyframe brings a cluster per copy of the world"
         per_step.append(step.timings_ms["total"])
         per_graph.append(step.timings_ms["graphs"])
     row = {

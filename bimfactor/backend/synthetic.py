@@ -77,3 +77,16 @@ def loop_scenario(
         )
         associations.append([(k, int(j)) for k, j in enumerate(seen)])
     return LoopScenario(true_poses, np.array(increments), observations, associations, landmark_xy, true_landmark_xy)
+
+
+def nearest_landmark_associator(landmark_xy: np.ndarray, observations: Observations, gate_m: float = 1.0):
+    """An `AssociateFn` for the synthetic worlds: each observation → the landmark nearest to where the pose puts it,
+    within `gate_m`."""
+
+    def associate(pose: np.ndarray, storey: int) -> list[tuple[int, int]]:
+        angle = pose[2] + np.asarray(observations.bearing_rad)
+        xy = pose[:2] + np.asarray(observations.range_m)[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+        gaps = np.linalg.norm(xy[:, None, :] - np.asarray(landmark_xy)[None, :, :2], axis=2)
+        return [(k, int(np.argmin(g))) for k, g in enumerate(gaps) if g.min() < gate_m]
+
+    return associate

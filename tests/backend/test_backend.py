@@ -5,28 +5,22 @@ import pytest
 
 from bimfactor.backend.modes import Mode
 from bimfactor.backend.posegraph import MultiHypothesisBackend, semantic_associator
-from bimfactor.backend.synthetic import loop_scenario
+from bimfactor.backend.synthetic import loop_scenario, nearest_landmark_associator
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import load_config
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.types import Observations, wrap_angle
 from tests.localization.handmade import embedding, make_prior, object_id
 
-CFG = load_config().backend
+# The sensor the accuracy tolerances below are set for: σ_r 15 cm, σ_b 3° (the loop scenario draws its noise from them).
+CFG = load_config().backend.model_copy(update={"range_sigma_m": 0.15, "bearing_sigma_deg": 3.0})
 CLUSTER_COV = np.diag([0.2, 0.2, np.deg2rad(5.0)]) ** 2
 GATE_M = 1.0
 
 
 def _nearest_landmark_associator(landmark_xy: np.ndarray, observations: Observations):
     """Each observation → the BIM landmark nearest to where the pose puts it, within GATE_M."""
-
-    def associate(pose: np.ndarray, storey: int) -> list[tuple[int, int]]:
-        angle = pose[2] + np.asarray(observations.bearing_rad)
-        xy = pose[:2] + np.asarray(observations.range_m)[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
-        gaps = np.linalg.norm(xy[:, None, :] - landmark_xy[None, :, :], axis=2)
-        return [(k, int(np.argmin(g))) for k, g in enumerate(gaps) if g.min() < GATE_M]
-
-    return associate
+    return nearest_landmark_associator(landmark_xy, observations, GATE_M)
 
 
 def _rotate_about_origin(pose: np.ndarray, angle: float) -> np.ndarray:

@@ -1,0 +1,101 @@
+"""Offline refinement: each surviving mode's whole trajectory smoothed by batch Levenberg–Marquardt.
+
+For a mode that the back end still tracks at the end of a sequence (born at keyframe i0, on one storey):
+1. initial guess: its ISAM2-smoothed poses from i0 on; before i0, dead reckoning backwards from X(i0);
+2. matches: the forward pass's from i0 on; before i0, the associator's at the initial guess;
+3. `batch_refine` over all T keyframes: the mode's birth prior on X(i0), odometry between every pair of keyframes,
+   robust bearing-range factors to the BIM landmarks, so the steps before the mode existed are placed in hindsight;
+4. up to `refine_rounds` times: re-associate every keyframe at the refined poses and optimise again while the matches
+   change (hindsight association: the smoothed poses put observations next to the right objects).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from bimfactor.backend.posegraph import AssociateFn, BatchResult, ModeHistory, batch_refine, dead_reckoning
+from bimfactor.config import BackendConfig
+from bimfactor.types import Observations
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RefinedMode:
+    """One mode's refined trajectory: the batch result, its matches per keyframe, the forward-pass probability."""
+
+    mode_id: int
+    storey: int
+    probability: float
+    first_index: int
+    batch: BatchResult
+    associations: list[list[tuple[int, int]]]
+    rounds: int
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self.batch.poses
+
+    @property
+    def covariances(self) -> np.ndarray:
+        return self.batch.covariances
+
+
+def refine_mode(
+    mode: ModeHistory,
+    odom_increments: np.ndarray,
+    observations: Sequence[Observations],
+    associate_fns: Sequence[AssociateFn],
+    landmark_xy: np.ndarray,
+    cfg: BackendConfig,
+) -> RefinedMode:
+    """Smooth one mode over all T keyframes (see the module docstring).
+
+    `odom_increments` (T−1, 3) robot-frame odometry between keyframes; `observations` and `associate_fns` one per
+    keyframe (an associator maps a pose and storey to (observation index, object id) pairs for that keyframe's
+    observations); `landmark_xy` (N, 2) BIM object positions by id; `cfg.refine_rounds` bounds the re-association.
+    """
+    T = len(observations)
+    i0, n = mode.first_index, len(mode.poses)
+    if len(associate_fns) != T or len(odom_increments) != T - 1 or i0 + n != T:
+        raise ValueError(f"mode {mode.mode_id}: keyframes {i0}…{i0 + n - 1} do not end a {T}-keyframe sequence")
+    initial = dead_reckoning(mode.poses[0], i0, odom_increments)
+    initial[i0:] = mode.poses
+    associations = [list(associate_fns[t](initial[t], mode.storey)) for t in range(i0)] + [
+        list(a) for a in mode.associations
+    ]
+
+    def optimise(start: np.ndarray, matches: list[list[tuple[int, int]]]) -> BatchResult:
+        return batch_refine(
+            mode.prior_pose,
+            mode.prior_covariance,
+            odom_increments,
+            observations,
+            matches,
+            landmark_xy,
+            cfg,
+            initial_poses=start,
+            prior_index=i0,
+        )
+
+    batch = optimise(initial, associations)
+    done = 0
+    for _ in range(cfg.refine_rounds):
+        again = [list(associate_fns[t](batch.poses[t], mode.storey)) for t in range(T)]
+        if [set(a) for a in again] == [set(a) for a in associations]:
+            break
+        associations, done = again, done + 1
+        batch = optimise(batch.poses, associations)
+    log.debug(
+        "mode %d refined: error %.1f → %.1f in %d iterations, %d re-association rounds",
+        mode.mode_id,
+        batch.error_before,
+        batch.error_after,
+        batch.iterations,
+        done,
+    )
+    return RefinedMode(mode.mode_id, mode.storey, mode.probability, i0, batch, associations, done)

@@ -1,0 +1,106 @@
+"""Offline refinement on the synthetic loop: a late mode smoothed over the whole sequence, hindsight re-association."""
+
+import numpy as np
+import pytest
+
+from bimfactor.backend.posegraph import ModeGraph, ModeHistory, batch_refine, dead_reckoning
+from bimfactor.backend.refine import refine_mode
+from bimfactor.backend.synthetic import LoopScenario, loop_scenario, nearest_landmark_associator
+from bimfactor.config import load_config
+from bimfactor.types import se2_between, wrap_angle
+
+# A precise sensor and BIM (σ_r 5 cm, σ_b 1°, BIM σ 2 cm; truth = BIM), as in the pose-graph tests.
+PRECISE = load_config().backend.model_copy(
+    update={"range_sigma_m": 0.05, "bearing_sigma_deg": 1.0, "landmark_sigma_m": 0.02}
+)
+BIRTH_COV = np.diag([0.3, 0.3, np.deg2rad(10.0)]) ** 2
+BIRTH_OFFSET = np.array([0.25, -0.2, np.deg2rad(6.0)])  # the cluster mean a mode is born at is off the truth
+BORN_AT = 8
+WRONG_STEP = 14
+
+
+def _rms_m(poses: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.sqrt(((poses[:, :2] - truth[:, :2]) ** 2).sum(axis=1).mean()))
+
+
+def _late_mode(sc: LoopScenario, cfg, associations=None) -> ModeHistory:
+    """A mode born at keyframe BORN_AT (off the truth) and run online to the end of the loop."""
+    associations = sc.associations if associations is None else associations
+    graph = ModeGraph(3, BORN_AT, sc.true_poses[BORN_AT] + BIRTH_OFFSET, BIRTH_COV, sc.landmark_xy, cfg)
+    for t in range(BORN_AT, len(sc.true_poses)):
+        graph.add_keyframe(t, sc.observations[t], associations[t], None if t == BORN_AT else sc.increments[t - 1])
+    return graph.history(probability=0.8)
+
+
+def _associators(sc: LoopScenario) -> list:
+    return [nearest_landmark_associator(sc.landmark_xy, obs) for obs in sc.observations]
+
+
+def test_dead_reckoning_chains_forwards_and_backwards_from_the_anchor():
+    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    anchor = np.array([1.0, -2.0, 0.4])
+    poses = dead_reckoning(anchor, 5, sc.increments)
+    assert poses.shape == (len(sc.true_poses), 3)
+    np.testing.assert_allclose(poses[5], anchor)
+    steps = se2_between(poses[:-1], poses[1:])
+    steps[:, 2] = wrap_angle(steps[:, 2] - sc.increments[:, 2])
+    np.testing.assert_allclose(steps[:, :2], sc.increments[:, :2], atol=1e-9)
+    np.testing.assert_allclose(steps[:, 2], 0.0, atol=1e-9)
+
+
+def test_batch_refine_takes_its_prior_on_any_keyframe():
+    sc = loop_scenario(np.random.default_rng(1), PRECISE)
+    result = batch_refine(
+        sc.true_poses[10], BIRTH_COV, sc.increments, sc.observations, sc.associations, sc.landmark_xy, PRECISE,
+        prior_index=10,
+    )  # fmt: skip
+    assert _rms_m(result.poses, sc.true_poses) < 0.05
+    with pytest.raises(ValueError, match="outside"):
+        batch_refine(
+            sc.true_poses[0], BIRTH_COV, sc.increments, sc.observations, sc.associations, sc.landmark_xy, PRECISE,
+            prior_index=len(sc.true_poses),
+        )  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_late_mode_is_smoothed_over_the_whole_sequence(seed):
+    sc = loop_scenario(np.random.default_rng(seed), PRECISE)
+    mode = _late_mode(sc, PRECISE)
+    assert len(mode.poses) == len(sc.true_poses) - BORN_AT
+    refined = refine_mode(mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, PRECISE)
+    assert refined.poses.shape == (len(sc.true_poses), 3)
+    assert (refined.mode_id, refined.first_index, refined.probability) == (3, BORN_AT, 0.8)
+    # The keyframes before the mode existed are placed by hindsight, as well as the ones after.
+    assert _rms_m(refined.poses[:BORN_AT], sc.true_poses[:BORN_AT]) < 0.05
+    assert _rms_m(refined.poses, sc.true_poses) < 0.05
+    assert _rms_m(refined.poses[BORN_AT:], sc.true_poses[BORN_AT:]) <= _rms_m(mode.poses, sc.true_poses[BORN_AT:])
+    assert refined.batch.error_after <= refined.batch.error_before
+    assert np.all(np.linalg.eigvalsh(refined.covariances) > 0)
+    # Keyframes before the birth got their matches from the associator: the true ones here.
+    assert [set(a) for a in refined.associations[:BORN_AT]] == [set(a) for a in sc.associations[:BORN_AT]]
+
+
+def test_hindsight_reassociation_replaces_a_wrong_match():
+    sc = loop_scenario(np.random.default_rng(1), PRECISE)
+    plain = PRECISE.model_copy(update={"robust_kernel": "none"})  # the wrong match drags an unprotected graph
+    wrong = [list(a) for a in sc.associations]
+    k, true_j = wrong[WRONG_STEP][0]
+    gaps = np.linalg.norm(sc.landmark_xy - sc.landmark_xy[true_j], axis=1)
+    gaps[true_j] = np.inf
+    wrong_j = int(np.argmin(gaps))  # the nearest other landmark
+    wrong[WRONG_STEP][0] = (k, wrong_j)
+    mode = _late_mode(sc, plain, wrong)
+    args = (mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy)
+    dragged = refine_mode(*args, plain.model_copy(update={"refine_rounds": 0}))
+    fixed = refine_mode(*args, plain.model_copy(update={"refine_rounds": 2}))
+    assert (k, wrong_j) in dragged.associations[WRONG_STEP]
+    assert fixed.rounds >= 1
+    assert set(fixed.associations[WRONG_STEP]) == set(sc.associations[WRONG_STEP])
+    assert _rms_m(fixed.poses, sc.true_poses) < 0.05 < _rms_m(dragged.poses, sc.true_poses)
+
+
+def test_a_mode_that_does_not_end_the_sequence_is_refused():
+    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    mode = _late_mode(sc, PRECISE)
+    with pytest.raises(ValueError, match="do not end"):
+        refine_mode(mode, sc.increments[:-1], sc.observations[:-1], _associators(sc)[:-1], sc.landmark_xy, PRECISE)
