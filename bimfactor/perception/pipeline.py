@@ -94,7 +94,7 @@ def make_perception(
     p = cfg.perception
     seed = cfg.seed if seed is None else seed
     vocabulary = household_vocabulary(cfg)
-    graph = OnlineSceneGraph(p, meta.intrinsics, meta.T_base_camera)
+    graph = OnlineSceneGraph(p, meta.intrinsics, meta.T_base_camera, embedding_dim=text_embedder.dim)
     if p.backend == "vlm":
         from bimfactor.perception.vlm import make_vlm_backends
 

@@ -198,8 +198,12 @@ def aabb_overlap(a: np.ndarray, b: np.ndarray) -> float:
 class OnlineSceneGraph:
     """The incremental open-set scene graph: nodes in the odometry frame, fused across frames."""
 
-    def __init__(self, cfg: PerceptionConfig, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray) -> None:
+    def __init__(
+        self, cfg: PerceptionConfig, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, embedding_dim: int = 0
+    ) -> None:
+        """`embedding_dim` is the width of the (0, D) embeddings an empty graph reports (0: unknown)."""
         self.cfg = cfg
+        self.embedding_dim = embedding_dim
         self.intrinsics = intrinsics
         self.T_base_camera = np.asarray(T_base_camera, float)
         self.nodes: dict[int, SceneNode] = {}
@@ -400,7 +404,7 @@ class OnlineSceneGraph:
         fused embedding, label, and range / bearing in the robot base frame; `view` also drops hidden nodes."""
         fov = self.intrinsics.hfov_rad if fov_rad is None else fov_rad
         max_range = self.cfg.max_depth_m if max_range_m is None else max_range_m
-        dim = next(iter(self.nodes.values())).embedding_mean.shape[0] if self.nodes else 0
+        dim = next(iter(self.nodes.values())).embedding_mean.shape[0] if self.nodes else self.embedding_dim
         node_ids = list(self.nodes)
         if not node_ids:
             return Observations(np.zeros((0, dim), np.float32), np.zeros(0), np.zeros(0), [], np.zeros(0, np.int64))

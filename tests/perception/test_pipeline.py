@@ -36,8 +36,8 @@ def test_each_step_reports_the_nodes_in_view(test_config: Config, text_embedder,
 def test_short_paper_floor_sequence_finds_the_meeting_table_group(
     test_config: Config, text_embedder, paper_floor, meeting_orbit: SimResult, tmp_path: Path
 ) -> None:
-    """15 frames, paper preset, noisy odometry: measured precision 0.18 (17 nodes: odometry drift of ~3° a
-    frame splits the chairs), recall 0.5 (3 of the 6 objects seen), label accuracy 0.67."""
+    """15 frames, paper preset, noisy odometry: measured precision 0.23 (odometry drift of ~3° a frame splits
+    the chairs), recall 0.83 (5 of the 6 objects seen), label accuracy 1.0."""
     figure = tmp_path / "graph.png"
     report = evaluate_sequence(meeting_orbit, paper_floor.prior, test_config, text_embedder, figure_path=figure)
     assert report["n_objects"] == 6
@@ -52,7 +52,7 @@ def test_short_paper_floor_sequence_finds_the_meeting_table_group(
 def test_with_a_clean_front_end_and_true_poses_the_graph_is_nearly_right(
     test_config: Config, text_embedder, paper_floor, meeting_orbit: SimResult
 ) -> None:
-    """Measured: 8 nodes for 6 objects, precision 0.62, recall 0.83 (drift is what splits nodes above)."""
+    """Measured: 7 nodes for 6 objects, precision 0.86, recall 1.0 (drift is what splits nodes above)."""
     perfect = copy.deepcopy(meeting_orbit)
     for frame in perfect.frames:
         frame.odom_pose = frame.gt_pose.copy()
