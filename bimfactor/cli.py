@@ -75,6 +75,7 @@ DebugOption = Annotated[
     bool,
     typer.Option("--debug", envvar="BIMFACTOR_DEBUG", help="Show the traceback of an error (or BIMFACTOR_DEBUG=1)."),
 ]
+SeedOption = Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")]
 
 
 def _one_line(text: str) -> str:
@@ -592,35 +593,63 @@ def convert(
 # ------------------------------------------------------------------------------------------ localize
 
 
-@app.command(short_help="Localize a sequence against a prior (semantic Monte Carlo localization).")
+def _variant_overrides(name: str, variants: list[str] | str | None) -> list[str]:
+    """A `--variant` option as a config override of `name` (validated with the rest of the config)."""
+    if not variants:
+        return []
+    return [f"{name}={json.dumps(variants)}"]
+
+
+def _metrics_line(metrics: Any) -> str:
+    """One line of a run's TrajectoryMetrics."""
+    return (
+        f"translation {metrics.trans_err_m:.2f} ± {metrics.trans_err_std_m:.2f} m, "
+        f"orientation {metrics.orient_err_deg:.1f} ± {metrics.orient_err_std_deg:.1f}°, "
+        f"room accuracy {100 * metrics.room_acc:.1f} %, converged at step {metrics.steps_to_converge}, "
+        f"95 % ellipse coverage {100 * metrics.ellipse95_coverage:.0f} %, step {metrics.step_ms_median:.1f} ms (median)"
+    )
+
+
+@app.command(short_help="Localize a sequence against a prior (semantic MCL, optionally with per-mode pose graphs).")
 def localize(
     prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
     sequence_dir: Annotated[Path, typer.Argument(metavar="SEQ_DIR", help="A sequence folder.")],
     output: Annotated[Path, typer.Option("--output", "-o", metavar="RUN_DIR", help="Run folder to write.")],
-    seed: Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")] = None,
+    variant: Annotated[
+        str | None,
+        typer.Option(
+            "--variant", metavar="NAME", help="smcl or smcl+graph (default: the config's localization.variant)."
+        ),
+    ] = None,
+    seed: SeedOption = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
     debug: DebugOption = False,
 ) -> None:
-    """Run perception (the config's backend) and the semantic particle filter over every frame of a sequence.
+    """Run perception (the config's backend) and the semantic particle filter over every frame of a sequence;
+    with --variant smcl+graph the filter's modes each update a GTSAM pose graph and the most probable mode is
+    the estimate.
 
-    Writes RUN_DIR/estimate.txt (TUM), steps.csv (pose, storey, room, covariance, converged flag per step),
-    metrics.json (with ground truth: the paper's translation / orientation error and room accuracy),
-    snapshots.npz, config.yaml, trajectory.png and particles.png.
+    Writes RUN_DIR/estimate.txt (TUM), steps.csv (pose, storey, room, covariance, converged flag, number of modes
+    per step), modes.csv (smcl+graph: every mode per step), metrics.json (with ground truth: the paper's
+    translation / orientation error, room accuracy and the 95 % ellipse coverage), snapshots.npz, config.yaml,
+    trajectory.png and particles.png. RUN_DIR must be new, empty or an earlier run.
 
     \b
     Examples:
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0
+      bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-graph --variant smcl+graph
       bimfactor localize runs/prior/duplex runs/duplex-k0 -o runs/loc-duplex --set smcl.num_particles=5000
     """
     with _cli_errors(debug):
-        cfg = _start(config, overrides, verbose)
+        cfg = _start(config, [*(overrides or []), *_variant_overrides("localization.variant", variant)], verbose)
         from bimfactor.bim.prior import BimPrior
-        from bimfactor.evaluation.report import run_metrics, write_run
+        from bimfactor.evaluation.report import ensure_run_destination, run_metrics, write_run
         from bimfactor.io.sequence import read_sequence
         from bimfactor.pipeline import localize_sequence
 
+        ensure_run_destination(output)
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
         n = len(sequence)
@@ -629,15 +658,65 @@ def localize(
             prior, sequence.meta, sequence, cfg, cfg.seed if seed is None else seed, snapshot_steps=snapshot_steps
         )
         figures = write_run(run, prior, output, cfg.dump_yaml(), title=f"{sequence.meta.name} against {prior_dir}")
-        typer.echo(f"wrote {output}: {n} steps; figures " + ", ".join(f.name for f in figures))
+        typer.echo(f"wrote {output}: {n} steps ({run.variant}); figures " + ", ".join(f.name for f in figures))
         metrics = run_metrics(run)
         if metrics is not None:
-            typer.echo(
-                f"translation {metrics.trans_err_m:.2f} ± {metrics.trans_err_std_m:.2f} m, "
-                f"orientation {metrics.orient_err_deg:.1f} ± {metrics.orient_err_std_deg:.1f}°, "
-                f"room accuracy {100 * metrics.room_acc:.1f} %, converged at step {metrics.steps_to_converge}, "
-                f"filter step {metrics.step_ms_median:.1f} ms (median)"
+            typer.echo(_metrics_line(metrics))
+
+
+@app.command(short_help="Localize with pose graphs, then smooth each surviving mode's whole trajectory (offline).")
+def refine(
+    prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
+    sequence_dir: Annotated[Path, typer.Argument(metavar="SEQ_DIR", help="A sequence folder.")],
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Run folder to write.")],
+    variant: Annotated[
+        str, typer.Option("--variant", metavar="NAME", help="The forward pass: a pose-graph variant.")
+    ] = "smcl+graph",
+    seed: SeedOption = None,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Offline refinement of a recorded sequence: the forward pass (smcl+graph), then batch Levenberg-Marquardt
+    smoothing of the whole trajectory of every mode that survived it; the most probable mode is the estimate.
+
+    Writes OUT/estimate.txt (refined, TUM), forward.txt (the forward pass, TUM), steps.csv (refined pose and
+    covariance per step), modes.json and modes/mode_<id>.txt (every refined mode), metrics.json (with ground
+    truth: refined and forward metrics), config.yaml and trajectory.png, as one folder written atomically. OUT
+    must be new, empty or an earlier run.
+
+    \b
+    Examples:
+      bimfactor refine runs/demo/prior runs/demo/sequence -o runs/refine0
+      bimfactor refine runs/prior/duplex runs/duplex-k0 -o runs/refine-duplex --set backend.max_modes=3
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, [*(overrides or []), *_variant_overrides("localization.variant", variant)], verbose)
+        from bimfactor.bim.prior import BimPrior
+        from bimfactor.evaluation.report import ensure_run_destination, run_metrics, track_metrics, write_refined
+        from bimfactor.io.sequence import read_sequence
+        from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run
+
+        if cfg.localization.variant not in GRAPH_VARIANTS:
+            raise InputError(
+                f"refine needs a pose-graph forward pass ({', '.join(GRAPH_VARIANTS)}), not {cfg.localization.variant}"
             )
+        ensure_run_destination(output)
+        prior = BimPrior.load(prior_dir)
+        sequence = read_sequence(sequence_dir)
+        run = localize_sequence(prior, sequence.meta, sequence, cfg, cfg.seed if seed is None else seed)
+        refined = refine_run(run, prior, cfg)
+        title = f"{sequence.meta.name} refined against {prior_dir}"
+        write_refined(refined, prior, output, cfg.dump_yaml(), title=title)
+        typer.echo(
+            f"wrote {output}: {len(sequence)} steps, {len(refined.modes)} modes refined in {refined.refine_ms:.0f} ms"
+        )
+        forward = run_metrics(run)
+        if forward is not None:
+            refined_metrics = track_metrics(refined.estimate, run.gt_poses, run.gt_rooms)
+            typer.echo(f"forward ({run.variant}): {_metrics_line(forward)}")
+            typer.echo(f"refined: {_metrics_line(refined_metrics)}")
 
 
 # ------------------------------------------------------------------------------------------ registration
@@ -647,37 +726,47 @@ def localize(
 def compare_registrars_cmd(
     prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
     output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")],
+    sequence_dir: Annotated[
+        Path | None,
+        typer.Argument(
+            metavar="SEQ_DIR",
+            help="Keyframes from this sequence with ground truth, or from the sequences inside it "
+            "(default: simulate the building's standard trajectories).",
+        ),
+    ] = None,
     methods: Annotated[
         list[str] | None,
-        typer.Option("--method", "-m", metavar="NAME", help="Registrar (repeatable; default: all of them)."),
+        typer.Option("--method", "-m", metavar="NAME", help="Registrar (repeatable; default: every installed one)."),
     ] = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
     debug: DebugOption = False,
 ) -> None:
-    """Perturb simulated keyframes of the prior's building by a sweep of initial errors (0-2 m, 0-30°) and run
-    each registrar: success (< 5 cm and < 1°), final error and time per registrar.
+    """Perturb keyframes of the prior's building (simulated, or from SEQ_DIR) by a sweep of initial errors
+    (0-2 m, 0-30°) and run each registrar: success (< 5 cm and < 1°), final error, time, and the gate's
+    acceptance and precision without the ambiguity probes, with them, and with a calibrated coarse covariance.
 
     Writes OUT/summary.json, OUT/records.json, OUT/basins.png and OUT/config.yaml. Registrars: planar
-    (default: planar point-to-plane Gauss-Newton), point_to_plane, point_to_point, robust, gicp, multiscale.
+    (default: planar point-to-plane Gauss-Newton), point_to_plane, point_to_point, robust, gicp, multiscale,
+    and small_gicp, kiss_icp when installed (pip install 'bimfactor[registrars]').
 
     \b
     Examples:
       bimfactor compare-registrars runs/demo/prior -o runs/compare
       bimfactor compare-registrars runs/prior/duplex -o runs/compare-duplex -m planar -m gicp
+      bimfactor compare-registrars runs/prior/duplex runs/duplex-six -o runs/compare-duplex-six
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
-        from bimfactor.registration.compare import run_comparison
+        from bimfactor.registration.compare import format_summary_table, run_comparison
 
-        summary = run_comparison(prior_dir, output, cfg, list(methods) if methods else None)
-        for row in summary:
-            typer.echo("  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
+        summary = run_comparison(prior_dir, output, cfg, list(methods) if methods else None, sequence_dir)
+        typer.echo(format_summary_table(summary))
         typer.echo(f"results: {output / 'summary.json'}, figure: {output / 'basins.png'}")
 
 
-@bench_app.command("paper", short_help="The paper's protocol: 6 trajectories x 3 repeats, Table I.")
+@bench_app.command("paper", short_help="The paper's protocol: 6 trajectories x 3 repeats, Table I per variant.")
 def bench_paper(
     output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
         "runs/bench-paper"
@@ -685,26 +774,36 @@ def bench_paper(
     ifc: Annotated[
         Path | None, typer.Option("--ifc", metavar="PATH", help="Another building (default: the paper-floor preset).")
     ] = None,
+    variants: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--variant",
+            metavar="NAME",
+            help="smcl, smcl+graph or refine (repeatable; default: the config's evaluation.variants, all three).",
+        ),
+    ] = None,
     workers: Annotated[int | None, typer.Option("--workers", min=1, help="Parallel processes (default: CPUs).")] = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
     debug: DebugOption = False,
 ) -> None:
-    """Six standard trajectories (T = 50, distinct starts), each localized three times; prints Table I and
-    writes OUT/results.json (per variant: trans_err_m, orient_err_deg, room_acc, step_ms_median,
-    steps_to_converge, trans_err_conv_m, orient_err_conv_deg) and OUT/config.yaml.
+    """Six standard trajectories (T = 50, distinct starts), each localized three times; prints Table I of each
+    variant and writes OUT/results.json (per variant: trans_err_m, orient_err_deg, room_acc, step_ms_median,
+    steps_to_converge, trans_err_conv_m, orient_err_conv_deg, ellipse_coverage) and OUT/config.yaml.
 
     \b
     Examples:
       bimfactor bench paper
+      bimfactor bench paper --variant smcl --variant refine -o runs/bench-paper-refine
       bimfactor bench paper --ifc ../shared/data/ifc/duplex.ifc -o runs/bench-paper-duplex
     """
     with _cli_errors(debug):
-        cfg = _start(config, overrides, verbose)
+        variant_list = list(variants) if variants else None
+        cfg = _start(config, [*(overrides or []), *_variant_overrides("evaluation.variants", variant_list)], verbose)
         from bimfactor.bim.prior import build_prior
         from bimfactor.bim.synth import write_building
-        from bimfactor.evaluation.paper import format_table_one, run_paper_bench
+        from bimfactor.evaluation.paper import format_tables, run_paper_bench
 
         output.mkdir(parents=True, exist_ok=True)
         if ifc is None:
@@ -713,7 +812,7 @@ def bench_paper(
         prior_dir = output / "prior"
         build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
         report = run_paper_bench(prior_dir, cfg, output, workers=workers)
-        typer.echo(format_table_one(report))
+        typer.echo(format_tables(report))
         typer.echo(f"results: {output / 'results.json'}")
 
 
@@ -749,6 +848,57 @@ def bench_graph(
         summary, speed = result["summary"], result["speed"]
         typer.echo(json.dumps({"summary": summary, "speed": speed}, indent=1, default=float))
         typer.echo(f"results: {output / 'report.json'}")
+
+
+@bench_app.command("registration", short_help="Time of one fine registration at the default voxel, and the fine stage.")
+def bench_registration(
+    prior_dir: Annotated[
+        Path | None,
+        typer.Option("--prior", metavar="PRIOR_DIR", help="A prior folder (default: the paper-floor preset)."),
+    ] = None,
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
+        "runs/bench-registration"
+    ),
+    method: Annotated[
+        str | None, typer.Option("--method", "-m", metavar="NAME", help="Registrar (default: the config's).")
+    ] = None,
+    keyframes: Annotated[int, typer.Option("--keyframes", min=1, help="Simulated keyframes.")] = 10,
+    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Perturbed starts per keyframe.")] = 5,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Median time of one registration at the default scan voxel from 0.3 m / 5° perturbed starts on simulated
+    keyframes, and of the whole fine stage per mode (registration, gate, ambiguity probes); writes
+    OUT/results.json and OUT/config.yaml.
+
+    \b
+    Examples:
+      bimfactor bench registration
+      bimfactor bench registration --prior runs/prior/duplex -m gicp
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose)
+        from bimfactor.bim.prior import build_prior
+        from bimfactor.bim.synth import write_building
+        from bimfactor.io.atomic import write_text_atomic
+        from bimfactor.registration.compare import benchmark_registration
+        from bimfactor.sim.simulate import load_world_inputs
+
+        output.mkdir(parents=True, exist_ok=True)
+        if prior_dir is None:
+            prior_dir = output / "prior"
+            write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
+            build_prior(output / "paper-floor.ifc", cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
+        prior, model = load_world_inputs(prior_dir, cfg)
+        result = benchmark_registration(prior, model, cfg, method, n_keyframes=keyframes, repeats=repeats)
+        write_text_atomic(
+            output / "results.json", json.dumps({"benchmark": "registration", **result}, indent=2, default=float)
+        )
+        write_text_atomic(output / "config.yaml", cfg.dump_yaml())
+        typer.echo(json.dumps(result, indent=1, default=float))
+        typer.echo(f"results: {output / 'results.json'}")
 
 
 @bench_app.command("smcl", short_help="Particle-filter step time (predict + update + resample) against M.")

@@ -356,10 +356,24 @@ class BackendConfig(_Strict):
     )
 
 
+LocalizerVariant = Literal["smcl", "smcl+graph"]
+"""What localizes online: the paper's particle filter, or the filter with one GTSAM pose graph per filter mode."""
+BenchVariant = Literal[LocalizerVariant, "refine"]
+"""What a benchmark scores: an online localizer, or the offline refinement (smcl+graph, then batch smoothing)."""
+
+
+class LocalizationConfig(_Strict):
+    variant: LocalizerVariant = Field(
+        description="smcl: the paper's filter; smcl+graph: its modes each seed a pose graph (backend), the best "
+        "mode's pose and marginal covariance are the output."
+    )
+
+
 class EvaluationConfig(_Strict):
     num_trajectories: int = Field(ge=1, description="Trajectories per building (paper: 6).")
     trajectory_length: int = Field(ge=1, description="T, steps per trajectory (paper: 50).")
     repeats: int = Field(ge=1, description="Runs per trajectory with different seeds (paper: 3).")
+    variants: list[BenchVariant] = Field(min_length=1, description="What `bench paper` scores, one table each.")
 
 
 class Config(_Strict):
@@ -368,6 +382,7 @@ class Config(_Strict):
     embed: EmbedConfig
     perception: PerceptionConfig
     smcl: SmclConfig
+    localization: LocalizationConfig
     backend: BackendConfig
     sim: SimConfig
     io: IoConfig

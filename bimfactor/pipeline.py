@@ -1,8 +1,12 @@
-"""The localizer: runs the stages frame by frame (perception → online scene graph → semantic MCL).
+"""The localizer: runs the stages frame by frame (perception → online scene graph → semantic MCL → pose graphs).
 
 `Localizer.step` reads like the method: perceive the frame and update the online graph at the odometry
 pose, take the odometry increment since the last frame, predict, weigh the particles by the semantic and
-spatial match of the nodes in view against the BIM, resample when the ESS is low, estimate.
+spatial match of the nodes in view against the BIM, resample when the ESS is low, estimate. With the
+`smcl+graph` variant (`localization.variant`) the filter's modes then each update their own pose graph, and the
+most probable mode's pose and marginal covariance are the output.
+
+`refine_run` is the offline pass over a localized sequence: every surviving mode's trajectory smoothed as a whole.
 """
 
 from __future__ import annotations
@@ -14,61 +18,165 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bimfactor.backend.modes import extract_modes
+from bimfactor.backend.posegraph import (
+    BackendStep,
+    ModeEstimate,
+    ModeHistory,
+    MultiHypothesisBackend,
+    semantic_associator,
+)
+from bimfactor.backend.refine import RefinedMode, refine_mode
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
+from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.motion import odometry_increment
 from bimfactor.localization.smcl import SemanticMCL, StepResult
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
-from bimfactor.types import Frame, SequenceMeta
+from bimfactor.types import Frame, Observations, SequenceMeta
 
 log = logging.getLogger(__name__)
+
+GRAPH_VARIANTS = ("smcl+graph",)
+"""Localizer variants that run the pose-graph back end (and so can be refined offline)."""
+
+
+@dataclass
+class Track:
+    """One estimator's output over a sequence: (T, 3) poses, (T, 3, 3) world-frame covariances, (T,) storeys and
+    room ids, (T,) milliseconds per step that the estimator took."""
+
+    poses: np.ndarray
+    covariances: np.ndarray
+    storeys: np.ndarray
+    rooms: np.ndarray
+    step_ms: np.ndarray
+
+
+@dataclass
+class LocalizerStep:
+    """One frame through the localizer: the filter's step, the back end's (None: smcl, or no mode yet), the
+    output pose on its storey with its covariance and room, and what the frame brought."""
+
+    filtered: StepResult
+    graph: BackendStep | None
+    pose: np.ndarray
+    covariance: np.ndarray
+    storey: int
+    room_id: int
+    observations: Observations
+    odom_increment: np.ndarray | None
+    perception_ms: float
+    graph_ms: float = 0.0
 
 
 @dataclass
 class LocalizationRun:
-    """What a localized sequence produced, one row per frame; `snapshots` maps step → (particles, weights)."""
+    """What a localized sequence produced, one row per frame.
 
+    `filter` is the particle filter's own estimate (every variant runs the filter); `graph` the most probable
+    mode's (smcl+graph variants; where no mode exists yet, the filter's). `output` is the variant's estimate.
+    `modes` lists every mode after each step (most probable first), `final_modes` the surviving modes' graphs,
+    `odom_increments` (T−1, 3) and `observations` what the refinement re-uses; `snapshots` maps step →
+    (particles, weights).
+    """
+
+    variant: str
     timestamps_s: np.ndarray
-    poses: np.ndarray
-    storeys: np.ndarray
-    rooms: np.ndarray
-    covariances: np.ndarray
+    filter: Track
     converged: np.ndarray
     ess: np.ndarray
     n_observations: np.ndarray
-    filter_ms: np.ndarray
     perception_ms: np.ndarray
+    odom_increments: np.ndarray
+    observations: list[Observations]
+    graph: Track | None = None
+    modes: list[list[ModeEstimate]] = field(default_factory=list)
+    final_modes: list[ModeHistory] = field(default_factory=list)
     gt_poses: np.ndarray | None = None
     gt_rooms: np.ndarray | None = None
     snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
+    @property
+    def output(self) -> Track:
+        return self.graph if self.graph is not None else self.filter
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self.output.poses
+
+    @property
+    def covariances(self) -> np.ndarray:
+        return self.output.covariances
+
+    @property
+    def storeys(self) -> np.ndarray:
+        return self.output.storeys
+
+    @property
+    def rooms(self) -> np.ndarray:
+        return self.output.rooms
+
+
+def visibility_of(prior: BimPrior, cfg: Config) -> VisibilityTable:
+    """The prior's stored visible-object table, or one built now for priors saved without it."""
+    return prior.visibility or VisibilityTable.build(prior, cfg.smcl)
+
 
 class Localizer:
-    """Coarse global localization of one sequence against one prior."""
+    """Global localization of one sequence against one prior, in the configured variant."""
 
     def __init__(
         self, prior: BimPrior, meta: SequenceMeta, cfg: Config, seed: int, text_embedder: TextEmbedder | None = None
     ) -> None:
         self.prior = prior
         self.cfg = cfg
+        self.variant = cfg.localization.variant
         embedder = text_embedder or make_text_embedder(cfg.embed)
         self.perception = make_perception(cfg, meta, embedder, seed=seed)
-        visibility = prior.visibility or VisibilityTable.build(prior, cfg.smcl)
-        self.filter = SemanticMCL(prior, visibility, cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
+        self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
         self.filter.initialize()
+        self.backend = MultiHypothesisBackend.from_prior(prior, cfg.backend) if self.variant in GRAPH_VARIANTS else None
         self._last_odom: np.ndarray | None = None
 
-    def step(self, frame: Frame) -> tuple[StepResult, float]:
-        """One frame: returns the filter's step and the perception time in ms."""
+    def step(self, frame: Frame) -> LocalizerStep:
+        """One frame: perception, the filter, and (graph variants) the back end on the filter's modes."""
         started = time.perf_counter()
         seen = self.perception.step(frame)
         perception_ms = (time.perf_counter() - started) * 1000
         increment = None if self._last_odom is None else odometry_increment(self._last_odom, frame.odom_pose)
         self._last_odom = np.asarray(frame.odom_pose, float)
-        return self.filter.step(increment, seen.observations), perception_ms
+        filtered = self.filter.step(increment, seen.observations)
+        out = LocalizerStep(
+            filtered,
+            None,
+            filtered.pose,
+            filtered.covariance,
+            filtered.storey,
+            filtered.room_id,
+            seen.observations,
+            increment,
+            perception_ms,
+        )
+        if self.backend is not None:
+            self._graph_step(out)
+        return out
+
+    def _graph_step(self, out: LocalizerStep) -> None:
+        """The filter's modes update their pose graphs; the most probable mode becomes the step's output."""
+        assert self.backend is not None
+        started = time.perf_counter()
+        modes = extract_modes(self.filter.particles, self.filter.weights, self.cfg.backend, self.filter.storeys)
+        associate = semantic_associator(self.filter.likelihood, out.observations)
+        out.graph = self.backend.step(modes, out.odom_increment, out.observations, associate)
+        out.graph_ms = (time.perf_counter() - started) * 1000
+        if out.graph is not None:
+            best = out.graph.best
+            out.pose, out.covariance, out.storey = best.pose, best.covariance, best.storey
+            out.room_id = int(self.prior.room_at(best.pose[None, :2], best.storey)[0])
 
 
 def localize_sequence(
@@ -85,15 +193,13 @@ def localize_sequence(
     localizer = Localizer(prior, meta, cfg, seed, text_embedder)
     frames = list(frames)
     snapshot_steps = set(snapshot_steps)
-    rows: list[StepResult] = []
-    perception_ms, snapshots = [], {}
+    rows: list[LocalizerStep] = []
+    snapshots = {}
     if 0 in snapshot_steps:
         snapshots[-1] = (localizer.filter.particles.copy(), localizer.filter.weights.copy())
-    iterator = progress(frames, desc="localize", unit="frame") if show_progress else frames
+    iterator = progress(frames, desc=f"localize ({localizer.variant})", unit="frame") if show_progress else frames
     for i, frame in enumerate(iterator):
-        result, ms = localizer.step(frame)
-        rows.append(result)
-        perception_ms.append(ms)
+        rows.append(localizer.step(frame))
         if i in snapshot_steps:
             snapshots[i] = (localizer.filter.particles.copy(), localizer.filter.weights.copy())
     gt = [f.gt_pose for f in frames]
@@ -105,18 +211,85 @@ def localize_sequence(
         if gt_poses is not None
         else None
     )
+    filter_ms = np.asarray([sum(r.filtered.timings_ms.values()) for r in rows])
+    filtered = Track(
+        poses=np.asarray([r.filtered.pose for r in rows]),
+        covariances=np.asarray([r.filtered.covariance for r in rows]),
+        storeys=np.asarray([r.filtered.storey for r in rows]),
+        rooms=np.asarray([r.filtered.room_id for r in rows]),
+        step_ms=filter_ms,
+    )
+    graph = None
+    if localizer.backend is not None:
+        graph = Track(
+            poses=np.asarray([r.pose for r in rows]),
+            covariances=np.asarray([r.covariance for r in rows]),
+            storeys=np.asarray([r.storey for r in rows]),
+            rooms=np.asarray([r.room_id for r in rows]),
+            step_ms=filter_ms + np.asarray([r.graph_ms for r in rows]),
+        )
     return LocalizationRun(
+        variant=localizer.variant,
         timestamps_s=np.asarray([f.timestamp_s for f in frames]),
-        poses=np.asarray([r.pose for r in rows]),
-        storeys=np.asarray([r.storey for r in rows]),
-        rooms=np.asarray([r.room_id for r in rows]),
-        covariances=np.asarray([r.covariance for r in rows]),
-        converged=np.asarray([r.converged for r in rows]),
-        ess=np.asarray([r.ess for r in rows]),
-        n_observations=np.asarray([r.n_observations for r in rows]),
-        filter_ms=np.asarray([sum(r.timings_ms.values()) for r in rows]),
-        perception_ms=np.asarray(perception_ms),
+        filter=filtered,
+        converged=np.asarray([r.filtered.converged for r in rows]),
+        ess=np.asarray([r.filtered.ess for r in rows]),
+        n_observations=np.asarray([r.filtered.n_observations for r in rows]),
+        perception_ms=np.asarray([r.perception_ms for r in rows]),
+        odom_increments=np.asarray([r.odom_increment for r in rows[1:]], float).reshape(-1, 3),
+        observations=[r.observations for r in rows],
+        graph=graph,
+        modes=[r.graph.modes if r.graph is not None else [] for r in rows],
+        final_modes=localizer.backend.histories() if localizer.backend is not None else [],
         gt_poses=gt_poses,
         gt_rooms=gt_rooms,
         snapshots=snapshots,
     )
+
+
+# ------------------------------------------------------------------------------------------ offline
+
+
+@dataclass
+class RefinedRun:
+    """The offline pass over a localized run: every surviving mode refined (most probable first), and the
+    estimate, the most probable mode's refined trajectory; its `step_ms` is the forward pass's step time plus the
+    refinement's time shared over the steps."""
+
+    forward: LocalizationRun
+    modes: list[RefinedMode]
+    estimate: Track
+    refine_ms: float
+
+
+def refine_run(run: LocalizationRun, prior: BimPrior, cfg: Config) -> RefinedRun:
+    """Batch Levenberg–Marquardt smoothing of the whole trajectory of every mode that survived the forward pass.
+
+    The run must come from a graph variant (ValueError otherwise). A run in which the filter never formed a mode
+    has nothing to refine: its `modes` are empty and the estimate is the forward pass's.
+    """
+    if run.graph is None:
+        raise ValueError(f"refinement needs a pose-graph variant ({', '.join(GRAPH_VARIANTS)}), not {run.variant}")
+    if not run.final_modes:
+        log.warning("no mode formed in the forward pass: nothing to refine")
+        return RefinedRun(run, [], run.graph, 0.0)
+    started = time.perf_counter()
+    likelihood = SemanticLikelihood(prior, visibility_of(prior, cfg), cfg.smcl)
+    associate_fns = [semantic_associator(likelihood, obs) for obs in run.observations]
+    landmark_xy = prior.object_positions()[:, :2]
+    refined = [
+        refine_mode(mode, run.odom_increments, run.observations, associate_fns, landmark_xy, cfg.backend)
+        for mode in run.final_modes
+    ]
+    refine_ms = (time.perf_counter() - started) * 1000
+    best = refined[0]
+    T = len(best.poses)
+    estimate = Track(
+        poses=best.poses,
+        covariances=best.covariances,
+        storeys=np.full(T, best.storey),
+        rooms=prior.room_at(best.poses[:, :2], best.storey),
+        step_ms=run.graph.step_ms + refine_ms / T,
+    )
+    log.info("refined %d modes in %.0f ms", len(refined), refine_ms)
+    return RefinedRun(run, refined, estimate, refine_ms)

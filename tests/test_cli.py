@@ -386,6 +386,98 @@ def test_localize_writes_the_run(demo_prior: Path, tmp_path: Path, cli_config_ar
     assert_one_line_error(invoke("localize", demo_prior, tmp_path / "none", "-o", run), contains="sequence")
 
 
+@pytest.fixture(scope="module")
+def short_sequence(demo_prior: Path, tmp_path_factory: pytest.TempPathFactory, cli_config_args: list[str]) -> Path:
+    """Trajectory 0 of the paper floor, 20 keyframes, simulated once for this module."""
+    sequence = tmp_path_factory.mktemp("cli-short") / "seq"
+    result = invoke(
+        "simulate", demo_prior, "-o", sequence, "--set", "evaluation.trajectory_length=20", *cli_config_args
+    )
+    assert result.exit_code == 0, result.output
+    return sequence
+
+
+def test_localize_graph_variant_writes_the_modes(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    result = invoke("localize", demo_prior, short_sequence, "-o", run, "--variant", "smcl+graph")
+    assert result.exit_code == 0, result.output
+    for name in ("estimate.txt", "steps.csv", "modes.csv", "metrics.json", "config.yaml", "trajectory.png"):
+        assert (run / name).is_file(), name
+    assert load_config(run / "config.yaml").localization.variant == "smcl+graph"
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["variant"] == "smcl+graph" and 0.0 <= metrics["ellipse95_coverage"] <= 1.0
+    steps = (run / "steps.csv").read_text().splitlines()
+    header = steps[0].split(",")
+    n_modes = [int(row.split(",")[header.index("n_modes")]) for row in steps[1:]]
+    assert len(n_modes) == 20 and max(n_modes) >= 1
+    mode_rows = (run / "modes.csv").read_text().splitlines()[1:]
+    assert len(mode_rows) == sum(n_modes)
+    assert_one_line_error(
+        invoke("localize", demo_prior, short_sequence, "-o", tmp_path / "x", "--variant", "nope"),
+        contains="localization.variant",
+    )
+
+
+def test_refine_writes_the_refined_run(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
+    out = tmp_path / "refined"
+    for _ in range(2):  # a second refine replaces the first run's folder
+        result = invoke("refine", demo_prior, short_sequence, "-o", out)
+        assert result.exit_code == 0, result.output
+    assert "refined: translation" in result.stdout
+    for name in ("estimate.txt", "forward.txt", "steps.csv", "modes.json", "metrics.json", "config.yaml"):
+        assert (out / name).is_file(), name
+    assert (out / "trajectory.png").stat().st_size > 5_000
+    assert not [p.name for p in out.parent.iterdir() if p.name.startswith(".")]  # no temporary folder is left
+    modes = json.loads((out / "modes.json").read_text())["modes"]
+    assert modes and sorted(p.name for p in (out / "modes").iterdir()) == sorted(
+        Path(m["trajectory"]).name for m in modes
+    )
+    assert all(m["error_after"] <= m["error_before"] for m in modes)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["variant"] == "refine" and metrics["forward"]["trans_err_m"] >= 0.0
+    estimate = np.loadtxt(out / "estimate.txt")
+    assert estimate.shape == (20, 8)
+    steps = (out / "steps.csv").read_text().splitlines()
+    assert len(steps) == 21 and "cov_yawyaw" in steps[0]
+    assert load_config(out / "config.yaml").localization.variant == "smcl+graph"
+
+
+def test_refine_fails_cleanly_on_bad_input(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert_one_line_error(invoke("refine", demo_prior, tmp_path / "none", "-o", out), contains="none")
+    assert_one_line_error(invoke("refine", tmp_path / "no-prior", short_sequence, "-o", out), contains="no-prior")
+    assert_one_line_error(
+        invoke("refine", demo_prior, short_sequence, "-o", out, "--variant", "smcl"), contains="pose-graph"
+    )
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "todo.txt").write_text("keep me")
+    assert_one_line_error(invoke("refine", demo_prior, short_sequence, "-o", notes), contains="refusing to overwrite")
+    assert (notes / "todo.txt").read_text() == "keep me"
+    assert not out.exists()
+
+
+def test_bench_paper_scores_every_variant(tmp_path: Path, cli_config_args: list[str]) -> None:
+    out = tmp_path / "bench"
+    tiny = ["evaluation.num_trajectories=1", "evaluation.repeats=1", "evaluation.trajectory_length=5"]
+    result = invoke("bench", "paper", "-o", out, "--workers", "1", *[a for t in tiny for a in ("--set", t)],
+                    *cli_config_args)  # fmt: skip
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "results.json").read_text())
+    assert report["variants"] == ["smcl", "smcl+graph", "refine"]
+    keys = {
+        "trans_err_m", "orient_err_deg", "room_acc", "step_ms_median", "steps_to_converge", "trans_err_conv_m",
+        "orient_err_conv_deg", "ellipse_coverage",
+    }  # fmt: skip
+    for variant in report["variants"]:
+        assert set(report[variant]["average"]) >= keys, variant
+        assert list(report[variant]["per_trajectory"]) == ["0"]
+        assert report[variant]["average"]["runs"] == 1
+        assert 0.0 <= report[variant]["average"]["ellipse_coverage"] <= 1.0
+        assert result.stdout.count(f"\n{variant}\n") + result.stdout.startswith(f"{variant}\n") == 1
+    assert_one_line_error(invoke("bench", "paper", "-o", out, "--variant", "icp"), contains="evaluation.variants")
+
+
 def test_compare_registrars_writes_summary_and_figure(
     demo_prior: Path, tmp_path: Path, cli_config_args: list[str]
 ) -> None:

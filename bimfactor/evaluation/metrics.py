@@ -35,16 +35,23 @@ def steps_to_converge(trans_err_m: np.ndarray, orient_err_deg: np.ndarray) -> in
     return int(bad[-1] + 1) if len(bad) else 0
 
 
-def ellipse_coverage(
+def inside_ellipse(
     estimates: np.ndarray, covariances: np.ndarray, ground_truth: np.ndarray, p: float = 0.95
-) -> float:
-    """Share of steps whose true position lies inside the reported p-probability position ellipse."""
+) -> np.ndarray:
+    """(T,) bool: does the true position lie inside the reported p-probability position ellipse of each step?"""
     from scipy.stats import chi2
 
     d = np.asarray(ground_truth)[:, :2] - np.asarray(estimates)[:, :2]
     cov = np.asarray(covariances)[:, :2, :2] + 1e-9 * np.eye(2)
     m2 = np.einsum("ti,tij,tj->t", d, np.linalg.inv(cov), d)
-    return float(np.mean(m2 <= chi2.ppf(p, 2)))
+    return m2 <= chi2.ppf(p, 2)
+
+
+def ellipse_coverage(
+    estimates: np.ndarray, covariances: np.ndarray, ground_truth: np.ndarray, p: float = 0.95
+) -> float:
+    """Share of steps whose true position lies inside the reported p-probability position ellipse."""
+    return float(np.mean(inside_ellipse(estimates, covariances, ground_truth, p)))
 
 
 @dataclass

@@ -4,6 +4,11 @@ Each trajectory is simulated once (its route, sensor and odometry noise fixed by
 localized `repeats` times with different filter and perception seeds, like replaying one recording three
 times. Table I's statistics are mean ± std over the steps of a trajectory's repeats; the average row pools
 every step of every run. Runs go to parallel processes.
+
+Variants (`evaluation.variants`): `smcl` (the paper's filter), `smcl+graph` (the best mode of the per-mode pose
+graphs) and `refine` (smcl+graph, then offline batch smoothing). The back end only reads the particle set, so one
+smcl+graph run yields the filter's own estimate (bit for bit the smcl run of the same seed) and, refined, the
+`refine` estimate: each job runs the forward pass once and scores every variant asked for.
 """
 
 from __future__ import annotations
@@ -25,50 +30,74 @@ from bimfactor.progress import progress
 
 log = logging.getLogger(__name__)
 
-VARIANT = "smcl"
-
 
 @dataclass
 class RunResult:
-    """Per-step errors of one localized run, and its summary metrics."""
+    """Per-step errors of one localized run of one variant, and its summary metrics."""
 
+    variant: str
     trajectory: int
     repeat: int
     trans_err_m: np.ndarray
     orient_err_deg: np.ndarray
     room_hit: np.ndarray
+    inside_ellipse95: np.ndarray
     step_ms: np.ndarray
     metrics: dict
 
 
-def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> RunResult:
-    """Simulate trajectory k (config seed) and localize it with seed (config seed, repeat); in a worker process."""
+def forward_variant(variants: list[str]) -> str:
+    """The online variant whose run yields every one of `variants` (see the module docstring)."""
+    return "smcl" if set(variants) == {"smcl"} else "smcl+graph"
+
+
+def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> list[RunResult]:
+    """Simulate trajectory k (config seed), localize it with seed (config seed, repeat), score every variant; in a
+    worker process."""
     from bimfactor.config import Config
-    from bimfactor.evaluation.metrics import orientation_errors_deg, trajectory_metrics, translation_errors_m
-    from bimfactor.pipeline import localize_sequence
+    from bimfactor.evaluation.metrics import inside_ellipse, orientation_errors_deg, translation_errors_m
+    from bimfactor.evaluation.report import track_metrics
+    from bimfactor.pipeline import localize_sequence, refine_run
     from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
 
     cfg = Config.model_validate_json(cfg_json)
+    variants = cfg.evaluation.variants
+    cfg = cfg.model_copy(
+        update={"localization": cfg.localization.model_copy(update={"variant": forward_variant(variants)})}
+    )
     prior, model = load_world_inputs(prior_dir, cfg)
     sim = simulate_sequence(prior, model, cfg, trajectory, cfg.seed, progress=False)
     run = localize_sequence(
         prior, sim.meta, sim.frames, cfg, seed=cfg.seed * 1000 + 17 * trajectory + repeat, show_progress=False
     )
     assert run.gt_poses is not None and run.gt_rooms is not None
-    metrics = trajectory_metrics(run.poses, run.gt_poses, run.rooms, run.gt_rooms, run.covariances, run.filter_ms)
-    return RunResult(
-        trajectory,
-        repeat,
-        translation_errors_m(run.poses, run.gt_poses),
-        orientation_errors_deg(run.poses, run.gt_poses),
-        (run.rooms == run.gt_rooms).astype(float),
-        run.filter_ms,
-        metrics.to_dict(),
-    )
+    tracks = {"smcl": run.filter, "smcl+graph": run.graph}
+    if "refine" in variants:
+        tracks["refine"] = refine_run(run, prior, cfg).estimate
+    results = []
+    for variant in variants:
+        track = tracks[variant]
+        assert track is not None
+        metrics = track_metrics(track, run.gt_poses, run.gt_rooms)
+        assert metrics is not None
+        results.append(
+            RunResult(
+                variant,
+                trajectory,
+                repeat,
+                translation_errors_m(track.poses, run.gt_poses),
+                orientation_errors_deg(track.poses, run.gt_poses),
+                (track.rooms == run.gt_rooms).astype(float),
+                inside_ellipse(track.poses, track.covariances, run.gt_poses),
+                track.step_ms,
+                metrics.to_dict(),
+            )
+        )
+    return results
 
 
 def _pooled(runs: list[RunResult]) -> dict:
-    """Table I's cells over the pooled steps of some runs, plus convergence over the runs."""
+    """Table I's cells over the pooled steps of some runs, plus convergence over the runs and ellipse coverage."""
     trans = np.concatenate([r.trans_err_m for r in runs])
     orient = np.concatenate([r.orient_err_deg for r in runs])
     room = np.concatenate([r.room_hit for r in runs])
@@ -88,6 +117,7 @@ def _pooled(runs: list[RunResult]) -> dict:
         "runs": len(runs),
         "trans_err_conv_m": float(np.mean(conv_trans)) if conv_trans else None,
         "orient_err_conv_deg": float(np.mean(conv_orient)) if conv_orient else None,
+        "ellipse_coverage": float(np.concatenate([r.inside_ellipse95 for r in runs]).mean()),
     }
 
 
@@ -101,25 +131,34 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
     # spawn, not fork: the parent already runs torch / Open3D threads, and a forked child can deadlock on their locks
     with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = [pool.submit(_run_one, str(prior_dir), cfg_json, k, r) for k, r in jobs]
-        for future in progress(futures, desc="bench paper", unit="run"):
-            results.append(future.result())
-    per_trajectory = {k: _pooled([r for r in results if r.trajectory == k]) for k in range(ev.num_trajectories)}
-    report = {
+        for future in progress(futures, desc=f"bench paper ({', '.join(ev.variants)})", unit="run"):
+            results.extend(future.result())
+    report: dict = {
         "benchmark": "paper",
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "prior": str(prior_dir),
         "protocol": {"trajectories": ev.num_trajectories, "steps": ev.trajectory_length, "repeats": ev.repeats},
-        VARIANT: {"average": _pooled(results), "per_trajectory": per_trajectory},
+        "variants": list(ev.variants),
     }
+    for variant in ev.variants:
+        runs = [r for r in results if r.variant == variant]
+        report[variant] = {
+            "average": _pooled(runs),
+            "per_trajectory": {k: _pooled([r for r in runs if r.trajectory == k]) for k in range(ev.num_trajectories)},
+        }
     out = Path(out_dir)
     write_text_atomic(out / "config.yaml", cfg.dump_yaml())
     write_text_atomic(out / "results.json", json.dumps(report, indent=2))
     return report
 
 
-def format_table_one(report: dict, variant: str = VARIANT) -> str:
-    """Table I as text: per trajectory and the average, mean ± std over steps."""
-    lines = [f"{'Traj':<6}{'Trans. (m)':>16}{'Orient. (°)':>18}{'Room Acc. (%)':>18}{'converged':>12}"]
+def format_table_one(report: dict, variant: str) -> str:
+    """Table I of one variant as text: per trajectory and the average, mean ± std over steps, with convergence
+    and the 95 % ellipse coverage."""
+    lines = [
+        f"{variant}",
+        f"{'Traj':<6}{'Trans. (m)':>16}{'Orient. (°)':>18}{'Room Acc. (%)':>18}{'converged':>12}{'cov95 (%)':>11}",
+    ]
 
     def row(name: str, cell: dict) -> str:
         return (
@@ -127,9 +166,15 @@ def format_table_one(report: dict, variant: str = VARIANT) -> str:
             f"{cell['orient_err_deg']:>10.1f} ± {cell['orient_err_std_deg']:<5.1f}"
             f"{100 * cell['room_acc']:>10.1f} ± {100 * cell['room_acc_std']:<5.1f}"
             f"{cell['converged_runs']:>8}/{cell['runs']}"
+            f"{100 * cell['ellipse_coverage']:>10.0f}"
         )
 
     for k, cell in report[variant]["per_trajectory"].items():
         lines.append(row(str(int(k) + 1), cell))
     lines.append(row("Avg.", report[variant]["average"]))
     return "\n".join(lines)
+
+
+def format_tables(report: dict) -> str:
+    """Table I of every variant in the report, one after the other."""
+    return "\n\n".join(format_table_one(report, variant) for variant in report["variants"])

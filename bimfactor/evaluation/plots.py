@@ -173,19 +173,35 @@ def save_particle_snapshots(
 
 
 def save_estimate_plot(
-    prior: BimPrior, estimates: np.ndarray, gt_poses: np.ndarray | None, storey_index: int, path: str | Path, title: str
+    prior: BimPrior,
+    estimates: np.ndarray,
+    gt_poses: np.ndarray | None,
+    storey_index: int,
+    path: str | Path,
+    title: str,
+    others: dict[str, np.ndarray] | None = None,
 ) -> Path:
-    """Estimate against ground truth over the floor plan, and the error per step below it."""
+    """Estimate against ground truth over the floor plan, and the error per step below it.
+
+    `others` maps a name to another (T, 3) estimate of the same steps (e.g. the forward pass beside its
+    refinement), drawn dashed with its translation error.
+    """
     from bimfactor.evaluation.metrics import orientation_errors_deg, translation_errors_m
 
+    others = others or {}
+    other_colors = ("tab:gray", "tab:olive", "tab:cyan")
     fig, (ax, ax_err) = plt.subplots(2, 1, figsize=(9, 12), gridspec_kw={"height_ratios": [3, 1]})
     draw_floorplan(ax, prior, storey_index, label_objects=False)
     if gt_poses is not None:
         ax.plot(gt_poses[:, 0], gt_poses[:, 1], "-", color="black", lw=1.5, label="ground truth")
+    for (name, poses), color in zip(others.items(), other_colors, strict=False):
+        ax.plot(poses[:, 0], poses[:, 1], "--", color=color, lw=1, label=name)
     ax.plot(estimates[:, 0], estimates[:, 1], ".-", color="tab:red", lw=1, ms=4, label="estimate")
     ax.legend(loc="upper right", fontsize=8)
     ax.set_title(title)
     if gt_poses is not None:
+        for (name, poses), color in zip(others.items(), other_colors, strict=False):
+            ax_err.plot(translation_errors_m(poses, gt_poses), "--", color=color, label=f"{name} [m]")
         ax_err.plot(translation_errors_m(estimates, gt_poses), color="tab:red", label="translation error [m]")
         ax_twin = ax_err.twinx()
         ax_twin.plot(orientation_errors_deg(estimates, gt_poses), color="tab:blue", label="orientation error [°]")
@@ -193,6 +209,8 @@ def save_estimate_plot(
         ax_err.set_xlabel("step")
         ax_err.set_ylabel("translation error [m]", color="tab:red")
         ax_twin.set_ylabel("orientation error [°]", color="tab:blue")
+        if others:
+            ax_err.legend(loc="upper left", fontsize=7)
     else:
         ax_err.axis("off")
     return save_figure(fig, path, dpi=110)

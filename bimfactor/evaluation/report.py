@@ -1,57 +1,117 @@
-"""Writing a localization run to disk: trajectory (TUM), per-step table, metrics, particle snapshots, figures."""
+"""Writing runs to disk: a localization run (trajectory as TUM, per-step table, modes, metrics, particle snapshots,
+figures) and an offline refinement (refined trajectory, per-step covariances, every refined mode, metrics, figure)."""
 
 from __future__ import annotations
 
 import csv
 import io
 import json
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from bimfactor.bim.prior import BimPrior
+from bimfactor.errors import InputError
 from bimfactor.evaluation.metrics import TrajectoryMetrics, trajectory_metrics
 from bimfactor.evaluation.plots import save_estimate_plot, save_particle_snapshots
-from bimfactor.io.atomic import atomic_path, write_text_atomic
+from bimfactor.io.atomic import atomic_dir, atomic_path, write_text_atomic
 from bimfactor.io.tum import write_tum_trajectory
-from bimfactor.pipeline import LocalizationRun
+from bimfactor.pipeline import LocalizationRun, RefinedRun, Track
 
-STEP_COLUMNS = [
-    "step", "timestamp_s", "x", "y", "yaw", "storey", "room", "cov_xx", "cov_xy", "cov_yy", "cov_yawyaw",
-    "converged", "ess", "n_observations", "filter_ms", "perception_ms", "gt_x", "gt_y", "gt_yaw", "gt_room",
+RUN_FILES = ("config.yaml", "estimate.txt")
+"""Every run folder (localize, refine) holds these; a folder without them is not a run and is never overwritten."""
+
+POSE_COLUMNS = [
+    "x", "y", "yaw", "storey", "room", "cov_xx", "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw",
 ]  # fmt: skip
+GT_COLUMNS = ["gt_x", "gt_y", "gt_yaw", "gt_room"]
+STEP_COLUMNS = [
+    "step", "timestamp_s", *POSE_COLUMNS, "converged", "ess", "n_observations", "filter_ms", "perception_ms",
+    "n_modes", "mode_id", "mode_probability", "graph_ms", *GT_COLUMNS,
+]  # fmt: skip
+MODE_COLUMNS = [
+    "step", "rank", "mode_id", "probability", "particle_weight", "normalised_residual", "n_matches", *POSE_COLUMNS,
+]  # fmt: skip
+REFINED_COLUMNS = ["step", "timestamp_s", *POSE_COLUMNS, "n_matches", "forward_x", "forward_y", "forward_yaw",
+                   *GT_COLUMNS]  # fmt: skip
+
+
+def ensure_run_destination(out_dir: str | Path) -> None:
+    """Raise InputError unless `out_dir` is absent, empty, or a run folder (which a new run replaces)."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and (
+        not out_dir.is_dir() or (any(out_dir.iterdir()) and not all((out_dir / f).is_file() for f in RUN_FILES))
+    ):
+        raise InputError(f"{out_dir}: exists and is not a bimfactor run; refusing to overwrite it")
+
+
+def track_metrics(track: Track, gt_poses: np.ndarray | None, gt_rooms: np.ndarray | None) -> TrajectoryMetrics | None:
+    """The paper's metrics of one estimator's track, when the sequence has ground truth."""
+    if gt_poses is None or gt_rooms is None:
+        return None
+    return trajectory_metrics(track.poses, gt_poses, track.rooms, gt_rooms, track.covariances, track.step_ms)
 
 
 def run_metrics(run: LocalizationRun) -> TrajectoryMetrics | None:
-    """The paper's metrics of a run, when its sequence has ground truth."""
-    if run.gt_poses is None or run.gt_rooms is None:
-        return None
-    return trajectory_metrics(run.poses, run.gt_poses, run.rooms, run.gt_rooms, run.covariances, run.filter_ms)
+    """The paper's metrics of a run's output, when its sequence has ground truth."""
+    return track_metrics(run.output, run.gt_poses, run.gt_rooms)
+
+
+def _num(value: float) -> str:
+    return repr(float(value))
+
+
+def _pose_cells(pose: np.ndarray, storey: int, room: int, cov: np.ndarray) -> list[str | int]:
+    """The POSE_COLUMNS cells of one step."""
+    return [
+        *map(_num, pose), int(storey), int(room), _num(cov[0, 0]), _num(cov[0, 1]), _num(cov[0, 2]),
+        _num(cov[1, 1]), _num(cov[1, 2]), _num(cov[2, 2]),
+    ]  # fmt: skip
+
+
+def _gt_cells(gt_poses: np.ndarray | None, gt_rooms: np.ndarray | None, i: int) -> list[str | int]:
+    """The GT_COLUMNS cells of step i (empty without ground truth)."""
+    gt = map(_num, gt_poses[i]) if gt_poses is not None else ("",) * 3
+    return [*gt, int(gt_rooms[i]) if gt_rooms is not None else ""]
+
+
+def _csv(columns: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(columns)
+    writer.writerows(rows)
+    return buffer.getvalue()
+
+
+def _main_storey(storeys: np.ndarray) -> int:
+    return int(np.bincount(storeys).argmax()) if len(storeys) else 0
 
 
 def write_run(run: LocalizationRun, prior: BimPrior, out_dir: str | Path, config_yaml: str, title: str) -> list[Path]:
-    """Write estimate.txt (TUM), steps.csv, metrics.json (with ground truth), snapshots.npz, config.yaml, figures."""
+    """Write estimate.txt (TUM), steps.csv, modes.csv (graph variants), metrics.json (with ground truth),
+    snapshots.npz, config.yaml and the figures."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out_dir / "config.yaml", config_yaml)
-    write_tum_trajectory(out_dir / "estimate.txt", run.timestamps_s, run.poses, comment="bimfactor estimate")
-    buffer = io.StringIO()
-    writer = csv.writer(buffer)
-    writer.writerow(STEP_COLUMNS)
-    for i in range(len(run.poses)):
-        gt = run.gt_poses[i] if run.gt_poses is not None else (np.nan,) * 3
-        gt_room = int(run.gt_rooms[i]) if run.gt_rooms is not None else ""
-        cov = run.covariances[i]
-        writer.writerow(
-            [i, repr(float(run.timestamps_s[i])), *map(repr, map(float, run.poses[i])), int(run.storeys[i]),
-             int(run.rooms[i]), repr(float(cov[0, 0])), repr(float(cov[0, 1])), repr(float(cov[1, 1])),
-             repr(float(cov[2, 2])), int(run.converged[i]), repr(float(run.ess[i])), int(run.n_observations[i]),
-             f"{run.filter_ms[i]:.3f}", f"{run.perception_ms[i]:.3f}", *map(repr, map(float, gt)), gt_room]
+    write_tum_trajectory(out_dir / "estimate.txt", run.timestamps_s, run.poses, comment=f"bimfactor {run.variant}")
+    out, graph_ms = run.output, run.output.step_ms - run.filter.step_ms
+    rows = []
+    for i in range(len(out.poses)):
+        modes = run.modes[i] if run.graph is not None else None
+        best = [modes[0].mode_id, _num(modes[0].probability)] if modes else ["", ""]
+        rows.append(
+            [i, _num(run.timestamps_s[i]), *_pose_cells(out.poses[i], out.storeys[i], out.rooms[i], out.covariances[i]),
+             int(run.converged[i]), _num(run.ess[i]), int(run.n_observations[i]), f"{run.filter.step_ms[i]:.3f}",
+             f"{run.perception_ms[i]:.3f}", "" if modes is None else len(modes), *best,
+             "" if modes is None else f"{graph_ms[i]:.3f}", *_gt_cells(run.gt_poses, run.gt_rooms, i)]
         )  # fmt: skip
-    write_text_atomic(out_dir / "steps.csv", buffer.getvalue())
+    write_text_atomic(out_dir / "steps.csv", _csv(STEP_COLUMNS, rows))
+    if run.graph is not None:
+        write_text_atomic(out_dir / "modes.csv", _csv(MODE_COLUMNS, _mode_rows(run, prior)))
     metrics = run_metrics(run)
     if metrics is not None:
-        write_text_atomic(out_dir / "metrics.json", json.dumps(metrics.to_dict(), indent=2))
+        write_text_atomic(out_dir / "metrics.json", json.dumps({"variant": run.variant, **metrics.to_dict()}, indent=2))
     with atomic_path(out_dir / "snapshots.npz") as tmp, tmp.open("wb") as fh:
         np.savez_compressed(
             fh,
@@ -61,10 +121,82 @@ def write_run(run: LocalizationRun, prior: BimPrior, out_dir: str | Path, config
                 for name, arr in (("particles", p), ("weights", w))
             },
         )
-    storey = int(np.bincount(run.storeys).argmax()) if len(run.storeys) else 0
+    storey = _main_storey(run.storeys)
     figures = [save_estimate_plot(prior, run.poses, run.gt_poses, storey, out_dir / "trajectory.png", title)]
     if run.snapshots:
         figures.append(
             save_particle_snapshots(prior, run.snapshots, run.gt_poses, run.poses, storey, out_dir / "particles.png")
         )
     return figures
+
+
+def _mode_rows(run: LocalizationRun, prior: BimPrior) -> list[list[object]]:
+    """One MODE_COLUMNS row per mode per step, most probable first."""
+    rows: list[list[object]] = []
+    for i, modes in enumerate(run.modes):
+        for rank, m in enumerate(modes):
+            room = int(prior.room_at(m.pose[None, :2], m.storey)[0])
+            rows.append(
+                [i, rank, m.mode_id, _num(m.probability), _num(m.particle_weight), _num(m.normalised_residual),
+                 m.n_matches, *_pose_cells(m.pose, m.storey, room, m.covariance)]
+            )  # fmt: skip
+    return rows
+
+
+def write_refined(
+    refined: RefinedRun, prior: BimPrior, out_dir: str | Path, config_yaml: str, title: str
+) -> list[Path]:
+    """Write a refinement run as one folder, atomically: estimate.txt (refined, TUM), forward.txt (the forward
+    pass, TUM), steps.csv (refined pose and covariance per step), modes.json and modes/mode_<id>.txt (every refined
+    mode), metrics.json (with ground truth: the refined metrics and the forward pass's), config.yaml, trajectory.png.
+    """
+    out_dir = Path(out_dir)
+    ensure_run_destination(out_dir)
+    run, est = refined.forward, refined.estimate
+    best = refined.modes[0] if refined.modes else None
+    rows = []
+    for i in range(len(est.poses)):
+        rows.append(
+            [i, _num(run.timestamps_s[i]), *_pose_cells(est.poses[i], est.storeys[i], est.rooms[i], est.covariances[i]),
+             len(best.associations[i]) if best else "", *map(_num, run.poses[i]),
+             *_gt_cells(run.gt_poses, run.gt_rooms, i)]
+        )  # fmt: skip
+    modes = [
+        {
+            "mode_id": m.mode_id,
+            "storey": m.storey,
+            "probability": m.probability,
+            "first_step": m.first_index,
+            "error_before": m.batch.error_before,
+            "error_after": m.batch.error_after,
+            "iterations": m.batch.iterations,
+            "reassociation_rounds": m.rounds,
+            "matches": sum(len(a) for a in m.associations),
+            "trajectory": f"modes/mode_{m.mode_id}.txt",
+        }
+        for m in refined.modes
+    ]
+    with atomic_dir(out_dir) as tmp:
+        (tmp / "config.yaml").write_text(config_yaml)
+        write_tum_trajectory(tmp / "estimate.txt", run.timestamps_s, est.poses, comment="bimfactor refine")
+        write_tum_trajectory(tmp / "forward.txt", run.timestamps_s, run.poses, comment=f"bimfactor {run.variant}")
+        for m in refined.modes:
+            write_tum_trajectory(tmp / "modes" / f"mode_{m.mode_id}.txt", run.timestamps_s, m.poses)
+        (tmp / "steps.csv").write_text(_csv(REFINED_COLUMNS, rows))
+        (tmp / "modes.json").write_text(json.dumps({"refine_ms": refined.refine_ms, "modes": modes}, indent=2))
+        metrics = track_metrics(est, run.gt_poses, run.gt_rooms)
+        forward = run_metrics(run)
+        if metrics is not None and forward is not None:
+            (tmp / "metrics.json").write_text(
+                json.dumps({"variant": "refine", **metrics.to_dict(), "forward": forward.to_dict()}, indent=2)
+            )
+        save_estimate_plot(
+            prior,
+            est.poses,
+            run.gt_poses,
+            _main_storey(est.storeys),
+            tmp / "trajectory.png",
+            title,
+            others={f"forward ({run.variant})": run.poses},
+        )
+    return [out_dir / "trajectory.png"]

@@ -7,6 +7,7 @@ import pytest
 
 from bimfactor.evaluation.metrics import (
     ellipse_coverage,
+    inside_ellipse,
     orientation_errors_deg,
     steps_to_converge,
     trajectory_metrics,
@@ -40,6 +41,8 @@ def test_ellipse_coverage_counts_points_inside_the_95_percent_ellipse() -> None:
     estimates = np.zeros((3, 3))
     truth = np.array([[1.0, 1.0, 0.0], [2.0, 2.0, 0.0], [0.0, 2.4, 0.0]])  # m² = 2, 8, 5.76; χ²₂(0.95) = 5.99
     assert ellipse_coverage(estimates, cov, truth) == pytest.approx(2 / 3)
+    np.testing.assert_array_equal(inside_ellipse(estimates, cov, truth), [True, False, True])
+    np.testing.assert_array_equal(inside_ellipse(estimates, cov, truth, p=0.99), [True, True, True])  # χ²₂(0.99) = 9.21
 
 
 def test_trajectory_metrics_mean_and_std_over_steps() -> None:
