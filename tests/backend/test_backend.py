@@ -12,8 +12,11 @@ from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.types import Observations, wrap_angle
 from tests.localization.handmade import embedding, make_prior, object_id
 
-# The sensor the accuracy tolerances below are set for: σ_r 15 cm, σ_b 3° (the loop scenario draws its noise from them).
-CFG = load_config().backend.model_copy(update={"range_sigma_m": 0.15, "bearing_sigma_deg": 3.0})
+# The sensor and BIM the tolerances below are set for: σ_r 15 cm, σ_b 3°, BIM σ 10 cm (the loop scenario draws its
+# noise from them).
+CFG = load_config().backend.model_copy(
+    update={"range_sigma_m": 0.15, "bearing_sigma_deg": 3.0, "landmark_sigma_m": 0.1}
+)
 CLUSTER_COV = np.diag([0.2, 0.2, np.deg2rad(5.0)]) ** 2
 GATE_M = 1.0
 
