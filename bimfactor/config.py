@@ -312,6 +312,22 @@ class RegistrationConfig(_Strict):
     min_degeneracy_ratio: float = Field(
         ge=0.0, le=1.0, description="Gate: least λmin/λmax of the translational information (corridor check)."
     )
+    consistency_chi2: float = Field(
+        gt=0.0, description="Gate, given the coarse pose's covariance: largest χ² of the correction under it."
+    )
+    ambiguity_probes: bool = Field(
+        description="Gate: re-register from probe starts around the result; reject if another fit is as good."
+    )
+    ambiguity_probe_m: float = Field(gt=0.0, description="Probe starts this far along both translational axes ...")
+    ambiguity_probe_deg: float = Field(gt=0.0, description="... and this far in yaw, each way.")
+    ambiguity_separation_m: float = Field(gt=0.0, description="A probe's fit is another place beyond this ...")
+    ambiguity_separation_deg: float = Field(gt=0.0, description="... or beyond this rotation from the result.")
+    ambiguity_fitness_margin: float = Field(
+        ge=0.0, le=1.0, description="Another place is as good when its fitness is at most this much lower ..."
+    )
+    ambiguity_rmse_ratio: float = Field(ge=1.0, description="... and its inlier RMSE at most this times the result's.")
+    factor_min_sigma_m: float = Field(gt=0.0, description="Fine factor: σ floor added to x and y (ICP overconfident).")
+    factor_min_sigma_deg: float = Field(gt=0.0, description="Fine factor: σ floor added to yaw.")
     success_trans_m: float = Field(gt=0.0, description="Comparison: a registration succeeds below this error ...")
     success_rot_deg: float = Field(gt=0.0, description="... and below this rotation error.")
     compare_keyframes: int = Field(ge=1, description="Comparison: keyframes per building.")

@@ -3,6 +3,10 @@
 For keyframes with ground truth, the true pose is perturbed by a sweep of initial errors (random
 directions, seeded); each registrar runs from every perturbed start, and a run succeeds when it ends
 within `success_trans_m` and `success_rot_deg` of the truth.
+
+Every run is also gated three ways, to measure what each check adds: without the ambiguity probes,
+with them, and with them plus a calibrated coarse covariance (`calibrated_covariance`: the σ a coarse
+stage would report whose errors are the size of this start's).
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ import json
 import logging
 import statistics
 import time
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,18 +24,16 @@ import numpy as np
 from bimfactor.bim.ifc import IfcModel
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import Config, RegistrationConfig
+from bimfactor.errors import InputError
 from bimfactor.progress import progress
-from bimfactor.registration.gate import degeneracy_ratio, gate_registration
-from bimfactor.registration.icp import REGISTRARS, Registrar, evaluate_pose, make_registrar
-from bimfactor.registration.scan import frame_scan
+from bimfactor.registration.gate import degeneracy_ratio, gate_with_probes
+from bimfactor.registration.icp import Registrar, available_registrars, evaluate_pose, make_registrar
+from bimfactor.registration.scan import MIN_SCAN_POINTS, frame_scan
 from bimfactor.registration.surface import SurfaceModel, build_surface_models
 from bimfactor.sim.simulate import build_world, simulate_sequence
 from bimfactor.types import Frame, SequenceMeta, wrap_angle
 
 log = logging.getLogger(__name__)
-
-# A keyframe is usable for the comparison when its scan at the true pose has this many points ...
-MIN_SCAN_POINTS = 100
 
 
 @dataclass
@@ -42,43 +45,86 @@ class Keyframe:
     scan_base: np.ndarray
 
 
-def select_keyframes(
-    prior: BimPrior, model: IfcModel, cfg: Config, surfaces: list[SurfaceModel], n: int, seed: int
-) -> list[Keyframe]:
-    """`n` keyframes drawn (seeded) from simulated trajectories whose scans the gate would call registrable.
+def registrable_scan(
+    frame: Frame, meta: SequenceMeta, surfaces: list[SurfaceModel], cfg: RegistrationConfig
+) -> np.ndarray | None:
+    """The frame's (N, 3) scan when the gate would call it registrable at the frame's true pose, else None.
 
     Frames that see no wall within range, or only one direction of walls (degenerate at the true pose), are
-    skipped: no registrar can succeed there, and the gate rejects them (see `gate_registration`).
+    unregistrable: no registrar can succeed there, and the gate rejects them (see `gate_registration`).
     """
-    rc = cfg.registration
-    rng = np.random.default_rng([seed, 0x1CB])
-    world = build_world(prior, model, cfg, seed)
+    if frame.gt_pose is None or not 0 <= (frame.gt_storey or 0) < len(surfaces):
+        return None
+    scan = frame_scan(frame, meta, cfg)
+    if len(scan) < MIN_SCAN_POINTS:
+        return None
+    ev = evaluate_pose(scan, surfaces[frame.gt_storey or 0], frame.gt_pose, cfg)
+    ok = ev.fitness >= cfg.min_fitness and degeneracy_ratio(ev.information) >= cfg.min_degeneracy_ratio
+    return scan if ok else None
+
+
+def pick_keyframes(
+    sources: Iterable[tuple[Sequence[Frame], SequenceMeta]],
+    surfaces: list[SurfaceModel],
+    cfg: RegistrationConfig,
+    n: int,
+    per_source: int,
+    rng: np.random.Generator,
+) -> list[Keyframe]:
+    """Up to `n` registrable keyframes, at most `per_source` from each (frames, meta) source, in a seeded order."""
     chosen: list[Keyframe] = []
     skipped = 0
-    for trajectory_index in range(cfg.evaluation.num_trajectories):
-        sim = simulate_sequence(prior, model, cfg, trajectory_index, seed, progress=False, world=world)
-        order = rng.permutation(len(sim.frames))
-        per_trajectory = 0
-        for i in order:
-            frame = sim.frames[i]
-            if frame.gt_pose is None or per_trajectory >= max(1, -(-n // 3)):
-                continue
-            surface = surfaces[frame.gt_storey or 0]
-            scan = frame_scan(frame, sim.meta, rc)
-            ok = len(scan) >= MIN_SCAN_POINTS
-            if ok:
-                ev = evaluate_pose(scan, surface, frame.gt_pose, rc)
-                ok = ev.fitness >= rc.min_fitness and degeneracy_ratio(ev.information) >= rc.min_degeneracy_ratio
-            if not ok:
+    for frames, meta in sources:
+        taken = 0
+        for i in rng.permutation(len(frames)):
+            if taken >= per_source:
+                break
+            frame = frames[int(i)]
+            scan = registrable_scan(frame, meta, surfaces, cfg)
+            if scan is None:
                 skipped += 1
                 continue
-            chosen.append(Keyframe(frame, sim.meta, scan))
-            per_trajectory += 1
+            chosen.append(Keyframe(frame, meta, scan))
+            taken += 1
             if len(chosen) == n:
                 log.info("%d keyframes chosen (%d frames skipped as unregistrable)", n, skipped)
                 return chosen
     log.warning("only %d of %d keyframes are registrable (%d frames skipped)", len(chosen), n, skipped)
     return chosen
+
+
+def select_keyframes(
+    prior: BimPrior, model: IfcModel, cfg: Config, surfaces: list[SurfaceModel], n: int, seed: int
+) -> list[Keyframe]:
+    """`n` keyframes drawn (seeded) from simulated trajectories whose scans the gate would call registrable."""
+    world = build_world(prior, model, cfg, seed)
+
+    def trajectories() -> Iterator[tuple[list[Frame], SequenceMeta]]:
+        for trajectory_index in range(cfg.evaluation.num_trajectories):
+            sim = simulate_sequence(prior, model, cfg, trajectory_index, seed, progress=False, world=world)
+            yield sim.frames, sim.meta
+
+    rng = np.random.default_rng([seed, 0x1CB])
+    return pick_keyframes(trajectories(), surfaces, cfg.registration, n, max(1, -(-n // 3)), rng)
+
+
+def sequence_keyframes(
+    sequence_dir: str | Path, surfaces: list[SurfaceModel], cfg: Config, n: int, seed: int
+) -> list[Keyframe]:
+    """`n` registrable keyframes with ground truth from a sequence folder, or from each sequence folder inside it
+    (`bimfactor simulate --all` writes k0/ ... k5/), spread evenly over the sequences."""
+    from bimfactor.io.sequence import META_FILE, read_sequence
+
+    folder = Path(sequence_dir)
+    folders = [folder] if (folder / META_FILE).is_file() else sorted(p.parent for p in folder.glob(f"*/{META_FILE}"))
+    if not folders:
+        raise InputError(f"{folder}: neither a sequence folder nor a folder of sequence folders")
+    sequences = [read_sequence(f) for f in folders]
+    if all(s.ground_truth() is None for s in sequences):
+        raise InputError(f"{folder}: no frame has ground truth; the comparison needs it")
+    rng = np.random.default_rng([seed, 0x1CB])
+    per_source = max(1, -(-n // len(sequences)))
+    return pick_keyframes(((s, s.meta) for s in sequences), surfaces, cfg.registration, n, per_source, rng)
 
 
 def initial_error_sweep(cfg: RegistrationConfig) -> np.ndarray:
@@ -97,6 +143,17 @@ def perturb(pose: np.ndarray, trans_m: float, rot_rad: float, rng: np.random.Gen
     out[:2] += trans_m * np.array([np.cos(direction), np.sin(direction)])
     out[2] = wrap_angle(out[2] + sign * rot_rad)
     return out
+
+
+def calibrated_covariance(trans_m: float, rot_rad: float, cfg: RegistrationConfig) -> np.ndarray:
+    """(3, 3) world-frame covariance of a calibrated coarse pose whose error is `trans_m` and `rot_rad`.
+
+    σ per horizontal axis is trans_m / √2 (the RMS of an error of that length in a random direction), σ_yaw is
+    rot_rad; floored at the success thresholds, so an exact start still has a usable covariance.
+    """
+    sigma_m = max(trans_m / np.sqrt(2.0), cfg.success_trans_m)
+    sigma_rad = max(rot_rad, np.deg2rad(cfg.success_rot_deg))
+    return np.diag([sigma_m**2, sigma_m**2, sigma_rad**2])
 
 
 def compare_registrars(
@@ -129,7 +186,9 @@ def compare_registrars(
                 result = registrar.register(key.scan_base, surface, init)
                 trans_err = float(np.hypot(*(result.pose[:2] - gt[:2])))
                 rot_err = float(abs(np.rad2deg(wrap_angle(result.pose[2] - gt[2]))))
-                decision = gate_registration(result, init, rc)
+                decision = gate_with_probes(registrar, key.scan_base, surface, result, init, rc)
+                coarse = calibrated_covariance(float(trans_m), float(rot_rad), rc)
+                decision_coarse = gate_with_probes(registrar, key.scan_base, surface, result, init, rc, coarse)
                 records.append(
                     {
                         "building": building,
@@ -142,23 +201,38 @@ def compare_registrars(
                         "final_rot_deg": rot_err,
                         "success": trans_err < rc.success_trans_m and rot_err < rc.success_rot_deg,
                         "accepted": decision.accepted,
+                        # The gate without the ambiguity probes: what they add is measured by the difference.
+                        "accepted_without_probes": decision.accepted or decision.alternatives > 0,
+                        "reasons": decision.reasons,
+                        "accepted_coarse": decision_coarse.accepted,
+                        "reasons_coarse": decision_coarse.reasons,
                         "fitness": result.fitness,
                         "inlier_rmse_m": result.inlier_rmse,
                         "degeneracy_ratio": decision.degeneracy_ratio,
                         "converged": result.converged,
                         "time_ms": result.time_ms,
+                        "probes_ms": decision.probes_ms,
                         "scan_points": len(key.scan_base),
                     }
                 )
     return records
 
 
+def _success_share(rows: list[dict]) -> float | None:
+    return sum(r["success"] for r in rows) / len(rows) if rows else None
+
+
 def summarize(records: list[dict]) -> list[dict]:
-    """Per registrar: success rate, median final errors and time, gate acceptance and the gate's precision."""
+    """Per registrar: success rate, median final errors and time, gate acceptance and the gate's precision.
+
+    The gate's precision (share of accepted runs that succeeded) is given with and without the ambiguity probes.
+    """
     out = []
     for name in dict.fromkeys(r["registrar"] for r in records):
         rows = [r for r in records if r["registrar"] == name]
         accepted = [r for r in rows if r["accepted"]]
+        basic = [r for r in rows if r["accepted_without_probes"]]
+        coarse = [r for r in rows if r["accepted_coarse"]]
         out.append(
             {
                 "registrar": name,
@@ -169,10 +243,36 @@ def summarize(records: list[dict]) -> list[dict]:
                 "median_time_ms": statistics.median(r["time_ms"] for r in rows),
                 "p90_time_ms": float(np.percentile([r["time_ms"] for r in rows], 90)),
                 "accepted_rate": len(accepted) / len(rows),
-                "accepted_success_rate": (sum(r["success"] for r in accepted) / len(accepted)) if accepted else None,
+                "accepted_success_rate": _success_share(accepted),
+                "accepted_wrong": len(accepted) - sum(r["success"] for r in accepted),
+                "accepted_without_probes_rate": len(basic) / len(rows),
+                "accepted_without_probes_success_rate": _success_share(basic),
+                "accepted_without_probes_wrong": len(basic) - sum(r["success"] for r in basic),
+                "accepted_coarse_rate": len(coarse) / len(rows),
+                "accepted_coarse_success_rate": _success_share(coarse),
+                "accepted_coarse_wrong": len(coarse) - sum(r["success"] for r in coarse),
+                "median_probes_ms": statistics.median(r["probes_ms"] for r in basic) if basic else None,
             }
         )
     return out
+
+
+def format_summary_table(summary: list[dict]) -> str:
+    """A Markdown table of `summarize`'s rows: success, median final error and time, and the gate's wrong
+    acceptances without the probes → with them → with a calibrated coarse covariance."""
+    lines = [
+        "| registrar | success | median final error | median time | accepted "
+        "| accepted but wrong (no probes → probes → coarse) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for s in summary:
+        lines.append(
+            f"| {s['registrar']} | {100 * s['success_rate']:.0f} % "
+            f"| {100 * s['median_final_trans_m']:.1f} cm, {s['median_final_rot_deg']:.2f}° "
+            f"| {s['median_time_ms']:.0f} ms | {100 * s['accepted_rate']:.0f} % "
+            f"| {s['accepted_without_probes_wrong']} → {s['accepted_wrong']} → {s['accepted_coarse_wrong']} |"
+        )
+    return "\n".join(lines)
 
 
 def _success_by(records: list[dict], name: str, key: str) -> tuple[np.ndarray, np.ndarray]:
@@ -220,8 +320,12 @@ def benchmark_registration(
 ) -> dict:
     """Median and p90 ms of one registration (default voxel, registrar `method`) from 0.3 m / 5° perturbed starts.
 
-    Scan building and the surface's one-off KD-tree are timed separately.
+    Scan building and the surface's one-off KD-tree are timed separately, and so is the whole fine stage per
+    mode (`FineRegistration.register_scan`: registration, gate and ambiguity probes, with a coarse covariance
+    calibrated to the start error), which is what the localizer pays per mode and keyframe.
     """
+    from bimfactor.registration.fine import FineRegistration
+
     rc = cfg.registration
     t0 = time.perf_counter()
     surfaces = build_surface_models(model, rc, cfg.seed)
@@ -239,6 +343,9 @@ def benchmark_registration(
         scan_ms.append((time.perf_counter() - t) * 1000)
     rng = np.random.default_rng(cfg.seed)
     times, successes = [], []
+    fine = FineRegistration(surfaces, rc, registrar)
+    coarse = calibrated_covariance(trans_m, np.deg2rad(rot_deg), rc)
+    stage_ms, stage_accepted = [], []
     for key in keyframes:
         surface = surfaces[key.frame.gt_storey or 0]
         registrar.register(key.scan_base, surface, key.frame.gt_pose)  # warm-up
@@ -248,6 +355,9 @@ def benchmark_registration(
             times.append(result.time_ms)
             err = result.pose - key.frame.gt_pose
             successes.append(np.hypot(*err[:2]) < rc.success_trans_m and abs(np.rad2deg(wrap_angle(err[2]))) < 1.0)
+            stage = fine.register_scan(key.scan_base, init, key.frame.gt_storey or 0, coarse)
+            stage_ms.append(stage.time_ms)
+            stage_accepted.append(stage.accepted)
     return {
         "building": Path(prior.source_file).name,
         "method": registrar.name,
@@ -257,6 +367,9 @@ def benchmark_registration(
         "median_ms": statistics.median(times) if times else None,
         "p90_ms": float(np.percentile(times, 90)) if times else None,
         "success_rate": float(np.mean(successes)) if successes else None,
+        "fine_stage_median_ms": statistics.median(stage_ms) if stage_ms else None,
+        "fine_stage_p90_ms": float(np.percentile(stage_ms, 90)) if stage_ms else None,
+        "fine_stage_accepted_rate": float(np.mean(stage_accepted)) if stage_accepted else None,
         "median_scan_points": statistics.median(len(k.scan_base) for k in keyframes) if keyframes else None,
         "median_scan_build_ms": statistics.median(scan_ms) if scan_ms else None,
         "surface_build_s": surface_s,
@@ -266,16 +379,21 @@ def benchmark_registration(
 
 
 def make_registrars(cfg: RegistrationConfig, names: list[str] | None = None) -> dict[str, Registrar]:
-    """Registrars by name (default: every one in `REGISTRARS`)."""
-    return {name: make_registrar(cfg, name) for name in (names if names is not None else list(REGISTRARS))}
+    """Registrars by name (default: every one that can run here, see `available_registrars`)."""
+    return {name: make_registrar(cfg, name) for name in (names if names is not None else available_registrars())}
 
 
 def run_comparison(
-    prior_dir: str | Path, out_dir: str | Path, cfg: Config, names: list[str] | None = None
+    prior_dir: str | Path,
+    out_dir: str | Path,
+    cfg: Config,
+    names: list[str] | None = None,
+    sequence_dir: str | Path | None = None,
 ) -> list[dict]:
     """The whole comparison on one prior's building: records.json, summary.json, basins.png, config.yaml.
 
-    Returns the summary (one dict per registrar).
+    Keyframes come from `sequence_dir` (a sequence with ground truth, or a folder of them) when given, else
+    from the building's simulated standard trajectories. Returns the summary (one dict per registrar).
     """
     from bimfactor.io.atomic import write_text_atomic
     from bimfactor.sim.simulate import load_world_inputs
@@ -283,7 +401,12 @@ def run_comparison(
     rc = cfg.registration
     prior, model = load_world_inputs(prior_dir, cfg)
     surfaces = build_surface_models(model, rc, cfg.seed)
-    keyframes = select_keyframes(prior, model, cfg, surfaces, rc.compare_keyframes, cfg.seed)
+    if sequence_dir is None:
+        keyframes = select_keyframes(prior, model, cfg, surfaces, rc.compare_keyframes, cfg.seed)
+    else:
+        keyframes = sequence_keyframes(sequence_dir, surfaces, cfg, rc.compare_keyframes, cfg.seed)
+    if not keyframes:
+        raise InputError("no registrable keyframe: every frame sees too little wall, or only one direction of it")
     records = compare_registrars(
         prior, model, cfg, keyframes, make_registrars(rc, names), initial_error_sweep(rc), cfg.seed, surfaces
     )

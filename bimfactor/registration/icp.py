@@ -168,11 +168,11 @@ def evaluate_pose(
     scan_base: np.ndarray, surface: SurfaceModel, pose: np.ndarray, cfg: RegistrationConfig
 ) -> PlanarEvaluation:
     """`evaluate_planar` of the (N, 3) scan at a (3,) pose against the storey surface as seen from there."""
-    visible = surface.facing(pose[:2], _reach(scan_base) + cfg.final_correspondence_m + cfg.crop_margin_m)
+    visible = surface.facing(pose[:2], scan_reach(scan_base) + cfg.final_correspondence_m + cfg.crop_margin_m)
     return evaluate_planar(scan_base, visible, pose, surface.elevation_m, cfg.final_correspondence_m, cfg.noise_sigma_m)
 
 
-def _result(
+def registration_result(
     method: str,
     scan_base: np.ndarray,
     surface: SurfaceModel,
@@ -182,6 +182,7 @@ def _result(
     iterations: int,
     t0: float,
 ) -> RegistrationResult:
+    """A registrar's final (3,) pose with the shared diagnostics (`evaluate_planar`) and the time since `t0`."""
     pose = np.array([pose[0], pose[1], wrap_angle(pose[2])], dtype=np.float64)
     ev = evaluate_planar(scan_base, surface, pose, z_m, cfg.final_correspondence_m, cfg.noise_sigma_m)
     converged = bool(
@@ -227,7 +228,7 @@ class PlanarIcp:
         pose = np.asarray(T_world_base_init, dtype=np.float64).copy()
         scan = thin(np.asarray(scan_base, dtype=np.float64), self.cfg.max_scan_points)
         dist = max(self.cfg.max_correspondence_m, self.cfg.final_correspondence_m)
-        surface = surface.facing(pose[:2], _reach(scan) + dist + self.cfg.crop_margin_m)
+        surface = surface.facing(pose[:2], scan_reach(scan) + dist + self.cfg.crop_margin_m)
         iterations = 0
         while iterations < self.cfg.max_iterations:
             iterations += 1
@@ -240,13 +241,13 @@ class PlanarIcp:
                 if dist <= self.cfg.final_correspondence_m:
                     break
                 dist = max(dist / 2, self.cfg.final_correspondence_m)
-        return _result(self.name, np.asarray(scan_base, float), surface, pose, z, self.cfg, iterations, t0)
+        return registration_result(self.name, np.asarray(scan_base, float), surface, pose, z, self.cfg, iterations, t0)
 
 
 # ------------------------------------------------------------------------------------ Open3D 6-DoF + projection
 
 
-def _reach(scan: np.ndarray) -> float:
+def scan_reach(scan: np.ndarray) -> float:
     """How far the (N, 3) base-frame scan reaches in the xy-plane."""
     return float(np.sqrt(np.max(np.sum(scan[:, :2] ** 2, axis=1)))) if len(scan) else 0.0
 
@@ -278,12 +279,53 @@ class Scale:
     max_correspondence_m: float
 
 
-class Open3dIcp:
-    """Open3D's 6-DoF ICP (`kind`: point_to_point, point_to_plane, robust, gicp), projected onto SE(2) per scale.
+class CentredRegistrar:
+    """The frame every 6-DoF registrar works in; subclasses implement `align`.
 
-    The target is the surface cropped around the initial pose to the scan's reach (back faces culled), so
-    Open3D's per-call KD-tree stays small.
+    The target is the surface cropped around the initial pose to the scan's reach (back faces culled), so a
+    per-call KD-tree stays small. Everything is expressed in a frame centred on the initial pose: the
+    libraries linearise rotations about the origin, and lever arms of tens of metres (a large floor) made
+    Open3D diverge by metres from a 13° start. The result is projected onto (x, y, yaw) at the floor height.
     """
+
+    name: str
+    cfg: RegistrationConfig
+
+    def reach_m(self) -> float:
+        """How far beyond the scan's reach the target is cropped (before `crop_margin_m`)."""
+        return self.cfg.max_correspondence_m
+
+    def register(
+        self,
+        scan_base: np.ndarray,
+        surface: SurfaceModel,
+        T_world_base_init: np.ndarray,
+        storey_elevation: float | None = None,
+    ) -> RegistrationResult:
+        t0 = time.perf_counter()
+        z = surface.elevation_m if storey_elevation is None else storey_elevation
+        full_scan = np.asarray(scan_base, dtype=np.float64)
+        scan = thin(full_scan, self.cfg.max_scan_points)
+        pose = np.asarray(T_world_base_init, dtype=np.float64).copy()
+        local = surface.facing(pose[:2], scan_reach(scan) + self.reach_m() + self.cfg.crop_margin_m)
+        if len(scan) < MIN_POINTS or len(local) < MIN_POINTS:
+            return registration_result(self.name, full_scan, local, pose, z, self.cfg, 0, t0)
+        center = np.array([pose[0], pose[1], 0.0])
+        T, iterations = self.align(scan, local, center, se2_to_matrix(pose - center, z), z)
+        # Projection onto SE(2): keep x, y and the heading; drop z, roll and pitch.
+        pose = matrix_to_se2(T) + center
+        return registration_result(self.name, full_scan, local, pose, z, self.cfg, iterations, t0)
+
+    def align(
+        self, scan: np.ndarray, local: SurfaceModel, center: np.ndarray, T_init: np.ndarray, z_m: float
+    ) -> tuple[np.ndarray, int]:
+        """(4, 4) T_centred_base of the (N, 3) scan against `local` (world frame; subtract `center`), from
+        `T_init`, and the iteration count (-1: not reported)."""
+        raise NotImplementedError
+
+
+class Open3dIcp(CentredRegistrar):
+    """Open3D's 6-DoF ICP (`kind`: point_to_point, point_to_plane, robust, gicp), projected onto SE(2) per scale."""
 
     def __init__(self, cfg: RegistrationConfig, kind: str, scales: list[Scale] | None = None, name: str | None = None):
         if kind not in ("point_to_point", "point_to_plane", "robust", "gicp"):
@@ -292,6 +334,9 @@ class Open3dIcp:
         self.kind = kind
         self.scales = scales if scales is not None else [Scale(cfg.scan_voxel_m, cfg.max_correspondence_m)]
         self.name = name if name is not None else kind
+
+    def reach_m(self) -> float:
+        return max(s.max_correspondence_m for s in self.scales)
 
     def _estimation(self):
         import open3d as o3d
@@ -310,48 +355,44 @@ class Open3dIcp:
             return reg.TransformationEstimationPointToPlane(loss)
         return reg.TransformationEstimationForGeneralizedICP()
 
-    def register(
-        self,
-        scan_base: np.ndarray,
-        surface: SurfaceModel,
-        T_world_base_init: np.ndarray,
-        storey_elevation: float | None = None,
-    ) -> RegistrationResult:
+    def align(
+        self, scan: np.ndarray, local: SurfaceModel, center: np.ndarray, T_init: np.ndarray, z_m: float
+    ) -> tuple[np.ndarray, int]:
         import open3d as o3d
 
         reg = o3d.pipelines.registration
-        t0 = time.perf_counter()
-        z = surface.elevation_m if storey_elevation is None else storey_elevation
-        full_scan = np.asarray(scan_base, dtype=np.float64)
-        scan = thin(full_scan, self.cfg.max_scan_points)
-        pose = np.asarray(T_world_base_init, dtype=np.float64).copy()
-        widest = max(s.max_correspondence_m for s in self.scales)
-        local = surface.facing(pose[:2], _reach(scan) + widest + self.cfg.crop_margin_m)
-        if len(scan) < MIN_POINTS or len(local) < MIN_POINTS:
-            return _result(self.name, full_scan, local, pose, z, self.cfg, 0, t0)
-        # Work in a frame centred on the initial pose: Open3D linearises rotations about the origin, and lever
-        # arms of tens of metres (a large floor) made it diverge by metres from a 13° start.
-        center = np.array([pose[0], pose[1], 0.0])
-        target = with_virtual_floor(local.points - center, local.normals, z)
+        target = with_virtual_floor(local.points - center, local.normals, z_m)
         estimation = self._estimation()
         criteria = reg.ICPConvergenceCriteria(max_iteration=self.cfg.max_iterations)
+        T = T_init
         for scale in self.scales:
             source_points = voxel_downsample(scan, scale.voxel_m) if scale.voxel_m > self.cfg.scan_voxel_m else scan
             source = with_virtual_floor(source_points, None, 0.0)
-            init = se2_to_matrix(pose - center, z)
+            distance = scale.max_correspondence_m
             if self.kind == "gicp":
                 source.estimate_covariances(o3d.geometry.KDTreeSearchParamKNN(20))
-                out = reg.registration_generalized_icp(
-                    source, target, scale.max_correspondence_m, init, estimation, criteria
-                )
+                out = reg.registration_generalized_icp(source, target, distance, T, estimation, criteria)
             else:
-                out = reg.registration_icp(source, target, scale.max_correspondence_m, init, estimation, criteria)
-            # Projection onto SE(2): keep x, y and the heading; drop z, roll and pitch.
-            pose = matrix_to_se2(np.asarray(out.transformation)) + center
-        return _result(self.name, full_scan, local, pose, z, self.cfg, -1, t0)
+                out = reg.registration_icp(source, target, distance, T, estimation, criteria)
+            # Back onto SE(2) after every scale, so z, roll and pitch never carry over.
+            T = se2_to_matrix(matrix_to_se2(np.asarray(out.transformation)), z_m)
+        return T, -1
 
 
 # ------------------------------------------------------------------------------------ registry
+
+
+def _small_gicp(cfg: RegistrationConfig) -> Registrar:
+    from bimfactor.registration.external import SmallGicp
+
+    return SmallGicp(cfg)
+
+
+def _kiss_icp(cfg: RegistrationConfig) -> Registrar:
+    from bimfactor.registration.external import KissIcp
+
+    return KissIcp(cfg)
+
 
 REGISTRARS: dict[str, Callable[[RegistrationConfig], Registrar]] = {
     "planar": lambda cfg: PlanarIcp(cfg),
@@ -365,7 +406,17 @@ REGISTRARS: dict[str, Callable[[RegistrationConfig], Registrar]] = {
         [Scale(v, d) for v, d in zip(cfg.multiscale_voxels_m, cfg.multiscale_correspondence_m, strict=True)],
         name="multiscale",
     ),
+    # Optional libraries (`pip install 'bimfactor[registrars]'`); see `available_registrars`.
+    "small_gicp": _small_gicp,
+    "kiss_icp": _kiss_icp,
 }
+
+
+def available_registrars() -> list[str]:
+    """The names in `REGISTRARS` that can run here: the built-in ones and the optional ones that are installed."""
+    from bimfactor.registration.external import OPTIONAL_MODULES, is_available
+
+    return [name for name in REGISTRARS if name not in OPTIONAL_MODULES or is_available(name)]
 
 
 def make_registrar(cfg: RegistrationConfig, method: str | None = None) -> Registrar:

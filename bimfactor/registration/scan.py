@@ -11,6 +11,9 @@ import numpy as np
 from bimfactor.config import RegistrationConfig
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta, se2_between, se2_to_matrix
 
+# A scan with fewer points is not registered (the fine stage) nor used (the comparison's keyframes).
+MIN_SCAN_POINTS = 100
+
 
 def backproject_depth(
     depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, max_range_m: float = np.inf

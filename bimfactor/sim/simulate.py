@@ -138,22 +138,28 @@ def sim_sequence_meta(name: str, prior: BimPrior, world: SimWorld, camera: RgbdC
 
 
 def load_world_inputs(prior_dir: str | Path, cfg: Config | None = None) -> tuple[BimPrior, IfcModel]:
-    """Load a prior folder and the IFC model it was built from (its `source_file`, checked by SHA-256).
+    """Load a prior folder and the IFC model it was built from (see `source_model`)."""
+    cfg = cfg if cfg is not None else load_config()
+    prior = BimPrior.load(prior_dir)
+    return prior, source_model(prior, cfg, prior_dir)
+
+
+def source_model(prior: BimPrior, cfg: Config, prior_dir: str | Path | None = None) -> IfcModel:
+    """The IFC model `prior` was built from: its `source_file`, checked by SHA-256 (a prior stores no meshes).
 
     A relative `source_file` is looked up from the working directory, then beside the prior folder.
     """
-    cfg = cfg if cfg is not None else load_config()
-    prior = BimPrior.load(prior_dir)
     source = Path(prior.source_file)
     candidates = [source]
-    if not source.is_absolute():
+    if not source.is_absolute() and prior_dir is not None:
         candidates += [Path(prior_dir) / source, Path(prior_dir).parent / source]
     path = next((p for p in candidates if p.is_file()), None)
+    where = f"the prior {prior_dir}" if prior_dir is not None else "the prior"
     if path is None:
-        raise InputError(f"the IFC file the prior {prior_dir} was built from is missing: {prior.source_file}")
+        raise InputError(f"the IFC file {where} was built from is missing: {prior.source_file}")
     if file_sha256(path) != prior.source_sha256:
-        raise InputError(f"{path} changed since the prior {prior_dir} was built from it; rebuild the prior")
-    return prior, load_ifc(path, cfg.bim.ifc)
+        raise InputError(f"{path} changed since {where} was built from it; rebuild the prior")
+    return load_ifc(path, cfg.bim.ifc)
 
 
 def benchmark_render(prior: BimPrior, model: IfcModel, cfg: Config, n_frames: int = 200) -> dict:

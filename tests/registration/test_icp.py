@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from bimfactor.config import Config
-from bimfactor.errors import ConfigError
+from bimfactor.errors import ConfigError, DependencyError
+from bimfactor.registration import external
 from bimfactor.registration.gate import degeneracy_ratio, gate_registration
-from bimfactor.registration.icp import REGISTRARS, make_registrar
+from bimfactor.registration.icp import REGISTRARS, available_registrars, make_registrar
 from bimfactor.registration.scan import voxel_downsample
 from bimfactor.types import wrap_angle
 
@@ -16,6 +17,8 @@ from .synthetic import room_boxes, scan_from, surface_from_boxes
 
 TRUE_POSE = np.array([3.0, 2.0, 0.3])
 OFFSET = np.array([0.25, -0.15, np.deg2rad(4.0)])
+# KISS-ICP is point-to-point: against 10 cm surface samples it stops about 1 cm short (measured 1.1 cm).
+TOLERANCE_M = {"kiss_icp": 0.02}
 
 
 @pytest.fixture(scope="module")
@@ -49,16 +52,18 @@ def test_default_registrar_recovers_a_planar_offset(room, test_config: Config) -
 
 @pytest.mark.parametrize("method", sorted(REGISTRARS))
 def test_every_registrar_recovers_the_offset(room, test_config: Config, method: str) -> None:
+    if method in external.OPTIONAL_MODULES:
+        pytest.importorskip(external.OPTIONAL_MODULES[method], reason=f"optional registrar {method} not installed")
     surface, scan = room
     result = make_registrar(test_config.registration, method).register(scan, surface, TRUE_POSE + OFFSET)
     trans_err, rot_err = _errors(result.pose)
-    assert trans_err < 0.01 and rot_err < 0.2, (method, trans_err, rot_err)
+    assert trans_err < TOLERANCE_M.get(method, 0.01) and rot_err < 0.2, (method, trans_err, rot_err)
     assert result.method == method
 
 
 def test_empty_scan_fails_cleanly(room, test_config: Config) -> None:
     surface, _ = room
-    for method in REGISTRARS:
+    for method in available_registrars():
         result = make_registrar(test_config.registration, method).register(np.zeros((0, 3)), surface, TRUE_POSE)
         assert result.fitness == 0.0 and not result.converged
         assert not gate_registration(result, TRUE_POSE, test_config.registration).accepted
@@ -67,3 +72,10 @@ def test_empty_scan_fails_cleanly(room, test_config: Config) -> None:
 def test_unknown_registrar_is_a_config_error(test_config: Config) -> None:
     with pytest.raises(ConfigError, match="unknown registrar"):
         make_registrar(test_config.registration, "ndt")
+
+
+def test_missing_optional_registrar_is_a_dependency_error(test_config: Config, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(external.OPTIONAL_MODULES, "small_gicp", "bimfactor_no_such_module")
+    assert "small_gicp" not in available_registrars()
+    with pytest.raises(DependencyError, match=r"pip install 'bimfactor\[registrars\]'"):
+        make_registrar(test_config.registration, "small_gicp")

@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from bimfactor.registration.compare import (
     compare_registrars,
@@ -13,24 +12,15 @@ from bimfactor.registration.compare import (
     make_registrars,
     perturb,
     plot_basins,
-    select_keyframes,
     summarize,
 )
 from bimfactor.registration.gate import gate_registration
 from bimfactor.registration.icp import make_registrar
-from bimfactor.registration.surface import build_surface_models
 from bimfactor.types import wrap_angle
 
 from ..sim.conftest import Building
 
 START_TRANS_M, START_ROT_DEG = 0.3, 5.0
-
-
-@pytest.fixture(scope="module")
-def keyframes_and_surfaces(paper_floor: Building):
-    surfaces = build_surface_models(paper_floor.model, paper_floor.cfg.registration, seed=0)
-    keyframes = select_keyframes(paper_floor.prior, paper_floor.model, paper_floor.cfg, surfaces, n=3, seed=0)
-    return keyframes, surfaces
 
 
 def test_default_registrar_from_a_perturbed_start(paper_floor: Building, keyframes_and_surfaces) -> None:
@@ -67,5 +57,11 @@ def test_comparison_records_summary_and_plot(paper_floor: Building, keyframes_an
     assert sorted({r["init_trans_m"] for r in records}) == sorted(sweep[:, 0].tolist())
     for r in records:
         assert r["success"] == (r["final_trans_m"] < rc.success_trans_m and r["final_rot_deg"] < rc.success_rot_deg)
+        # The probes only ever take acceptances away; rejected runs carry their reasons.
+        assert r["accepted_without_probes"] or not r["accepted"]
+        assert r["accepted_without_probes"] or not r["accepted_coarse"]
+        assert bool(r["reasons"]) != r["accepted"]
+    for s in summary:
+        assert s["accepted_wrong"] <= s["accepted_without_probes_wrong"]
     png = plot_basins(records, tmp_path / "basins.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
