@@ -618,7 +618,9 @@ def localize(
     variant: Annotated[
         str | None,
         typer.Option(
-            "--variant", metavar="NAME", help="smcl or smcl+graph (default: the config's localization.variant)."
+            "--variant",
+            metavar="NAME",
+            help="smcl, smcl+graph or full (default: the config's localization.variant).",
         ),
     ] = None,
     seed: SeedOption = None,
@@ -629,17 +631,20 @@ def localize(
 ) -> None:
     """Run perception (the config's backend) and the semantic particle filter over every frame of a sequence;
     with --variant smcl+graph the filter's modes each update a GTSAM pose graph and the most probable mode is
-    the estimate.
+    the estimate; --variant full also registers each keyframe's depth scan against the BIM walls (ICP) from the
+    most probable mode and feeds accepted fits into its graph.
 
     Writes RUN_DIR/estimate.txt (TUM), steps.csv (pose, storey, room, covariance, converged flag, number of modes
-    per step), modes.csv (smcl+graph: every mode per step), metrics.json (with ground truth: the paper's
-    translation / orientation error, room accuracy and the 95 % ellipse coverage), snapshots.npz, config.yaml,
-    trajectory.png and particles.png. RUN_DIR must be new, empty or an earlier run.
+    per step, full: whether ICP was accepted), modes.csv (graph variants: every mode per step), metrics.json (with
+    ground truth: the paper's translation / orientation error, room accuracy and the 95 % ellipse coverage; full:
+    ICP acceptance and rejection reasons), snapshots.npz, config.yaml, trajectory.png and particles.png. RUN_DIR
+    must be new, empty or an earlier run.
 
     \b
     Examples:
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-graph --variant smcl+graph
+      bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-full --variant full
       bimfactor localize runs/prior/duplex runs/duplex-k0 -o runs/loc-duplex --set smcl.num_particles=5000
     """
     with _cli_errors(debug):
@@ -655,7 +660,13 @@ def localize(
         n = len(sequence)
         snapshot_steps = sorted({0, n // 10, n // 4, n // 2, n - 1})
         run = localize_sequence(
-            prior, sequence.meta, sequence, cfg, cfg.seed if seed is None else seed, snapshot_steps=snapshot_steps
+            prior,
+            sequence.meta,
+            sequence,
+            cfg,
+            cfg.seed if seed is None else seed,
+            snapshot_steps=snapshot_steps,
+            prior_dir=prior_dir,
         )
         figures = write_run(run, prior, output, cfg.dump_yaml(), title=f"{sequence.meta.name} against {prior_dir}")
         typer.echo(f"wrote {output}: {n} steps ({run.variant}); figures " + ", ".join(f.name for f in figures))
@@ -670,7 +681,7 @@ def refine(
     sequence_dir: Annotated[Path, typer.Argument(metavar="SEQ_DIR", help="A sequence folder.")],
     output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Run folder to write.")],
     variant: Annotated[
-        str, typer.Option("--variant", metavar="NAME", help="The forward pass: a pose-graph variant.")
+        str, typer.Option("--variant", metavar="NAME", help="The forward pass: smcl+graph or full.")
     ] = "smcl+graph",
     seed: SeedOption = None,
     config: ConfigOption = None,
@@ -678,8 +689,9 @@ def refine(
     verbose: VerboseOption = False,
     debug: DebugOption = False,
 ) -> None:
-    """Offline refinement of a recorded sequence: the forward pass (smcl+graph), then batch Levenberg-Marquardt
-    smoothing of the whole trajectory of every mode that survived it; the most probable mode is the estimate.
+    """Offline refinement of a recorded sequence: the forward pass (smcl+graph, or full: with ICP against the BIM
+    walls), then batch Levenberg-Marquardt smoothing of the whole trajectory of every mode that survived it (a full
+    forward pass's accepted ICP fits enter as pose factors); the most probable mode is the estimate.
 
     Writes OUT/estimate.txt (refined, TUM), forward.txt (the forward pass, TUM), steps.csv (refined pose and
     covariance per step), modes.json and modes/mode_<id>.txt (every refined mode), metrics.json (with ground
@@ -689,6 +701,7 @@ def refine(
     \b
     Examples:
       bimfactor refine runs/demo/prior runs/demo/sequence -o runs/refine0
+      bimfactor refine runs/demo/prior runs/demo/sequence -o runs/refine0-full --variant full
       bimfactor refine runs/prior/duplex runs/duplex-k0 -o runs/refine-duplex --set backend.max_modes=3
     """
     with _cli_errors(debug):
@@ -705,7 +718,9 @@ def refine(
         ensure_run_destination(output)
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
-        run = localize_sequence(prior, sequence.meta, sequence, cfg, cfg.seed if seed is None else seed)
+        run = localize_sequence(
+            prior, sequence.meta, sequence, cfg, cfg.seed if seed is None else seed, prior_dir=prior_dir
+        )
         refined = refine_run(run, prior, cfg)
         title = f"{sequence.meta.name} refined against {prior_dir}"
         write_refined(refined, prior, output, cfg.dump_yaml(), title=title)
@@ -779,7 +794,7 @@ def bench_paper(
         typer.Option(
             "--variant",
             metavar="NAME",
-            help="smcl, smcl+graph or refine (repeatable; default: the config's evaluation.variants, all three).",
+            help="smcl, smcl+graph, refine or full (repeatable; default: the config's evaluation.variants).",
         ),
     ] = None,
     workers: Annotated[int | None, typer.Option("--workers", min=1, help="Parallel processes (default: CPUs).")] = None,
@@ -790,12 +805,14 @@ def bench_paper(
 ) -> None:
     """Six standard trajectories (T = 50, distinct starts), each localized three times; prints Table I of each
     variant and writes OUT/results.json (per variant: trans_err_m, orient_err_deg, room_acc, step_ms_median,
-    steps_to_converge, trans_err_conv_m, orient_err_conv_deg, ellipse_coverage) and OUT/config.yaml.
+    steps_to_converge, trans_err_conv_m, orient_err_conv_deg, ellipse_coverage; full also icp_accepted_share and
+    icp_rejections) and OUT/config.yaml.
 
     \b
     Examples:
       bimfactor bench paper
       bimfactor bench paper --variant smcl --variant refine -o runs/bench-paper-refine
+      bimfactor bench paper --variant smcl+graph --variant full -o runs/bench-paper-full
       bimfactor bench paper --ifc ../shared/data/ifc/duplex.ifc -o runs/bench-paper-duplex
     """
     with _cli_errors(debug):

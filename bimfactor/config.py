@@ -372,8 +372,9 @@ class BackendConfig(_Strict):
     )
 
 
-LocalizerVariant = Literal["smcl", "smcl+graph"]
-"""What localizes online: the paper's particle filter, or the filter with one GTSAM pose graph per filter mode."""
+LocalizerVariant = Literal["smcl", "smcl+graph", "full"]
+"""What localizes online: the paper's particle filter, the filter with one GTSAM pose graph per filter mode, or
+that with ICP against the BIM walls fed back into the best mode's graph (full)."""
 BenchVariant = Literal[LocalizerVariant, "refine"]
 """What a benchmark scores: an online localizer, or the offline refinement (smcl+graph, then batch smoothing)."""
 
@@ -381,7 +382,13 @@ BenchVariant = Literal[LocalizerVariant, "refine"]
 class LocalizationConfig(_Strict):
     variant: LocalizerVariant = Field(
         description="smcl: the paper's filter; smcl+graph: its modes each seed a pose graph (backend), the best "
-        "mode's pose and marginal covariance are the output."
+        "mode's pose and marginal covariance are the output; full: smcl+graph with the fine stage (registration) "
+        "registering each keyframe's scan from the best mode's pose and feeding accepted fits into its graph."
+    )
+    fine_covariance_scale: float = Field(
+        ge=1.0,
+        description="full: the best mode's covariance times this is what the fine stage's gate sees (consistency "
+        "χ² and probes); the graph's marginals are overconfident (95 % ellipses cover about half the errors).",
     )
 
 

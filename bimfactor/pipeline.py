@@ -4,17 +4,26 @@
 pose, take the odometry increment since the last frame, predict, weigh the particles by the semantic and
 spatial match of the nodes in view against the BIM, resample when the ESS is low, estimate. With the
 `smcl+graph` variant (`localization.variant`) the filter's modes then each update their own pose graph, and the
-most probable mode's pose and marginal covariance are the output.
+most probable mode's pose and marginal covariance are the output. The `full` variant adds the coarse-to-fine loop:
+the keyframe's depth scan is registered against the BIM walls from the most probable mode's pose
+(`registration.fine`), and an accepted fit enters that mode's graph as a pose factor; the mode's updated pose and
+marginal covariance are the output. Only the best mode is registered: a registration with its ambiguity probes
+costs several ICP runs, the output is the best mode's, and a wrong mode seldom passes the gate anyway (fitness,
+probes), so registering every mode would multiply the step time by the number of modes for estimates nobody reads.
 
 `refine_run` is the offline pass over a localized sequence: every surviving mode's trajectory smoothed as a whole.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import re
 import time
+from collections import Counter, deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -36,12 +45,15 @@ from bimfactor.localization.motion import odometry_increment
 from bimfactor.localization.smcl import SemanticMCL, StepResult
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
+from bimfactor.registration.fine import FineRegistration, FineResult
 from bimfactor.types import Frame, Observations, SequenceMeta
 
 log = logging.getLogger(__name__)
 
-GRAPH_VARIANTS = ("smcl+graph",)
+GRAPH_VARIANTS = ("smcl+graph", "full")
 """Localizer variants that run the pose-graph back end (and so can be refined offline)."""
+FINE_VARIANTS = ("full",)
+"""Localizer variants that register each keyframe against the BIM walls and feed the fit back into the graph."""
 
 
 @dataclass
@@ -54,6 +66,35 @@ class Track:
     storeys: np.ndarray
     rooms: np.ndarray
     step_ms: np.ndarray
+
+
+@dataclass
+class FineTrack:
+    """The fine stage over a run (variant full), one entry per step: (T,) whether it ran (a mode existed) and
+    whether the fit was accepted, the gate's reasons when not, and (T,) milliseconds it took."""
+
+    ran: np.ndarray
+    accepted: np.ndarray
+    reasons: list[list[str]]
+    time_ms: np.ndarray
+
+    def rejection_counts(self) -> dict[str, int]:
+        """How often each kind of reason rejected a fit (`rejection_kind`), most frequent first."""
+        counts = Counter(rejection_kind(r) for reasons in self.reasons for r in reasons)
+        return dict(counts.most_common())
+
+    def summary(self) -> dict:
+        """Steps registered and accepted, and the rejection counts by kind (for metrics.json)."""
+        return {
+            "steps_registered": int(self.ran.sum()),
+            "steps_accepted": int(self.accepted.sum()),
+            "rejections": self.rejection_counts(),
+        }
+
+
+def rejection_kind(reason: str) -> str:
+    """The kind of a gate reason, its words before the first number or colon ("fitness 0.71 < 0.90" → "fitness")."""
+    return re.split(r"[:(<>]|\s[-+]?(?:\d|inf\b|nan\b)", reason, maxsplit=1)[0].strip()
 
 
 @dataclass
@@ -71,6 +112,8 @@ class LocalizerStep:
     odom_increment: np.ndarray | None
     perception_ms: float
     graph_ms: float = 0.0
+    fine: FineResult | None = None
+    fine_ms: float = 0.0
 
 
 @dataclass
@@ -80,8 +123,8 @@ class LocalizationRun:
     `filter` is the particle filter's own estimate (every variant runs the filter); `graph` the most probable
     mode's (smcl+graph variants; where no mode exists yet, the filter's). `output` is the variant's estimate.
     `modes` lists every mode after each step (most probable first), `final_modes` the surviving modes' graphs,
-    `odom_increments` (T−1, 3) and `observations` what the refinement re-uses; `snapshots` maps step →
-    (particles, weights).
+    `odom_increments` (T−1, 3) and `observations` what the refinement re-uses; `fine` the fine stage per step
+    (variant full); `snapshots` maps step → (particles, weights).
     """
 
     variant: str
@@ -96,6 +139,7 @@ class LocalizationRun:
     graph: Track | None = None
     modes: list[list[ModeEstimate]] = field(default_factory=list)
     final_modes: list[ModeHistory] = field(default_factory=list)
+    fine: FineTrack | None = None
     gt_poses: np.ndarray | None = None
     gt_rooms: np.ndarray | None = None
     snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
@@ -127,12 +171,23 @@ def visibility_of(prior: BimPrior, cfg: Config) -> VisibilityTable:
 
 
 class Localizer:
-    """Global localization of one sequence against one prior, in the configured variant."""
+    """Global localization of one sequence against one prior, in the configured variant.
+
+    The full variant reads the IFC file the prior was built from (its surface models, built once per building);
+    `prior_dir` helps find a relative `source_file`.
+    """
 
     def __init__(
-        self, prior: BimPrior, meta: SequenceMeta, cfg: Config, seed: int, text_embedder: TextEmbedder | None = None
+        self,
+        prior: BimPrior,
+        meta: SequenceMeta,
+        cfg: Config,
+        seed: int,
+        text_embedder: TextEmbedder | None = None,
+        prior_dir: str | Path | None = None,
     ) -> None:
         self.prior = prior
+        self.meta = meta
         self.cfg = cfg
         self.variant = cfg.localization.variant
         embedder = text_embedder or make_text_embedder(cfg.embed)
@@ -140,10 +195,14 @@ class Localizer:
         self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
         self.filter.initialize()
         self.backend = MultiHypothesisBackend.from_prior(prior, cfg.backend) if self.variant in GRAPH_VARIANTS else None
+        self.fine = FineRegistration.for_prior(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None
+        # The frames before the current one that a submap stitches in (registration.submap_keyframes − 1).
+        self._recent: deque[Frame] = deque(maxlen=cfg.registration.submap_keyframes - 1)
         self._last_odom: np.ndarray | None = None
 
     def step(self, frame: Frame) -> LocalizerStep:
-        """One frame: perception, the filter, and (graph variants) the back end on the filter's modes."""
+        """One frame: perception, the filter, (graph variants) the back end on the filter's modes, and (full) the fine
+        stage on the best mode."""
         started = time.perf_counter()
         seen = self.perception.step(frame)
         perception_ms = (time.perf_counter() - started) * 1000
@@ -163,6 +222,9 @@ class Localizer:
         )
         if self.backend is not None:
             self._graph_step(out)
+        if self.fine is not None and out.graph is not None:
+            self._fine_step(frame, out)
+        self._recent.append(frame)
         return out
 
     def _graph_step(self, out: LocalizerStep) -> None:
@@ -174,9 +236,30 @@ class Localizer:
         out.graph = self.backend.step(modes, out.odom_increment, out.observations, associate)
         out.graph_ms = (time.perf_counter() - started) * 1000
         if out.graph is not None:
-            best = out.graph.best
-            out.pose, out.covariance, out.storey = best.pose, best.covariance, best.storey
-            out.room_id = int(self.prior.room_at(best.pose[None, :2], best.storey)[0])
+            self._output_mode(out, out.graph.best)
+
+    def _fine_step(self, frame: Frame, out: LocalizerStep) -> None:
+        """Register the keyframe's scan from the best mode's pose; an accepted fit enters that mode's graph, and the
+        mode's updated estimate becomes the step's output (and the best of its back-end step)."""
+        assert self.fine is not None and self.backend is not None and out.graph is not None
+        started = time.perf_counter()
+        best = out.graph.best
+        scan = self.fine.scan(frame, self.meta, self._recent)
+        gate_covariance = self.cfg.localization.fine_covariance_scale * best.covariance
+        out.fine = self.fine.register_scan(scan, best.pose, best.storey, gate_covariance)
+        if out.fine.accepted:
+            pose, covariance = self.backend.add_pose_factor(
+                best.mode_id, out.graph.index, out.fine.pose, out.fine.information_body
+            )
+            updated = dataclasses.replace(best, pose=pose, covariance=covariance)
+            out.graph.best = out.graph.modes[0] = updated
+            self._output_mode(out, updated)
+        out.fine_ms = (time.perf_counter() - started) * 1000
+
+    def _output_mode(self, out: LocalizerStep, mode: ModeEstimate) -> None:
+        """A mode's estimate as the step's output pose, covariance, storey and room."""
+        out.pose, out.covariance, out.storey = mode.pose, mode.covariance, mode.storey
+        out.room_id = int(self.prior.room_at(mode.pose[None, :2], mode.storey)[0])
 
 
 def localize_sequence(
@@ -188,9 +271,13 @@ def localize_sequence(
     snapshot_steps: Iterable[int] = (),
     text_embedder: TextEmbedder | None = None,
     show_progress: bool = True,
+    prior_dir: str | Path | None = None,
 ) -> LocalizationRun:
-    """Localize every frame of a sequence; ground truth, when the frames have it, is carried along."""
-    localizer = Localizer(prior, meta, cfg, seed, text_embedder)
+    """Localize every frame of a sequence; ground truth, when the frames have it, is carried along.
+
+    `prior_dir`, the prior's folder, helps the full variant find a relative IFC `source_file`.
+    """
+    localizer = Localizer(prior, meta, cfg, seed, text_embedder, prior_dir)
     frames = list(frames)
     snapshot_steps = set(snapshot_steps)
     rows: list[LocalizerStep] = []
@@ -226,7 +313,15 @@ def localize_sequence(
             covariances=np.asarray([r.covariance for r in rows]),
             storeys=np.asarray([r.storey for r in rows]),
             rooms=np.asarray([r.room_id for r in rows]),
-            step_ms=filter_ms + np.asarray([r.graph_ms for r in rows]),
+            step_ms=filter_ms + np.asarray([r.graph_ms + r.fine_ms for r in rows]),
+        )
+    fine = None
+    if localizer.fine is not None:
+        fine = FineTrack(
+            ran=np.asarray([r.fine is not None for r in rows], bool),
+            accepted=np.asarray([r.fine is not None and r.fine.accepted for r in rows], bool),
+            reasons=[list(r.fine.reasons) if r.fine is not None else [] for r in rows],
+            time_ms=np.asarray([r.fine_ms for r in rows], float),
         )
     return LocalizationRun(
         variant=localizer.variant,
@@ -241,6 +336,7 @@ def localize_sequence(
         graph=graph,
         modes=[r.graph.modes if r.graph is not None else [] for r in rows],
         final_modes=localizer.backend.histories() if localizer.backend is not None else [],
+        fine=fine,
         gt_poses=gt_poses,
         gt_rooms=gt_rooms,
         snapshots=snapshots,
@@ -265,8 +361,9 @@ class RefinedRun:
 def refine_run(run: LocalizationRun, prior: BimPrior, cfg: Config) -> RefinedRun:
     """Batch Levenberg–Marquardt smoothing of the whole trajectory of every mode that survived the forward pass.
 
-    The run must come from a graph variant (ValueError otherwise). A run in which the filter never formed a mode
-    has nothing to refine: its `modes` are empty and the estimate is the forward pass's.
+    After a full forward pass, the fine stage's accepted pose factors of each mode enter its batch graph. The run
+    must come from a graph variant (ValueError otherwise). A run in which the filter never formed a mode has nothing
+    to refine: its `modes` are empty and the estimate is the forward pass's.
     """
     if run.graph is None:
         raise ValueError(f"refinement needs a pose-graph variant ({', '.join(GRAPH_VARIANTS)}), not {run.variant}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import shutil
 import subprocess
@@ -397,18 +398,22 @@ def short_sequence(demo_prior: Path, tmp_path_factory: pytest.TempPathFactory, c
     return sequence
 
 
-def test_localize_graph_variant_writes_the_modes(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
-    run = tmp_path / "run"
-    result = invoke("localize", demo_prior, short_sequence, "-o", run, "--variant", "smcl+graph")
+def _localize_graph_run(demo_prior: Path, sequence: Path, run: Path, variant: str) -> tuple[dict, list[dict[str, str]]]:
+    """`localize --variant VARIANT` into `run`, its files checked; returns metrics.json and the steps.csv rows."""
+    result = invoke("localize", demo_prior, sequence, "-o", run, "--variant", variant)
     assert result.exit_code == 0, result.output
     for name in ("estimate.txt", "steps.csv", "modes.csv", "metrics.json", "config.yaml", "trajectory.png"):
         assert (run / name).is_file(), name
-    assert load_config(run / "config.yaml").localization.variant == "smcl+graph"
+    assert load_config(run / "config.yaml").localization.variant == variant
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["variant"] == "smcl+graph" and 0.0 <= metrics["ellipse95_coverage"] <= 1.0
-    steps = (run / "steps.csv").read_text().splitlines()
-    header = steps[0].split(",")
-    n_modes = [int(row.split(",")[header.index("n_modes")]) for row in steps[1:]]
+    assert metrics["variant"] == variant and 0.0 <= metrics["ellipse95_coverage"] <= 1.0
+    return metrics, list(csv.DictReader((run / "steps.csv").read_text().splitlines()))
+
+
+def test_localize_graph_variant_writes_the_modes(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    _, steps = _localize_graph_run(demo_prior, short_sequence, run, "smcl+graph")
+    n_modes = [int(row["n_modes"]) for row in steps]
     assert len(n_modes) == 20 and max(n_modes) >= 1
     mode_rows = (run / "modes.csv").read_text().splitlines()[1:]
     assert len(mode_rows) == sum(n_modes)
@@ -416,6 +421,17 @@ def test_localize_graph_variant_writes_the_modes(demo_prior: Path, short_sequenc
         invoke("localize", demo_prior, short_sequence, "-o", tmp_path / "x", "--variant", "nope"),
         contains="localization.variant",
     )
+
+
+def test_localize_full_variant_writes_icp_columns(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
+    metrics, steps = _localize_graph_run(demo_prior, short_sequence, tmp_path / "run", "full")
+    accepted = [row["icp_accepted"] for row in steps]
+    assert len(steps) == 20 and set(accepted) <= {"", "0", "1"}
+    assert [a != "" for a in accepted] == [int(row["n_modes"]) > 0 for row in steps]  # ICP runs where a mode exists
+    icp = metrics["icp"]
+    assert icp["steps_accepted"] == accepted.count("1")
+    assert icp["steps_registered"] == len(accepted) - accepted.count("")
+    assert sum(icp["rejections"].values()) >= accepted.count("0")
 
 
 def test_refine_writes_the_refined_run(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:

@@ -1,13 +1,26 @@
-"""The localizer's variants on a simulated drive through the paper-floor building: smcl, smcl+graph, and refine."""
+"""The localizer's variants on a simulated drive through the paper-floor building: smcl, smcl+graph, full, and
+refine."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 
-from bimfactor.config import load_config
+from bimfactor.backend.posegraph import semantic_associator
+from bimfactor.backend.refine import refine_mode
+from bimfactor.config import Config, load_config
 from bimfactor.evaluation.metrics import translation_errors_m
-from bimfactor.pipeline import LocalizationRun, localize_sequence, refine_run
+from bimfactor.localization.likelihood import SemanticLikelihood
+from bimfactor.pipeline import (
+    LocalizationRun,
+    RefinedRun,
+    localize_sequence,
+    refine_run,
+    rejection_kind,
+    visibility_of,
+)
 from bimfactor.sim.simulate import SimResult, simulate_sequence
 from tests.sim import conftest as sim_fixtures
 from tests.sim.conftest import Building
@@ -18,6 +31,9 @@ text_embedder = sim_fixtures.text_embedder
 
 SEED = 3
 REFINE_TOLERANCE_M = 0.05
+# The full variant's last-step error may exceed smcl+graph's by at most this (ICP against the walls is cm-accurate).
+FULL_TOLERANCE_M = 0.02
+ACCEPTED_MAX_ERROR_M = 0.05
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +46,7 @@ def drive(paper_floor: Building) -> SimResult:
 def runs(paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str]) -> dict:
     """The drive localized by each online variant with one seed."""
     out = {}
-    for variant in ("smcl", "smcl+graph"):
+    for variant in ("smcl", "smcl+graph", "full"):
         cfg = load_config(None, [*config_overrides, f"localization.variant={variant}"])
         out[variant] = localize_sequence(
             paper_floor.prior, drive.meta, drive.frames, cfg, SEED, text_embedder=text_embedder, show_progress=False
@@ -70,12 +86,17 @@ def test_the_graph_output_is_the_most_probable_mode(runs: dict[str, Localization
     assert run.final_modes and run.final_modes[0].mode_id == run.modes[-1][0].mode_id
 
 
+def _refined(paper_floor: Building, run: LocalizationRun, config_overrides: list[str]) -> tuple[RefinedRun, Config]:
+    """The offline refinement of a run, with the run's variant's config."""
+    cfg = load_config(None, [*config_overrides, f"localization.variant={run.variant}"])
+    return refine_run(run, paper_floor.prior, cfg), cfg
+
+
 def test_refine_improves_or_matches_the_forward_pass(
     paper_floor: Building, runs: dict[str, LocalizationRun], config_overrides: list[str]
 ) -> None:
     run = runs["smcl+graph"]
-    cfg = load_config(None, [*config_overrides, "localization.variant=smcl+graph"])
-    refined = refine_run(run, paper_floor.prior, cfg)
+    refined, _ = _refined(paper_floor, run, config_overrides)
     assert refined.modes and [m.mode_id for m in refined.modes] == [m.mode_id for m in run.final_modes]
     estimate = refined.estimate
     assert estimate.poses.shape == run.poses.shape and estimate.covariances.shape == run.covariances.shape
@@ -90,3 +111,60 @@ def test_refine_improves_or_matches_the_forward_pass(
 def test_refine_needs_a_graph_run(paper_floor: Building, runs: dict[str, LocalizationRun], test_config) -> None:
     with pytest.raises(ValueError, match="pose-graph variant"):
         refine_run(runs["smcl"], paper_floor.prior, test_config)
+
+
+def test_full_feeds_accepted_icp_fits_into_the_best_mode(runs: dict[str, LocalizationRun]) -> None:
+    graph, full = runs["smcl+graph"], runs["full"]
+    assert full.variant == "full" and full.graph is not None and full.fine is not None
+    # ICP only feeds the graphs: the filter is the same bit for bit.
+    np.testing.assert_array_equal(full.filter.poses, graph.filter.poses)
+    fine = full.fine
+    has_mode = np.array([bool(modes) for modes in full.modes])
+    np.testing.assert_array_equal(fine.ran, has_mode)
+    assert fine.accepted.sum() >= 5 and not np.any(fine.accepted & ~fine.ran)
+    assert all(not reasons for reasons, ok in zip(fine.reasons, fine.accepted, strict=True) if ok)
+    rejected = fine.ran & ~fine.accepted
+    assert all(fine.reasons[i] for i in np.flatnonzero(rejected))
+    assert sum(fine.rejection_counts().values()) >= int(rejected.sum())
+    for i, modes in enumerate(full.modes):
+        if modes:  # the output is the best mode after its ICP factor
+            np.testing.assert_array_equal(full.poses[i], modes[0].pose)
+    assert np.all(full.graph.step_ms >= full.filter.step_ms + fine.time_ms)
+    # An accepted fit puts the output on the walls: within a few centimetres of the truth.
+    errors_m = translation_errors_m(full.poses, full.gt_poses)
+    assert np.all(errors_m[fine.accepted] < ACCEPTED_MAX_ERROR_M)
+    final_full_m = errors_m[-1]
+    final_graph_m = translation_errors_m(graph.poses, graph.gt_poses)[-1]
+    assert final_full_m <= final_graph_m + FULL_TOLERANCE_M
+
+
+def test_refine_of_a_full_pass_keeps_its_icp_factors(
+    paper_floor: Building, runs: dict[str, LocalizationRun], config_overrides: list[str]
+) -> None:
+    run = runs["full"]
+    refined, cfg = _refined(paper_floor, run, config_overrides)
+    assert refined.modes and refined.modes[0].mode_id == run.final_modes[0].mode_id
+    # A mode's pose factors enter its batch graph: a tight one 0.5 m off the smoothed pose pins that keyframe.
+    mode = run.final_modes[0]
+    last = len(run.poses) - 1
+    target = mode.poses[-1] + np.array([0.5, 0.0, 0.0])
+    pinned = dataclasses.replace(mode, pose_factors=[(last, target, np.diag([1e6, 1e6, 1e6]))])
+    likelihood = SemanticLikelihood(paper_floor.prior, visibility_of(paper_floor.prior, cfg), cfg.smcl)
+    associate_fns = [semantic_associator(likelihood, obs) for obs in run.observations]
+    landmark_xy = paper_floor.prior.object_positions()[:, :2]
+    out = refine_mode(pinned, run.odom_increments, run.observations, associate_fns, landmark_xy, cfg.backend)
+    np.testing.assert_allclose(out.poses[last], target, atol=0.01)
+
+
+@pytest.mark.parametrize(
+    ("reason", "kind"),
+    [
+        ("fitness 0.71 < 0.90", "fitness"),
+        ("inlier RMSE 0.081 m > 0.060 m", "inlier RMSE"),
+        ("degenerate: λmin/λmax 0.010 < 0.080", "degenerate"),
+        ("ambiguous: 2 probes found as good a fit elsewhere (nearest 0.61 m, 0.3° away)", "ambiguous"),
+        ("the start pose is not finite", "the start pose is not finite"),
+    ],
+)
+def test_rejection_kind(reason: str, kind: str) -> None:
+    assert rejection_kind(reason) == kind

@@ -132,6 +132,7 @@ class ModeGraph:
         self.prior_pose, self.prior_covariance = self.pose.copy(), self.covariance.copy()
         self.poses: dict[int, np.ndarray] = {}
         self.associations: dict[int, list[tuple[int, int]]] = {}
+        self.pose_factors: list[tuple[int, np.ndarray, np.ndarray]] = []
         self._landmarks: set[int] = set()
         self._landmark_factor_indices: dict[int, list[int]] = {}
         self._pending = gtsam.NonlinearFactorGraph()
@@ -199,9 +200,11 @@ class ModeGraph:
     def add_pose_factor(self, i: int, pose: np.ndarray, information: np.ndarray) -> None:
         """A PriorFactorPose2 on X(i) at a (3,) pose with (3, 3) body-frame information (the fine registrar's result).
 
-        Applied now (one ISAM2 update) when X(i) is in the graph, else with keyframe i.
+        Applied now (one ISAM2 update) when X(i) is in the graph, else with keyframe i; kept in `pose_factors` for
+        the offline refinement.
         """
         factor = information_pose_factor(i, pose, information)
+        self.pose_factors.append((i, np.asarray(pose, np.float64).copy(), np.asarray(information, np.float64).copy()))
         if i in self.poses:
             graph = gtsam.NonlinearFactorGraph()
             graph.add(factor)
@@ -227,7 +230,8 @@ class ModeGraph:
         return np.array([from_pose2(estimate.atPose2(X(i))) for i in sorted(self.poses)])
 
     def history(self, probability: float) -> ModeHistory:
-        """What this mode's graph holds, as plain data: birth prior, smoothed poses, matches per keyframe."""
+        """What this mode's graph holds, as plain data: birth prior, smoothed poses, matches per keyframe, pose
+        factors."""
         return ModeHistory(
             self.mode_id,
             self.storey,
@@ -237,6 +241,7 @@ class ModeGraph:
             self.prior_covariance.copy(),
             self.trajectory(),
             [list(self.associations[i]) for i in sorted(self.poses)],
+            list(self.pose_factors),
         )
 
     # -------------------------------------------------------------------------------- helpers
@@ -286,7 +291,8 @@ class ModeEstimate:
 @dataclass
 class ModeHistory:
     """A mode's whole graph as plain data: its birth prior on X(first_index) ((3,) pose, (3, 3) world-frame
-    covariance), (n, 3) ISAM2-smoothed poses of keyframes first_index … first_index + n − 1 and their matches."""
+    covariance), (n, 3) ISAM2-smoothed poses of keyframes first_index … first_index + n − 1, their matches, and the
+    fine registrar's pose factors (keyframe index, (3,) pose, (3, 3) body-frame information)."""
 
     mode_id: int
     storey: int
@@ -296,6 +302,7 @@ class ModeHistory:
     prior_covariance: np.ndarray
     poses: np.ndarray
     associations: list[list[tuple[int, int]]]
+    pose_factors: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)
 
 
 @dataclass
@@ -396,9 +403,19 @@ class MultiHypothesisBackend:
             i, estimates[0], estimates, events.spawned, events.merged + merged, pruned, reassociated, timings
         )
 
-    def add_pose_factor(self, mode_id: int, i: int, pose: np.ndarray, information: np.ndarray) -> None:
-        """Feed a fine registrar's (3,) pose with (3, 3) body-frame information into one mode's graph."""
-        self.graphs[mode_id].add_pose_factor(i, pose, information)
+    def add_pose_factor(
+        self, mode_id: int, i: int, pose: np.ndarray, information: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Feed a fine registrar's (3,) pose with (3, 3) body-frame information into one mode's graph.
+
+        Returns the mode's updated (3,) pose and (3, 3) world-frame covariance at its latest keyframe (the tracked
+        mode follows them, as after a step).
+        """
+        graph = self.graphs[mode_id]
+        graph.add_pose_factor(i, pose, information)
+        mode = self.tracker.get(mode_id)
+        mode.mean, mode.covariance = graph.pose.copy(), graph.covariance.copy()
+        return graph.pose.copy(), graph.covariance.copy()
 
     def histories(self) -> list[ModeHistory]:
         """Every tracked mode's graph as a `ModeHistory`, most probable first."""

@@ -4,7 +4,8 @@ For a mode that the back end still tracks at the end of a sequence (born at keyf
 1. initial guess: its ISAM2-smoothed poses from i0 on; before i0, dead reckoning backwards from X(i0);
 2. matches: the forward pass's from i0 on; before i0, the associator's at the initial guess;
 3. `batch_refine` over all T keyframes: the mode's birth prior on X(i0), odometry between every pair of keyframes,
-   robust bearing-range factors to the BIM landmarks, so the steps before the mode existed are placed in hindsight;
+   robust bearing-range factors to the BIM landmarks and the fine registrar's pose factors the forward pass accepted
+   (variant full), so the steps before the mode existed are placed in hindsight;
 4. up to `refine_rounds` times: re-associate every keyframe at the refined poses and optimise again while the matches
    change (hindsight association: the smoothed poses put observations next to the right objects).
 """
@@ -79,6 +80,7 @@ def refine_mode(
             landmark_xy,
             cfg,
             initial_poses=start,
+            pose_factors=mode.pose_factors,
             prior_index=i0,
         )
 

@@ -6,9 +6,10 @@ times. Table I's statistics are mean ± std over the steps of a trajectory's rep
 every step of every run. Runs go to parallel processes.
 
 Variants (`evaluation.variants`): `smcl` (the paper's filter), `smcl+graph` (the best mode of the per-mode pose
-graphs) and `refine` (smcl+graph, then offline batch smoothing). The back end only reads the particle set, so one
-smcl+graph run yields the filter's own estimate (bit for bit the smcl run of the same seed) and, refined, the
-`refine` estimate: each job runs the forward pass once and scores every variant asked for.
+graphs), `refine` (smcl+graph, then offline batch smoothing) and `full` (smcl+graph with ICP against the BIM walls
+fed back into the best mode's graph). The back end only reads the particle set, so one smcl+graph run yields the
+filter's own estimate (bit for bit the smcl run of the same seed) and, refined, the `refine` estimate; `full` needs
+its own forward pass. Each job runs each forward pass it needs once and scores every variant asked for.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import json
 import logging
 import multiprocessing
 import os
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -44,11 +46,15 @@ class RunResult:
     inside_ellipse95: np.ndarray
     step_ms: np.ndarray
     metrics: dict
+    icp_accepted: np.ndarray | None = None
+    icp_rejections: dict[str, int] | None = None
 
 
-def forward_variant(variants: list[str]) -> str:
-    """The online variant whose run yields every one of `variants` (see the module docstring)."""
-    return "smcl" if set(variants) == {"smcl"} else "smcl+graph"
+def forward_variants(variants: list[str]) -> list[str]:
+    """The online variants whose runs yield every one of `variants` (see the module docstring)."""
+    served_by = {"smcl+graph": {"smcl+graph", "refine"}, "full": {"full"}}
+    needed = [online for online, serves in served_by.items() if serves & set(variants)]
+    return needed or ["smcl"]
 
 
 def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> list[RunResult]:
@@ -62,22 +68,29 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
 
     cfg = Config.model_validate_json(cfg_json)
     variants = cfg.evaluation.variants
-    cfg = cfg.model_copy(
-        update={"localization": cfg.localization.model_copy(update={"variant": forward_variant(variants)})}
-    )
     prior, model = load_world_inputs(prior_dir, cfg)
     sim = simulate_sequence(prior, model, cfg, trajectory, cfg.seed, progress=False)
-    run = localize_sequence(
-        prior, sim.meta, sim.frames, cfg, seed=cfg.seed * 1000 + 17 * trajectory + repeat, show_progress=False
-    )
+    forward = {}
+    for online in forward_variants(variants):
+        online_cfg = cfg.model_copy(update={"localization": cfg.localization.model_copy(update={"variant": online})})
+        forward[online] = localize_sequence(
+            prior,
+            sim.meta,
+            sim.frames,
+            online_cfg,
+            seed=cfg.seed * 1000 + 17 * trajectory + repeat,
+            show_progress=False,
+            prior_dir=prior_dir,
+        )
+    run = next(iter(forward.values()))  # every forward pass runs the same filter: its estimate is the smcl one
     assert run.gt_poses is not None and run.gt_rooms is not None
-    tracks = {"smcl": run.filter, "smcl+graph": run.graph}
+    tracks = {"smcl": run.filter, **{online: r.graph for online, r in forward.items() if r.graph is not None}}
     if "refine" in variants:
-        tracks["refine"] = refine_run(run, prior, cfg).estimate
+        tracks["refine"] = refine_run(forward["smcl+graph"], prior, cfg).estimate
     results = []
     for variant in variants:
         track = tracks[variant]
-        assert track is not None
+        fine = forward[variant].fine if variant in forward else None
         metrics = track_metrics(track, run.gt_poses, run.gt_rooms)
         assert metrics is not None
         results.append(
@@ -91,6 +104,8 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
                 inside_ellipse(track.poses, track.covariances, run.gt_poses),
                 track.step_ms,
                 metrics.to_dict(),
+                fine.accepted[fine.ran].astype(float) if fine is not None else None,
+                fine.rejection_counts() if fine is not None else None,
             )
         )
     return results
@@ -104,6 +119,16 @@ def _pooled(runs: list[RunResult]) -> dict:
     converged = [r.metrics["steps_to_converge"] for r in runs]
     conv_trans = [r.metrics["trans_err_conv_m"] for r in runs if r.metrics["trans_err_conv_m"] is not None]
     conv_orient = [r.metrics["orient_err_conv_deg"] for r in runs if r.metrics["orient_err_conv_deg"] is not None]
+    icp: dict = {}
+    if runs and all(r.icp_accepted is not None for r in runs):
+        registered = np.concatenate([r.icp_accepted for r in runs if r.icp_accepted is not None])
+        rejections: Counter[str] = Counter()
+        for r in runs:
+            rejections.update(r.icp_rejections or {})
+        icp = {
+            "icp_accepted_share": float(registered.mean()) if len(registered) else None,
+            "icp_rejections": dict(rejections.most_common()),
+        }
     return {
         "trans_err_m": float(trans.mean()),
         "trans_err_std_m": float(trans.std()),
@@ -118,6 +143,7 @@ def _pooled(runs: list[RunResult]) -> dict:
         "trans_err_conv_m": float(np.mean(conv_trans)) if conv_trans else None,
         "orient_err_conv_deg": float(np.mean(conv_orient)) if conv_orient else None,
         "ellipse_coverage": float(np.concatenate([r.inside_ellipse95 for r in runs]).mean()),
+        **icp,
     }
 
 

@@ -28,7 +28,7 @@ POSE_COLUMNS = [
 GT_COLUMNS = ["gt_x", "gt_y", "gt_yaw", "gt_room"]
 STEP_COLUMNS = [
     "step", "timestamp_s", *POSE_COLUMNS, "converged", "ess", "n_observations", "filter_ms", "perception_ms",
-    "n_modes", "mode_id", "mode_probability", "graph_ms", *GT_COLUMNS,
+    "n_modes", "mode_id", "mode_probability", "graph_ms", "icp_accepted", "icp_ms", *GT_COLUMNS,
 ]  # fmt: skip
 MODE_COLUMNS = [
     "step", "rank", "mode_id", "probability", "particle_weight", "normalised_residual", "n_matches", *POSE_COLUMNS,
@@ -89,29 +89,35 @@ def _main_storey(storeys: np.ndarray) -> int:
 
 
 def write_run(run: LocalizationRun, prior: BimPrior, out_dir: str | Path, config_yaml: str, title: str) -> list[Path]:
-    """Write estimate.txt (TUM), steps.csv, modes.csv (graph variants), metrics.json (with ground truth),
-    snapshots.npz, config.yaml and the figures."""
+    """Write estimate.txt (TUM), steps.csv, modes.csv (graph variants), metrics.json (with ground truth; the full
+    variant adds the fine stage's acceptance and rejection counts under "icp"), snapshots.npz, config.yaml and the
+    figures. steps.csv's icp_accepted is 1 or 0 where the fine stage ran (variant full, a mode existed), else empty.
+    """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out_dir / "config.yaml", config_yaml)
     write_tum_trajectory(out_dir / "estimate.txt", run.timestamps_s, run.poses, comment=f"bimfactor {run.variant}")
-    out, graph_ms = run.output, run.output.step_ms - run.filter.step_ms
+    out, fine = run.output, run.fine
+    fine_ms = fine.time_ms if fine is not None else np.zeros(len(out.poses))
+    graph_ms = out.step_ms - run.filter.step_ms - fine_ms
     rows = []
     for i in range(len(out.poses)):
         modes = run.modes[i] if run.graph is not None else None
         best = [modes[0].mode_id, _num(modes[0].probability)] if modes else ["", ""]
+        icp = [int(fine.accepted[i]), f"{fine_ms[i]:.3f}"] if fine is not None and fine.ran[i] else ["", ""]
         rows.append(
             [i, _num(run.timestamps_s[i]), *_pose_cells(out.poses[i], out.storeys[i], out.rooms[i], out.covariances[i]),
              int(run.converged[i]), _num(run.ess[i]), int(run.n_observations[i]), f"{run.filter.step_ms[i]:.3f}",
              f"{run.perception_ms[i]:.3f}", "" if modes is None else len(modes), *best,
-             "" if modes is None else f"{graph_ms[i]:.3f}", *_gt_cells(run.gt_poses, run.gt_rooms, i)]
+             "" if modes is None else f"{graph_ms[i]:.3f}", *icp, *_gt_cells(run.gt_poses, run.gt_rooms, i)]
         )  # fmt: skip
     write_text_atomic(out_dir / "steps.csv", _csv(STEP_COLUMNS, rows))
     if run.graph is not None:
         write_text_atomic(out_dir / "modes.csv", _csv(MODE_COLUMNS, _mode_rows(run, prior)))
     metrics = run_metrics(run)
     if metrics is not None:
-        write_text_atomic(out_dir / "metrics.json", json.dumps({"variant": run.variant, **metrics.to_dict()}, indent=2))
+        summary = {"variant": run.variant, **metrics.to_dict(), **({"icp": fine.summary()} if fine is not None else {})}
+        write_text_atomic(out_dir / "metrics.json", json.dumps(summary, indent=2))
     with atomic_path(out_dir / "snapshots.npz") as tmp, tmp.open("wb") as fh:
         np.savez_compressed(
             fh,
