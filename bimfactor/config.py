@@ -326,6 +326,7 @@ class RegistrationConfig(_Strict):
         ge=0.0, le=1.0, description="Another place is as good when its fitness is at most this much lower ..."
     )
     ambiguity_rmse_ratio: float = Field(ge=1.0, description="... and its inlier RMSE at most this times the result's.")
+    ambiguity_probe_points: int = Field(ge=10, description="Probes register this many scan points (evenly strided).")
     factor_min_sigma_m: float = Field(gt=0.0, description="Fine factor: σ floor added to x and y (ICP overconfident).")
     factor_min_sigma_deg: float = Field(gt=0.0, description="Fine factor: σ floor added to yaw.")
     success_trans_m: float = Field(gt=0.0, description="Comparison: a registration succeeds below this error ...")

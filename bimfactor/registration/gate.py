@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bimfactor.config import RegistrationConfig
-from bimfactor.registration.icp import Registrar, RegistrationResult
+from bimfactor.registration.icp import Registrar, RegistrationResult, thin
 from bimfactor.registration.surface import SurfaceModel
 from bimfactor.types import wrap_angle
 
@@ -189,8 +189,9 @@ def gate_with_probes(
         return decision
     t0 = time.perf_counter()
     alternatives = []
+    probe_scan = thin(np.asarray(scan_base, dtype=np.float64), cfg.ambiguity_probe_points)
     for start in probe_starts(result, cfg, T_world_base_init, covariance_world):
-        probe = registrar.register(scan_base, surface, start)
+        probe = registrar.register(probe_scan, surface, start)
         ruled_out = covariance_world is not None and not (
             correction_chi2(probe.pose, T_world_base_init, covariance_world) <= cfg.consistency_chi2
         )

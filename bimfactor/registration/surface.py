@@ -41,6 +41,7 @@ class SurfaceModel:
     _cloud: object = field(default=None, init=False, repr=False)
     _kdtree: object = field(default=None, init=False, repr=False)
     _nn_tree: object = field(default=None, init=False, repr=False)
+    _xy_tree: object = field(default=None, init=False, repr=False)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -71,10 +72,21 @@ class SurfaceModel:
             self._nn_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
         return self._nn_tree
 
+    @property
+    def xy_tree(self):
+        """A `scipy.spatial.cKDTree` over the samples' (x, y), built once: crops without a pass over every sample."""
+        if self._xy_tree is None:
+            from scipy.spatial import cKDTree
+
+            self._xy_tree = cKDTree(self.points[:, :2], balanced_tree=False, compact_nodes=False)
+        return self._xy_tree
+
     def crop_indices(self, center_xy: np.ndarray, radius_m: float) -> np.ndarray:
-        """(K,) indices of the samples within `radius_m` of `center_xy` (2,) in the xy-plane."""
-        d2 = np.sum((self.points[:, :2] - np.asarray(center_xy, float)[:2]) ** 2, axis=1)
-        return np.flatnonzero(d2 <= radius_m**2)
+        """(K,) sorted indices of the samples within `radius_m` of `center_xy` (2,) in the xy-plane."""
+        if len(self.points) == 0:
+            return np.zeros(0, dtype=np.int64)
+        found = self.xy_tree.query_ball_point(np.asarray(center_xy, float)[:2], radius_m)
+        return np.sort(np.asarray(found, dtype=np.int64))
 
     def crop(self, center_xy: np.ndarray, radius_m: float) -> SurfaceModel:
         """The samples within `radius_m` of `center_xy` in the xy-plane, as a new (smaller) model."""

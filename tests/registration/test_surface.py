@@ -111,3 +111,15 @@ def test_facing_culls_back_faces() -> None:
     assert not np.any(np.abs(seen.points[:, 1] - 0.2) < 1e-9)  # the far face y = 0.2 is culled
     assert np.any(np.abs(seen.points[:, 1]) < 1e-9)
     assert len(surface.facing(np.array([2.0, -3.0]), radius_m=1.0)) == 0  # nothing within 1 m
+
+
+def test_crop_indices_are_the_samples_within_the_radius() -> None:
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-20.0, 20.0, (5000, 3))
+    surface = SurfaceModel(0, 0.0, 3.0, points, np.tile([1.0, 0.0, 0.0], (5000, 1)), np.zeros(5000, np.int32))
+    center = np.array([3.0, -2.0])
+    within = np.flatnonzero(np.sum((points[:, :2] - center) ** 2, axis=1) <= 6.5**2)
+    np.testing.assert_array_equal(surface.crop_indices(center, 6.5), within)
+    assert len(surface.crop(center, 6.5)) == len(within) > 0
+    empty = SurfaceModel(0, 0.0, 3.0, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int32))
+    assert len(empty.crop_indices(center, 6.5)) == 0
