@@ -492,6 +492,12 @@ def test_bench_paper_scores_every_variant(tmp_path: Path, cli_config_args: list[
         assert 0.0 <= report[variant]["average"]["ellipse_coverage"] <= 1.0
         assert result.stdout.count(f"\n{variant}\n") + result.stdout.startswith(f"{variant}\n") == 1
     assert_one_line_error(invoke("bench", "paper", "-o", out, "--variant", "icp"), contains="evaluation.variants")
+    full = invoke("bench", "paper", "-o", tmp_path / "full", "--workers", "1", "--variant", "smcl+graph", "--variant",
+                  "full", *[a for t in tiny for a in ("--set", t)], *cli_config_args)  # fmt: skip
+    assert full.exit_code == 0, full.output
+    report = json.loads((tmp_path / "full" / "results.json").read_text())
+    assert report["variants"] == ["smcl+graph", "full"]
+    assert set(report["full"]["average"]) >= keys | {"icp_accepted_share", "icp_rejections"}
 
 
 def test_compare_registrars_writes_summary_and_figure(
