@@ -1,5 +1,8 @@
 """One exception tree for the whole library; the CLI maps it to one-line messages and exit codes."""
 
+import importlib
+from types import ModuleType
+
 
 class BimfactorError(Exception):
     """Base of every error bimfactor raises on purpose."""
@@ -29,3 +32,11 @@ class DependencyError(BimfactorError):
     """An optional dependency or model weight file that this code path needs is missing."""
 
     exit_code = 3
+
+
+def import_optional(module: str, what: str, install_hint: str) -> ModuleType:
+    """Import an optional library that `what` needs, or raise DependencyError naming it with the install hint."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise DependencyError(f"{what} needs the Python package '{exc.name or module}': {install_hint}") from exc

@@ -10,7 +10,6 @@ Each class also has `from_model` taking an already built model, so tests can run
 
 from __future__ import annotations
 
-import importlib
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -20,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from bimfactor import errors
 from bimfactor.config import Config
 from bimfactor.embed.text import TextEmbedder
 from bimfactor.errors import ConfigError, DependencyError
@@ -44,10 +44,7 @@ def require_weights(path: str, what: str, config_key: str) -> Path:
 
 def import_optional(module: str, what: str) -> ModuleType:
     """Import an optional library of the vlm backend, or raise DependencyError with the install hint."""
-    try:
-        return importlib.import_module(module)
-    except ImportError as exc:
-        raise DependencyError(f"{what} needs the Python package '{exc.name or module}': {INSTALL_HINT}") from exc
+    return errors.import_optional(module, what, INSTALL_HINT)
 
 
 class YoloWorldDetector:

@@ -17,7 +17,7 @@ from types import ModuleType
 import numpy as np
 
 from bimfactor.config import RegistrationConfig
-from bimfactor.errors import DependencyError
+from bimfactor.errors import import_optional
 from bimfactor.registration.icp import CentredRegistrar
 from bimfactor.registration.surface import SurfaceModel
 
@@ -39,11 +39,7 @@ def is_available(name: str) -> bool:
 
 def require(name: str) -> ModuleType:
     """The library of the optional registrar `name`, or a DependencyError with the install hint."""
-    module = OPTIONAL_MODULES[name]
-    try:
-        return importlib.import_module(module)
-    except ImportError as exc:
-        raise DependencyError(f"registrar '{name}' needs the Python package '{module}': {INSTALL_HINT}") from exc
+    return import_optional(OPTIONAL_MODULES[name], f"registrar '{name}'", INSTALL_HINT)
 
 
 class SmallGicp(CentredRegistrar):
