@@ -600,6 +600,17 @@ def _variant_overrides(name: str, variants: list[str] | str | None) -> list[str]
     return [f"{name}={json.dumps(variants)}"]
 
 
+def _write_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) -> Path:
+    """OUT/results.json ({"benchmark": name, **result}) and OUT/config.yaml, each written atomically."""
+    from bimfactor.io.atomic import write_text_atomic
+
+    output.mkdir(parents=True, exist_ok=True)
+    results = output / "results.json"
+    write_text_atomic(results, json.dumps({"benchmark": name, **result}, indent=2, default=float))
+    write_text_atomic(output / "config.yaml", cfg.dump_yaml())
+    return results
+
+
 def _metrics_line(metrics: Any) -> str:
     """One line of a run's TrajectoryMetrics."""
     return (
@@ -899,7 +910,6 @@ def bench_registration(
         cfg = _start(config, overrides, verbose)
         from bimfactor.bim.prior import build_prior
         from bimfactor.bim.synth import write_building
-        from bimfactor.io.atomic import write_text_atomic
         from bimfactor.registration.compare import benchmark_registration
         from bimfactor.sim.simulate import load_world_inputs
 
@@ -910,12 +920,9 @@ def bench_registration(
             build_prior(output / "paper-floor.ifc", cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
         prior, model = load_world_inputs(prior_dir, cfg)
         result = benchmark_registration(prior, model, cfg, method, n_keyframes=keyframes, repeats=repeats)
-        write_text_atomic(
-            output / "results.json", json.dumps({"benchmark": "registration", **result}, indent=2, default=float)
-        )
-        write_text_atomic(output / "config.yaml", cfg.dump_yaml())
+        results = _write_bench(output, "registration", result, cfg)
         typer.echo(json.dumps(result, indent=1, default=float))
-        typer.echo(f"results: {output / 'results.json'}")
+        typer.echo(f"results: {results}")
 
 
 @bench_app.command("smcl", short_help="Particle-filter step time (predict + update + resample) against M.")
@@ -940,7 +947,6 @@ def bench_smcl(
         cfg = _start(config, overrides, verbose)
         from bimfactor.bim.prior import build_prior
         from bimfactor.bim.synth import write_building
-        from bimfactor.io.atomic import write_text_atomic
         from bimfactor.localization.smcl import benchmark_step
 
         output.mkdir(parents=True, exist_ok=True)
@@ -948,11 +954,10 @@ def bench_smcl(
         prior = build_prior(output / "paper-floor.ifc", cfg)
         assert prior.visibility is not None
         rows = benchmark_step(prior, prior.visibility, cfg.smcl, n_obs=observations)
-        write_text_atomic(output / "results.json", json.dumps({"benchmark": "smcl", "rows": rows}, indent=2))
-        write_text_atomic(output / "config.yaml", cfg.dump_yaml())
+        results = _write_bench(output, "smcl", {"rows": rows}, cfg)
         for row in rows:
             typer.echo("  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
-        typer.echo(f"results: {output / 'results.json'}")
+        typer.echo(f"results: {results}")
 
 
 @bench_app.command("backend", short_help="Pose-graph back-end update time of all modes per keyframe.")
@@ -977,12 +982,7 @@ def bench_backend(
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
         from bimfactor.backend import benchmark_backend
-        from bimfactor.io.atomic import write_text_atomic
 
         result = benchmark_backend(cfg.backend, n_modes=modes, n_keyframes=keyframes)
-        output.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(
-            output / "results.json", json.dumps({"benchmark": "backend", **result}, indent=2, default=float)
-        )
-        write_text_atomic(output / "config.yaml", cfg.dump_yaml())
+        _write_bench(output, "backend", result, cfg)
         typer.echo(json.dumps(result, indent=1, default=float))
