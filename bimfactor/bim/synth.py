@@ -653,12 +653,17 @@ def _corridor_storey(
         )
         # Windows: evenly spread over the outer wall, one more on the end wall of a corner room.
         outer_y = y0 if side == "south" else y1
-        slot = inner / max(plan.outer_windows, 1)
-        for k in range(plan.outer_windows):
-            win_width = 1.5 if plan.fixed_windows else _r(rng.uniform(1.2, 2.0))
-            play = 0.0 if plan.fixed_windows else max(slot / 2 - win_width / 2 - OPENING_END_MARGIN_M, 0.0) / 2
-            x = x0 + t / 2 + slot * (k + 0.5) + rng.uniform(-play, play)
-            windows.append(_window(walls, (_r(x), outer_y), win_width, room.name, first_window + len(windows)))
+        windows += _room_windows(
+            walls,
+            room.name,
+            "h",
+            (x0, x1),
+            outer_y,
+            plan.outer_windows,
+            first_window + len(windows),
+            rng,
+            fixed=plan.fixed_windows,
+        )
         if plan.end_window:
             end_x = x_west if x0 == x_west else x_east
             win_width = _r(rng.uniform(1.2, 2.0))
@@ -755,14 +760,16 @@ def _room_windows(
     count: int,
     first: int,
     rng: np.random.Generator,
+    fixed: bool = False,
 ) -> list[WindowSpec]:
-    """`count` windows spread over the span (lo, hi centreline) of the exterior wall on line `at` ("h" or "v")."""
+    """`count` windows spread over the span (lo, hi centreline) of the exterior wall on line `at` ("h" or "v");
+    `fixed`: centred windows of one width (identical rooms)."""
     t = WALL_THICKNESS_M
     slot = (span[1] - span[0] - t) / max(count, 1)
     windows = []
     for k in range(count):
-        width = _r(rng.uniform(1.2, 2.0))
-        play = max(slot / 2 - width / 2 - OPENING_END_MARGIN_M, 0.0) / 2
+        width = 1.5 if fixed else _r(rng.uniform(1.2, 2.0))
+        play = 0.0 if fixed else max(slot / 2 - width / 2 - OPENING_END_MARGIN_M, 0.0) / 2
         along = _r(span[0] + t / 2 + slot * (k + 0.5) + rng.uniform(-play, play))
         center = (along, at) if side == "h" else (at, along)
         windows.append(_window(walls, center, width, room, first + k))
