@@ -268,19 +268,18 @@ class TrajectorySimulator:
             )
         lookahead = 2 * math.sqrt(2) * (max(tcfg.inflation_m, radius) - radius)  # corner cut ≤ inflation margin
         self.lookahead_m = max(MIN_LOOKAHEAD_M, lookahead)
-        self.views = {index: self._views(graph) for index, graph in self.graphs.items()}
+        self.views: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        if tcfg.route == "viewpoints":
+            visibility = prior.visibility or VisibilityTable.build(prior, cfg.smcl, progress=False)
+            self.views = {index: self._views(graph, visibility) for index, graph in self.graphs.items()}
 
-    def _views(self, graph: NavGraph) -> tuple[np.ndarray, np.ndarray]:
-        """(M,) objects in view within `view_radius_m` of each node (all-ones for `rooms` routes) and (M, 2) their
-        centroid (NaN where none): what a viewpoint looks at. Doors are left out; line of sight is the prior's."""
+    def _views(self, graph: NavGraph, visibility: VisibilityTable) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) objects in view within `view_radius_m` of each node and (M, 2) their centroid (NaN where none): what
+        a viewpoint looks at. Doors are left out; line of sight is the prior's visibility table."""
         tcfg = self.cfg.sim.trajectory
-        count = np.ones(len(graph.node_xy), np.int64)
         centroid = np.full((len(graph.node_xy), 2), np.nan)
-        if tcfg.route == "rooms":
-            return count, centroid
-        visibility = self.prior.visibility or VisibilityTable.build(self.prior, self.cfg.smcl, progress=False)
         offsets, ids = visibility.candidates(graph.node_xy, graph.storey_index)
-        xy = np.asarray([o.position_m[:2] for o in self.prior.objects]).reshape(-1, 2)
+        xy = self.prior.object_positions()[:, :2]
         lookable = np.asarray([o.label != "door" for o in self.prior.objects], bool)
         owner = np.repeat(np.arange(len(graph.node_xy)), np.diff(offsets))
         near = lookable[ids] & (np.hypot(*(xy[ids] - graph.node_xy[owner]).T) <= tcfg.view_radius_m)
@@ -292,12 +291,15 @@ class TrajectorySimulator:
         return count, centroid
 
     def _has_viewpoint(self, storey: int, room: int) -> bool:
-        graph = self.graphs[storey]
-        in_room = graph.node_room == room
+        if storey not in self.views:  # `rooms` routes
+            return False
+        in_room = self.graphs[storey].node_room == room
         return bool((self.views[storey][0][in_room] >= self.cfg.sim.trajectory.min_view_objects).any())
 
     def viewpoints(self, storey: int, nodes: np.ndarray) -> np.ndarray:
         """The nodes among `nodes` that are viewpoints, or all of them when none is (or routes are `rooms`)."""
+        if storey not in self.views:
+            return nodes
         good = nodes[self.views[storey][0][nodes] >= self.cfg.sim.trajectory.min_view_objects]
         return good if len(good) else nodes
 
@@ -414,7 +416,8 @@ class _Driver:
 
     def _look_at(self, node: int) -> float | None:
         """Heading from a viewpoint node to the centroid of what it sees; None on `rooms` routes or nothing seen."""
-        centroid = self.sim.views[self.graph.storey_index][1][node]
+        views = self.sim.views.get(self.graph.storey_index)
+        centroid = views[1][node] if views is not None else np.full(2, np.nan)
         if not np.isfinite(centroid).all():
             return None
         d = centroid - self.graph.node_xy[node]
