@@ -110,7 +110,7 @@ class Door:
     @property
     def connects(self) -> bool:
         """True when the door joins two different known places (two rooms, or a room and outside)."""
-        return self.room_a != self.room_b and room_ops.NO_ROOM not in (self.room_a, self.room_b)
+        return room_ops.joins(self.room_a, self.room_b)
 
 
 @dataclass
@@ -400,11 +400,16 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
 
 
 def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_room_id: int, first_door_id: int):
-    """Rooms, doors and layers of one storey; storeys with neither doors nor spaces (foundations) get no rooms."""
+    """Rooms, doors and layers of one storey; storeys with neither doors nor spaces (foundations) get no rooms.
+
+    Flood-fill rooms are the regions a door joins to another place (`rooms.door_connected_regions`).
+    """
     rcfg = cfg.bim.rooms
     storey = grid.storey
-    sealed = room_ops.seal_doors(grid.structure, [g for _, g in storey_doors], spec, rcfg.door_seal_margin_m)
+    door_geoms = [g for _, g in storey_doors]
+    sealed = room_ops.seal_doors(grid.structure, door_geoms, spec, rcfg.door_seal_margin_m)
     flood, outside = room_ops.floodfill_rooms(sealed, spec, rcfg)
+    flood = room_ops.door_connected_regions(flood, door_geoms, outside, spec, rcfg.door_probe_m)
     space_regions = room_ops.space_rooms(storey_spaces, spec, ~grid.structure)
     match = None
     if space_regions:
@@ -442,7 +447,7 @@ def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_ro
     doors = []
     for element, geom in storey_doors:
         a, b = room_ops.door_sides(geom, labels, spec, rcfg.door_probe_m)
-        if element is None and (a == b or room_ops.NO_ROOM in (a, b)):
+        if element is None and not room_ops.joins(a, b):
             continue  # a lintel strip that joins nothing is no passage
         kind = "door" if element is not None else "passage"
         guid = element.guid if element is not None else ""

@@ -129,6 +129,28 @@ def floodfill_rooms(sealed: np.ndarray, spec: GridSpec, cfg: RoomsConfig) -> tup
     return [RoomRegion(labels == k, "floodfill") for k in keep], outside
 
 
+def door_connected_regions(
+    regions: list[RoomRegion], doors: list[DoorGeometry], outside: np.ndarray, spec: GridSpec, probe_m: float
+) -> list[RoomRegion]:
+    """The flood-fill regions a door (or leafless passage) joins to another place, or all when no door joins any.
+
+    With the doors closed, flood fill also returns enclosed space no door leads into: a courtyard, a walled
+    shaft, an unmodelled block. A robot never gets there, so where the storey has door-connected regions at
+    all, the door-less ones are no rooms (and no navigable space). A storey where no door joins any region
+    (a one-room building, a model whose doors are missing on that storey) keeps all its regions: there the
+    doors are missing from the model, and dropping every region would leave the storey with no rooms. A door
+    leading outside counts; flood-fill regions never touch each other, so no open-plan boundary joins them.
+    """
+    labels = label_map(regions, list(range(len(regions))), outside)
+    reached: set[int] = set()
+    for door in doors:
+        a, b = door_sides(door, labels, spec, probe_m)
+        if joins(a, b):
+            reached.update((a, b))
+    reached.discard(OUTSIDE)
+    return [region for k, region in enumerate(regions) if k in reached] if reached else regions
+
+
 def space_rooms(spaces: list[IfcElement], spec: GridSpec, free: np.ndarray) -> list[RoomRegion]:
     """Rooms from IfcSpace footprints, restricted to free (non-structure) cells."""
     regions = []
@@ -191,6 +213,11 @@ def open_boundaries(labels: np.ndarray, spec: GridSpec, min_length_m: float) -> 
         geom = _rect_geometry(spec.cell_to_world(cells).astype(np.float32))
         out.append((int(pair[0]), int(pair[1]), DoorGeometry(geom.center_xy, geom.axis_xy, geom.width_m, 0.0)))
     return out
+
+
+def joins(a: int, b: int) -> bool:
+    """True when a door's two sides are two different known places (two rooms, or a room and outside)."""
+    return a != b and NO_ROOM not in (a, b)
 
 
 def door_sides(door: DoorGeometry, labels: np.ndarray, spec: GridSpec, probe_m: float) -> tuple[int, int]:

@@ -92,11 +92,17 @@ def test_room_types_agree_with_the_architects_names(prior_of, name: str, min_acc
 def test_paper_floor_has_the_paper_statistics(prior_of) -> None:
     prior = prior_of("synth:paper-floor")
     assert len(prior.storeys) == 1 and len(prior.rooms) == 7
-    # Flood fill finds the 7 rooms too, and besides them only door-less space: the courtyard, the unmodelled band
+    # Flood fill finds the 7 rooms and nothing else: no door leads into the courtyard or the walled, unmodelled
+    # blocks of the ring, so they are neither rooms nor navigable space
     flood = prior_of("synth:paper-floor", rooms="floodfill")
+    assert len(flood.rooms) == 7
     assert all(iou >= 0.5 for iou in flood.room_matches[0].ious) and len(flood.room_matches[0].ious) == 7
-    with_doors = {d.room_a for d in flood.doors} | {d.room_b for d in flood.doors}
-    assert len([r for r in flood.rooms if r.id in with_doors]) == 7
+    with_doors = {d.room_a for d in flood.doors if d.connects} | {d.room_b for d in flood.doors if d.connects}
+    assert {r.id for r in flood.rooms} <= with_doors
+    x0, x1, y0, y1 = flood.grid.extent
+    assert flood.room_at(np.array([[(x0 + x1) / 2, (y0 + y1) / 2]]))[0] == NO_ROOM  # the courtyard
+    navigable, space_navigable = flood.storeys[0].navigable, prior.storeys[0].navigable
+    assert (navigable & space_navigable).sum() / (navigable | space_navigable).sum() > 0.99
     assert len(prior.objects) == 43
     assert len({o.label for o in prior.objects}) == 14
     assert all(o.room_id >= 0 for o in prior.objects if o.label != "door")

@@ -82,3 +82,47 @@ def test_ifcspace_match_iou() -> None:
     spaces = [R.RoomRegion(regions[0].mask, "ifcspace"), R.RoomRegion(regions[1].mask & half, "ifcspace")]
     ious = R.match_rooms(regions, spaces, SPEC.resolution_m)
     assert ious[0] == 1.0 and 0.0 < ious[1] <= 1.0
+
+
+def _closet(outer_door: bool = False) -> list:
+    """A 1 × 4 m walled closet east of `two_rooms` (x 8.4..9.4), with a door in its east wall when `outer_door`."""
+    h = 2.7
+    walls = [box("IfcWall", (8.4, -0.2, 0), (9.6, 0.0, h)), box("IfcWall", (8.4, 4.0, 0), (9.6, 4.2, h))]
+    if not outer_door:
+        return [*walls, box("IfcWall", (9.4, 0.0, 0), (9.6, 4.0, h))]
+    return [
+        *walls,
+        box("IfcWall", (9.4, 0.0, 0), (9.6, 1.5, h)),
+        box("IfcWall", (9.4, 2.5, 0), (9.6, 4.0, h)),
+        box("IfcDoor", (9.45, 1.55, 0), (9.55, 2.45, 2.05), name="Door"),
+    ]
+
+
+def _door_connected_areas(elements) -> tuple[list[float], list[float]]:
+    """Areas (m², sorted) of the flood-fill regions, and of those `door_connected_regions` keeps."""
+    regions, labels, doors = _rooms(elements)
+    kept = R.door_connected_regions(regions, doors, labels == R.OUTSIDE, SPEC, CFG.bim.rooms.door_probe_m)
+
+    def areas(found: list[R.RoomRegion]) -> list[float]:
+        return sorted(float(r.mask.sum() * SPEC.resolution_m**2) for r in found)
+
+    return areas(regions), areas(kept)
+
+
+def test_a_walled_region_no_door_reaches_is_dropped_beside_door_connected_rooms() -> None:
+    found, kept = _door_connected_areas(two_rooms() + _closet())
+    np.testing.assert_allclose(found, [4.0, 16.0, 16.0], atol=0.5)
+    np.testing.assert_allclose(kept, [16.0, 16.0], atol=0.5)
+
+
+def test_a_door_to_outside_connects_a_region() -> None:
+    found, kept = _door_connected_areas(two_rooms() + _closet(outer_door=True))
+    assert len(found) == 3 and kept == found
+
+
+def test_a_storey_without_doors_keeps_all_its_regions() -> None:
+    found, kept = _door_connected_areas(two_rooms(gap=False) + _closet())
+    np.testing.assert_allclose(found, [4.0, 16.0, 16.0], atol=0.5)
+    assert kept == found
+    one_room, kept = _door_connected_areas(two_rooms(door=False))
+    assert len(one_room) == 1 and kept == one_room
