@@ -172,6 +172,10 @@ class PerceptionConfig(_Strict):
     prune_every: int = Field(ge=1, description="Prune the graph every this many frames.")
     prune_size_ratio: float = Field(ge=0.0, description="Prune nodes with fewer voxels than this × the median node.")
     prune_stale_frames: int = Field(ge=1, description="Prune nodes seen once and not for this many frames.")
+    observation_nodes: Literal["in_view", "detected"] = Field(
+        description="What the localizer is given each frame: the graph's nodes in view, or those of them "
+        "detected in this frame (the paper's 'whenever new observations arrive')."
+    )
     edge_distance_m: float = Field(gt=0.0, description="Nodes whose centroids are closer than this are joined.")
 
 
@@ -179,12 +183,19 @@ class SmclConfig(_Strict):
     num_particles: int = Field(ge=1, description="M (paper: 1000).")
     fov_deg: float = Field(gt=0.0, le=360.0, description="Visibility sector field of view (paper: 90°).")
     visible_radius_m: float = Field(gt=0.0, description="Visibility sector radius r.")
+    fov_extent: bool = Field(
+        description="An object is in view when any of its footprint is (false: its centre, the literal reading)."
+    )
     ess_threshold: float = Field(gt=0.0, le=1.0, description="δ_ess, resample when ESS < δ_ess·M (paper: 0.5).")
     sigma_trans_m: float = Field(ge=0.0, description="σ_trans, motion noise (paper: 0.2 m).")
     sigma_rot_deg: float = Field(ge=0.0, description="σ_rot, motion noise (paper: 10°).")
     sigma_d_m: float = Field(gt=0.0, description="σ_d, distance similarity scale (paper: 1.2).")
     kappa_alpha: float = Field(ge=0.0, description="κ_α, bearing similarity concentration (paper: 5).")
     visibility_cell_m: float = Field(gt=0.0, description="Lattice of the precomputed visible-object table.")
+    semantic: Literal["cosine", "softmax"] = Field(
+        description="φ_sem: the paper's cosine, or the softmax class probability over the prior's labels."
+    )
+    semantic_softmax_temperature: float = Field(gt=0.0, description="τ of the softmax φ_sem (CLIP: 0.01).")
     semantic_threshold: float = Field(
         ge=0.0, le=1.0, description="Pairs with cos(f_j, C_k) below this score 0 (depends on the embedding space)."
     )
@@ -193,6 +204,10 @@ class SmclConfig(_Strict):
         ge=0.0, le=1.0, description="Weight factor for a particle outside navigable space after a prediction."
     )
     augmented: bool = Field(description="Augmented MCL random-particle injection; false is the paper's filter.")
+    injection: Literal["uniform", "observations"] = Field(
+        description="Where augmented MCL's random particles come from: free space, or poses that explain one "
+        "of the step's observations (sensor resetting)."
+    )
     alpha_slow: float = Field(gt=0.0, le=1.0, description="Augmented MCL long-term likelihood average rate.")
     alpha_fast: float = Field(gt=0.0, le=1.0, description="Augmented MCL short-term likelihood average rate.")
     converged_pos_std_m: float = Field(gt=0.0, description="Converged when the position std is below this ...")

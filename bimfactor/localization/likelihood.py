@@ -175,6 +175,12 @@ class SemanticLikelihood:
         self.cfg = cfg
         self.object_xy = prior.object_positions()[:, :2].copy()
         self.object_embeddings = np.asarray(prior.object_embeddings, np.float32)
+        # The label vocabulary of the prior: softmax φ_sem normalises over its distinct label embeddings.
+        labels = [o.label for o in prior.objects]
+        vocabulary = sorted(set(labels))
+        self.object_label = np.asarray([vocabulary.index(label) for label in labels], np.int64)
+        first = [labels.index(label) for label in vocabulary]
+        self.label_embeddings = self.object_embeddings[first] if first else self.object_embeddings[:0]
         self.radius_m = min(cfg.visible_radius_m, visibility.radius_m)
         if cfg.visible_radius_m > visibility.radius_m:
             log.warning(
@@ -184,7 +190,25 @@ class SemanticLikelihood:
                 visibility.radius_m,
             )
         self.half_fov_rad = 0.5 * np.deg2rad(cfg.fov_deg)
+        # Footprint radius: half the diagonal of the object's axis-aligned footprint (0: centre-only FOV test).
+        sizes = np.asarray([o.size_m[:2] for o in prior.objects], np.float64).reshape(-1, 2)
+        self.object_radius_m = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1]) if cfg.fov_extent else np.zeros(len(sizes))
         self.last_stats = ScoreStats()
+
+    def semantic(self, observations: Observations) -> np.ndarray:
+        """(K, N) φ_sem of K observations against the N BIM objects (`smcl.semantic`).
+
+        cosine: the paper's cos(f_j, C_k). softmax: p(label of k | f_j), the cosines to the prior's distinct
+        label embeddings turned into class probabilities at `semantic_softmax_temperature` (CLIP's zero-shot rule).
+        """
+        if self.cfg.semantic == "cosine" or len(observations) == 0:
+            return semantic_similarity(observations.embeddings, self.object_embeddings)
+        tau = self.cfg.semantic_softmax_temperature
+        logits = semantic_similarity(observations.embeddings, self.label_embeddings) / tau
+        logits -= logits.max(axis=1, keepdims=True)
+        p = np.exp(logits)
+        p /= p.sum(axis=1, keepdims=True)
+        return p[:, self.object_label].astype(np.float32)
 
     def pair_scores(
         self, particles: np.ndarray, storeys: np.ndarray, observations: Observations
@@ -198,8 +222,10 @@ class SemanticLikelihood:
         owner = np.repeat(np.arange(M), np.diff(offsets))
         # Polar coordinates of every listed candidate from its particle; keep those within r and the FOV.
         d, alpha = polar_coordinates(particles[owner], self.object_xy[ids])
-        keep = (d <= self.radius_m) & (np.abs(alpha) <= self.half_fov_rad)
+        keep = (d <= self.radius_m) & (np.abs(alpha) <= self.half_fov_rad + self._half_extent(ids, d))
         owner, ids, d, alpha = owner[keep], ids[keep], d[keep], alpha[keep]
+        # A partly seen object is observed where its seen part is: inside the FOV, nearest its centre.
+        alpha = np.clip(alpha, -self.half_fov_rad, self.half_fov_rad)
         stats.in_view = len(ids)
         if K == 0 or len(ids) == 0:
             self.last_stats = stats
@@ -208,7 +234,7 @@ class SemanticLikelihood:
         present = np.flatnonzero(np.bincount(ids, minlength=len(self.object_xy)))  # objects in some particle's view
         local = np.zeros(len(self.object_xy), np.int64)
         local[present] = np.arange(len(present))
-        sem = semantic_similarity(observations.embeddings, self.object_embeddings[present])[:, local[ids]]  # (K, E)
+        sem = self.semantic(observations)[:, present][:, local[ids]]  # (K, E)
         k_idx, e_idx = np.nonzero(sem >= self.cfg.semantic_threshold)
         stats.semantic_pairs = len(k_idx)
         if len(k_idx) == 0:
@@ -232,6 +258,10 @@ class SemanticLikelihood:
         ids_pad[used_owner, col_of_used] = ids[used]
         self.last_stats = stats
         return phi_pad, ids_pad
+
+    def _half_extent(self, ids: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Half the angle objects `ids` subtend at distances `d` (their footprint circles; π/2 from inside one)."""
+        return np.arcsin(np.minimum(1.0, self.object_radius_m[ids] / np.maximum(d, 1e-9)))
 
     def scores(self, particles: np.ndarray, storeys: np.ndarray, observations: Observations) -> np.ndarray:
         """(M,) mean matched score in [0, 1] of each particle: the optimal assignment's summed φ over K."""

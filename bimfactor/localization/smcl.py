@@ -174,6 +174,51 @@ class SemanticMCL:
         poses[:, 2] = self.rng.uniform(-np.pi, np.pi, n)
         return poses, s.astype(np.int64)
 
+    def sample_from_observations(self, n: int, observations: Observations) -> tuple[np.ndarray, np.ndarray]:
+        """Up to n poses drawn from the measurement model: each explains one observation by one BIM object.
+
+        A pair (observation j, object k) is drawn in proportion to φ_sem among the pairs that pass the semantic
+        screen; the robot is put at j's observed range from k in a uniformly drawn direction and turned so k
+        appears at j's observed bearing, with the motion noise (σ_trans, σ_rot) added. Poses off navigable space
+        or from which k is not in the visibility table's list are dropped (five rounds of draws at most), so
+        fewer than n may come back. Returns (n', 3) poses and (n',) storeys.
+        """
+        empty = np.zeros((0, 3)), np.zeros(0, np.int64)
+        if n <= 0 or len(observations) == 0:
+            return empty
+        scorer = self.likelihood
+        sem = scorer.semantic(observations)
+        sem = np.where(sem >= self.cfg.semantic_threshold, sem, 0.0).ravel().astype(np.float64)
+        if sem.sum() <= 0:
+            return empty
+        n_objects = sem.size // len(observations)
+        object_storey = np.asarray([o.storey_index for o in self.prior.objects], np.int64)
+        ranges = np.asarray(observations.range_m, np.float64)
+        bearings = np.asarray(observations.bearing_rad, np.float64)
+        poses, storeys = [], []
+        for _ in range(5):
+            m = 4 * (n - sum(len(p) for p in poses))
+            j, k = np.divmod(self.rng.choice(sem.size, size=m, p=sem / sem.sum()), n_objects)
+            direction = self.rng.uniform(-np.pi, np.pi, m)
+            drawn = np.empty((m, 3))
+            drawn[:, 0] = scorer.object_xy[k, 0] + ranges[j] * np.cos(direction)
+            drawn[:, 1] = scorer.object_xy[k, 1] + ranges[j] * np.sin(direction)
+            drawn[:, 2] = direction + np.pi - bearings[j]
+            noise = self.rng.standard_normal((m, 3))
+            drawn[:, :2] += self.cfg.sigma_trans_m * noise[:, :2]
+            drawn[:, 2] = wrap_angle(drawn[:, 2] + np.deg2rad(self.cfg.sigma_rot_deg) * noise[:, 2])
+            storey = object_storey[k]
+            ok = self.on_navigable(drawn, storey)
+            offsets, ids = scorer.visibility.candidates(drawn[ok, :2], storey[ok])
+            owner = np.repeat(np.arange(int(ok.sum())), np.diff(offsets))
+            sees = np.zeros(len(drawn), bool)
+            sees[np.flatnonzero(ok)] = np.bincount(owner[ids == k[ok][owner]], minlength=int(ok.sum())) > 0
+            poses.append(drawn[sees])
+            storeys.append(storey[sees])
+            if sum(len(p) for p in poses) >= n:
+                break
+        return np.concatenate(poses)[:n], np.concatenate(storeys)[:n]
+
     def on_navigable(self, particles: np.ndarray, storeys: np.ndarray) -> np.ndarray:
         """(M,) bool: is each particle's position in navigable space of its storey?"""
         rc = self.prior.grid.world_to_cell(particles[:, :2])
@@ -230,8 +275,11 @@ class SemanticMCL:
             return 0.0
         return max(0.0, 1.0 - self.w_fast / self.w_slow)
 
-    def resample_if_needed(self) -> tuple[bool, int]:
-        """Systematic resampling when ESS < δ_ess·M (or random particles are due); returns (resampled, injected)."""
+    def resample_if_needed(self, observations: Observations | None = None) -> tuple[bool, int]:
+        """Systematic resampling when ESS < δ_ess·M (or random particles are due); returns (resampled, injected).
+
+        Random particles come from `observations` (`injection: observations`, see `sample_from_observations`;
+        uniform where they yield too few) or uniformly over free space (`injection: uniform`)."""
         self._require_initialized()
         M = self.num_particles
         n_random = int(self.rng.binomial(M, self.injection_probability())) if self.cfg.augmented else 0
@@ -240,7 +288,12 @@ class SemanticMCL:
         keep = systematic_resample(self.weights, M - n_random, self.rng)
         particles, storeys = self.particles[keep], self.storeys[keep]
         if n_random:
-            fresh, fresh_storeys = self.sample_free_space(n_random)
+            fresh, fresh_storeys = np.zeros((0, 3)), np.zeros(0, np.int64)
+            if self.cfg.injection == "observations" and observations is not None:
+                fresh, fresh_storeys = self.sample_from_observations(n_random, observations)
+            if len(fresh) < n_random:
+                more, more_storeys = self.sample_free_space(n_random - len(fresh))
+                fresh, fresh_storeys = np.concatenate([fresh, more]), np.concatenate([fresh_storeys, more_storeys])
             particles = np.concatenate([particles, fresh])
             storeys = np.concatenate([storeys, fresh_storeys])
         self.particles, self.storeys = particles, storeys
@@ -286,7 +339,7 @@ class SemanticMCL:
             self.update(observations)
         lap("update")
         ess = self.effective_sample_size()
-        resampled, injected = self.resample_if_needed()
+        resampled, injected = self.resample_if_needed(observations)
         lap("resample")
         estimate = self.estimate()
         lap("estimate")

@@ -65,7 +65,8 @@ class Perception:
         detections, masks, embeddings = self.perceive(frame)
         stats = self.graph.update(frame, detections, masks, embeddings, frame.odom_pose)
         view = self.graph.view(frame.depth_m, frame.odom_pose)
-        observations = self.graph.observations(frame.odom_pose, view=view)
+        since = frame.index if self.graph.cfg.observation_nodes == "detected" else None
+        observations = self.graph.observations(frame.odom_pose, view=view, since_frame=since)
         return FrameResult(detections, masks, embeddings, stats, observations)
 
     def run(self, frames: Iterable[Frame], show_progress: bool = False) -> list[FrameResult]:

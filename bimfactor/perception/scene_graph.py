@@ -399,9 +399,11 @@ class OnlineSceneGraph:
         fov_rad: float | None = None,
         max_range_m: float | None = None,
         view: CameraView | None = None,
+        since_frame: int | None = None,
     ) -> Observations:
         """The nodes in the current view sector (FOV default: the camera's; range default: `max_depth_m`), with
-        fused embedding, label, and range / bearing in the robot base frame; `view` also drops hidden nodes."""
+        fused embedding, label, and range / bearing in the robot base frame; `view` also drops hidden nodes and
+        `since_frame` nodes not detected in that frame or later."""
         fov = self.intrinsics.hfov_rad if fov_rad is None else fov_rad
         max_range = self.cfg.max_depth_m if max_range_m is None else max_range_m
         dim = next(iter(self.nodes.values())).embedding_mean.shape[0] if self.nodes else self.embedding_dim
@@ -413,6 +415,8 @@ class OnlineSceneGraph:
         ranges = np.hypot(in_base[:, 0], in_base[:, 1])
         bearings = np.arctan2(in_base[:, 1], in_base[:, 0])
         keep = (ranges <= max_range) & (np.abs(bearings) <= fov / 2)
+        if since_frame is not None:
+            keep &= np.asarray([self.nodes[k].last_frame >= since_frame for k in node_ids])
         if view is not None:
             for i in np.flatnonzero(keep):
                 node = self.nodes[node_ids[i]]

@@ -125,3 +125,32 @@ def test_assignment_shortcuts_and_solver_paths():
     assert totals[0] == pytest.approx(brute_force(contested[0])) and calls == 1
     one_column = np.array([[[0.4], [0.6], [0.0]]])
     assert assignment_sums(one_column)[0][0] == pytest.approx(0.6)
+
+
+def test_a_partly_seen_object_is_a_candidate_at_the_edge_of_the_view(box_prior, box_visibility, smcl_cfg):
+    # The table (1.2 × 0.8 m, centre (9, 3)) seen from (8.2, 2.2) facing north: its centre is 45° + 0.5° to the
+    # right, outside the 90° FOV, but most of its footprint is inside.
+    particle = np.array([[8.2, 2.2, np.deg2rad(90.5)]])
+    obs = observe(("table", 1.1, -np.deg2rad(40.0)))
+    centre_only = SemanticLikelihood(box_prior, box_visibility, smcl_cfg.model_copy(update={"fov_extent": False}))
+    assert centre_only.scores(particle, np.array([0]), obs)[0] == 0.0
+    extent = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
+    d = np.hypot(0.8, 0.8)
+    # The expected bearing is the centre's clipped to the FOV edge (−45°).
+    expected = np.exp(-abs(1.1 - d) / 1.2) * np.exp(5.0 * (np.cos(np.deg2rad(5.0)) - 1.0))
+    assert extent.scores(particle, np.array([0]), obs)[0] == pytest.approx(expected, rel=1e-5)
+
+
+def test_softmax_semantic_term_is_the_class_probability_over_the_prior_labels(box_prior, box_visibility, smcl_cfg):
+    cfg = smcl_cfg.model_copy(update={"semantic": "softmax", "semantic_softmax_temperature": 0.5})
+    scorer = SemanticLikelihood(box_prior, box_visibility, cfg)
+    mixed = np.array([[0.8, 0.6, 0.0, 0.0, 0.0]], np.float32)  # 0.8 chair + 0.6 table in the one-hot label space
+    obs = Observations(mixed, np.array([1.0]), np.array([0.0]), labels=["chair"])
+    sem = scorer.semantic(obs)[0]
+    logits = np.array([0.8, 0.6, 0.0, 0.0, 0.0]) / 0.5  # chair, table, window, cabinet, bookshelf
+    p = np.exp(logits) / np.exp(logits).sum()
+    assert sem[object_id(box_prior, "chair")] == pytest.approx(p[0], rel=1e-5)
+    assert sem[object_id(box_prior, "table")] == pytest.approx(p[1], rel=1e-5)
+    assert sem[object_id(box_prior, "bookshelf")] == pytest.approx(p[4], rel=1e-5)
+    cosine = SemanticLikelihood(box_prior, box_visibility, smcl_cfg).semantic(obs)[0]
+    assert cosine[object_id(box_prior, "chair")] == pytest.approx(0.8)

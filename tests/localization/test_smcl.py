@@ -7,6 +7,7 @@ import pytest
 
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import SmclConfig
+from bimfactor.localization.likelihood import polar_coordinates
 from bimfactor.localization.smcl import (
     SemanticMCL,
     StepResult,
@@ -17,7 +18,7 @@ from bimfactor.localization.smcl import (
     weighted_pose_stats,
 )
 from bimfactor.types import Observations, wrap_angle
-from tests.localization.handmade import make_prior, observe
+from tests.localization.handmade import make_prior, object_id, observe
 
 
 def noise_free(cfg: SmclConfig) -> SmclConfig:
@@ -196,3 +197,30 @@ def test_benchmark_reports_one_row_per_particle_count(box_prior, box_visibility,
     rows = benchmark_step(box_prior, box_visibility, smcl_cfg, n_particles_list=(50, 200), n_obs=4, repeats=2)
     assert [r["n_particles"] for r in rows] == [50, 200]
     assert all(r["n_obs"] == 4 and r["total_ms_median"] > 0 for r in rows)
+
+
+def test_poses_drawn_from_an_observation_explain_it(box_prior, box_visibility, smcl_cfg):
+    # One chair seen 1.5 m ahead, 0.3 rad to the left: every drawn pose has the chair there (within the motion
+    # noise), stands on navigable space, and lists the chair as visible; the table cannot explain it.
+    mcl = SemanticMCL(box_prior, box_visibility, noise_free(smcl_cfg), np.random.default_rng(1), num_particles=10)
+    poses, storeys = mcl.sample_from_observations(300, observe(("chair", 1.5, 0.3)))
+    assert len(poses) == 300 and (storeys == 0).all()
+    chair = np.asarray(box_prior.objects[object_id(box_prior, "chair")].position_m[:2])
+    d, alpha = polar_coordinates(poses, chair[None, :])
+    np.testing.assert_allclose(d, 1.5, atol=1e-9)
+    np.testing.assert_allclose(alpha, 0.3, atol=1e-9)
+    assert mcl.on_navigable(poses, storeys).all()
+    assert len({round(float(a), 1) for a in np.arctan2(poses[:, 1] - chair[1], poses[:, 0] - chair[0])}) > 20
+    unexplained = observe(("bookshelf", 20.0, 0.0))  # nowhere in the building is a bookshelf 20 m away
+    assert len(mcl.sample_from_observations(50, unexplained)[0]) == 0
+
+
+def test_augmented_mcl_can_inject_poses_that_explain_the_observations(box_prior, box_visibility, smcl_cfg):
+    cfg = smcl_cfg.model_copy(update={"augmented": True, "injection": "observations"})
+    mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0), num_particles=1000)
+    mcl.initialize()
+    mcl.w_slow, mcl.w_fast = 1.0, 0.0
+    obs = observe(("chair", 1.0, 0.0))
+    resampled, injected = mcl.resample_if_needed(obs)
+    assert resampled and injected == 1000
+    assert mcl.likelihood.scores(mcl.particles, mcl.storeys, obs).mean() > 0.5

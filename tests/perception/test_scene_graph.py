@@ -172,6 +172,9 @@ def test_observations_are_the_nodes_in_view_with_range_and_bearing_in_the_base_f
     np.testing.assert_array_equal(obs.embeddings, np.stack([g.nodes[0].embedding, g.nodes[1].embedding]))
     wide = g.observations(robot, fov_rad=np.deg2rad(120.0), max_range_m=6.0)
     assert wide.node_ids.tolist() == [0, 1, 2]  # 56° to the left is in a 120° view; behind and 14 m off never
+    # Only the nodes detected in frame 1 or later (node 0 was last detected in frame 0).
+    recent = g.observations(robot, fov_rad=np.deg2rad(120.0), max_range_m=6.0, since_frame=1)
+    assert recent.node_ids.tolist() == [1, 2]
 
 
 def test_update_lifts_masks_and_fuses_two_views_of_a_wall_patch(config_overrides) -> None:
