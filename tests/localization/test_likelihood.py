@@ -152,5 +152,6 @@ def test_softmax_semantic_term_is_the_class_probability_over_the_prior_labels(bo
     assert sem[object_id(box_prior, "chair")] == pytest.approx(p[0], rel=1e-5)
     assert sem[object_id(box_prior, "table")] == pytest.approx(p[1], rel=1e-5)
     assert sem[object_id(box_prior, "bookshelf")] == pytest.approx(p[4], rel=1e-5)
-    cosine = SemanticLikelihood(box_prior, box_visibility, smcl_cfg).semantic(obs)[0]
+    cosine_cfg = smcl_cfg.model_copy(update={"semantic": "cosine"})
+    cosine = SemanticLikelihood(box_prior, box_visibility, cosine_cfg).semantic(obs)[0]
     assert cosine[object_id(box_prior, "chair")] == pytest.approx(0.8)
