@@ -197,7 +197,9 @@ class SmclConfig(_Strict):
     )
     semantic_softmax_temperature: float = Field(gt=0.0, description="τ of the softmax φ_sem (CLIP: 0.01).")
     semantic_threshold: float = Field(
-        ge=0.0, le=1.0, description="Pairs with cos(f_j, C_k) below this score 0 (depends on the embedding space)."
+        ge=0.0,
+        le=1.0,
+        description="Pairs whose φ_sem is below this score 0 (depends on `semantic` and the embeddings).",
     )
     temperature: float = Field(gt=0.0, description="T in P(z|x) = exp(score / T); the paper gives no value.")
     off_map_weight: float = Field(

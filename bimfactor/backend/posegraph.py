@@ -502,17 +502,22 @@ def batch_refine(
     landmark_xy = np.asarray(landmark_xy, np.float64)[:, :2]
     if initial_poses is None:
         initial_poses = dead_reckoning(first_pose, prior_index, increments)
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    noise = bearing_range_noise(cfg)
-    graph.add(
+    # The motion part (pose prior, odometry, fine-registration pose factors) on its own also gives the fallback
+    # covariances; the landmark factors and their priors complete the graph.
+    motion = gtsam.NonlinearFactorGraph()
+    motion.add(
         pose_prior_factor(prior_index, np.asarray(first_pose, np.float64), floored_covariance(first_covariance, cfg))
     )
+    for t in range(1, T):
+        cov = None if odom_covariances is None else odom_covariances[t - 1]
+        motion.add(odometry_factor(t, increments[t - 1], cfg, cov))
+    for i, pose, information in pose_factors:
+        motion.add(information_pose_factor(i, pose, information))
+    graph, values = gtsam.NonlinearFactorGraph(), _pose_values(initial_poses)
+    graph.push_back(motion)
+    noise = bearing_range_noise(cfg)
     seen: set[int] = set()
     for t in range(T):
-        values.insert(X(t), gtsam.Pose2(*initial_poses[t]))
-        if t > 0:
-            cov = None if odom_covariances is None else odom_covariances[t - 1]
-            graph.add(odometry_factor(t, increments[t - 1], cfg, cov))
         for factor in landmark_factors(t, observations[t], associations[t], noise):
             graph.add(factor)
         for _, j in associations[t]:
@@ -520,8 +525,6 @@ def batch_refine(
                 seen.add(int(j))
                 graph.add(landmark_prior_factor(int(j), landmark_xy[int(j)], cfg))
                 values.insert(L(int(j)), landmark_xy[int(j)].copy())
-    for i, pose, information in pose_factors:
-        graph.add(information_pose_factor(i, pose, information))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(cfg.lm_max_iterations)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
@@ -532,19 +535,18 @@ def batch_refine(
         covariances = _pose_covariances(gtsam.Marginals(graph, result), poses)
     except RuntimeError as error:
         # Indeterminate at the optimum (seen once in 54 duplex runs): report the wider, always defined covariance
-        # of the pose prior, odometry and pose factors alone rather than fail the whole trajectory.
+        # of the motion part alone rather than fail the whole trajectory.
         log.warning("pose marginals failed (%s); covariances from prior and odometry only", str(error).split(".")[0])
-        motion, motion_values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        motion.add(pose_prior_factor(prior_index, poses[prior_index], floored_covariance(first_covariance, cfg)))
-        for t in range(T):
-            motion_values.insert(X(t), gtsam.Pose2(*poses[t]))
-            if t > 0:
-                cov = None if odom_covariances is None else odom_covariances[t - 1]
-                motion.add(odometry_factor(t, increments[t - 1], cfg, cov))
-        for i, pose, information in pose_factors:
-            motion.add(information_pose_factor(i, pose, information))
-        covariances = _pose_covariances(gtsam.Marginals(motion, motion_values), poses)
+        covariances = _pose_covariances(gtsam.Marginals(motion, _pose_values(poses)), poses)
     return BatchResult(poses, covariances, float(error_before), float(graph.error(result)), optimizer.iterations())
+
+
+def _pose_values(poses: np.ndarray) -> gtsam.Values:
+    """Values holding X(t) = poses[t]."""
+    values = gtsam.Values()
+    for t, pose in enumerate(poses):
+        values.insert(X(t), gtsam.Pose2(*pose))
+    return values
 
 
 def _pose_covariances(marginals: gtsam.Marginals, poses: np.ndarray) -> np.ndarray:

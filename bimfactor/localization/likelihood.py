@@ -195,20 +195,21 @@ class SemanticLikelihood:
         self.object_radius_m = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1]) if cfg.fov_extent else np.zeros(len(sizes))
         self.last_stats = ScoreStats()
 
-    def semantic(self, observations: Observations) -> np.ndarray:
-        """(K, N) φ_sem of K observations against the N BIM objects (`smcl.semantic`).
+    def semantic(self, observations: Observations, objects: np.ndarray | None = None) -> np.ndarray:
+        """(K, N) φ_sem of K observations against the BIM objects `objects` (default: all) (`smcl.semantic`).
 
         cosine: the paper's cos(f_j, C_k). softmax: p(label of k | f_j), the cosines to the prior's distinct
         label embeddings turned into class probabilities at `semantic_softmax_temperature` (CLIP's zero-shot rule).
         """
+        objects = slice(None) if objects is None else objects
         if self.cfg.semantic == "cosine" or len(observations) == 0:
-            return semantic_similarity(observations.embeddings, self.object_embeddings)
+            return semantic_similarity(observations.embeddings, self.object_embeddings[objects])
         tau = self.cfg.semantic_softmax_temperature
         logits = semantic_similarity(observations.embeddings, self.label_embeddings) / tau
         logits -= logits.max(axis=1, keepdims=True)
         p = np.exp(logits)
         p /= p.sum(axis=1, keepdims=True)
-        return p[:, self.object_label].astype(np.float32)
+        return p[:, self.object_label[objects]].astype(np.float32)
 
     def pair_scores(
         self, particles: np.ndarray, storeys: np.ndarray, observations: Observations
@@ -234,7 +235,7 @@ class SemanticLikelihood:
         present = np.flatnonzero(np.bincount(ids, minlength=len(self.object_xy)))  # objects in some particle's view
         local = np.zeros(len(self.object_xy), np.int64)
         local[present] = np.arange(len(present))
-        sem = self.semantic(observations)[:, present][:, local[ids]]  # (K, E)
+        sem = self.semantic(observations, present)[:, local[ids]]  # (K, E)
         k_idx, e_idx = np.nonzero(sem >= self.cfg.semantic_threshold)
         stats.semantic_pairs = len(k_idx)
         if len(k_idx) == 0:
