@@ -205,6 +205,15 @@ class SmclConfig(_Strict):
     off_map_weight: float = Field(
         ge=0.0, le=1.0, description="Weight factor for a particle outside navigable space after a prediction."
     )
+    scan_likelihood: bool = Field(
+        description="Also weigh particles by the depth scan against the BIM's likelihood field (beyond the paper)."
+    )
+    scan_beam_deg: float = Field(gt=0.0, description="Scan: one endpoint (the nearest return) per bearing bin.")
+    scan_min_z_m: float = Field(description="Scan: depth points from this height above the floor ...")
+    scan_max_z_m: float = Field(description="... up to this one (the occupancy grid's obstacle band).")
+    scan_max_range_m: float = Field(gt=0.0, description="Scan: returns beyond this horizontal range are dropped.")
+    scan_sigma_m: float = Field(gt=0.0, description="Scan: σ of an endpoint's distance to the nearest obstacle.")
+    scan_temperature: float = Field(gt=0.0, description="Scan: T_scan in P(z_scan|x) = exp(score / T_scan).")
     augmented: bool = Field(description="Augmented MCL random-particle injection; false is the paper's filter.")
     injection: Literal["uniform", "observations"] = Field(
         description="Where augmented MCL's random particles come from: free space, or poses that explain one "

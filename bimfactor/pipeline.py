@@ -40,6 +40,7 @@ from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
+from bimfactor.localization.field import frame_endpoints
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.motion import odometry_increment
 from bimfactor.localization.smcl import SemanticMCL, StepResult
@@ -208,7 +209,8 @@ class Localizer:
         perception_ms = (time.perf_counter() - started) * 1000
         increment = None if self._last_odom is None else odometry_increment(self._last_odom, frame.odom_pose)
         self._last_odom = np.asarray(frame.odom_pose, float)
-        filtered = self.filter.step(increment, seen.observations)
+        scan = frame_endpoints(frame, self.meta, self.cfg.smcl) if self.cfg.smcl.scan_likelihood else None
+        filtered = self.filter.step(increment, seen.observations, scan)
         out = LocalizerStep(
             filtered,
             None,

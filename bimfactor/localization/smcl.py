@@ -4,6 +4,8 @@ One step reads like the paper:
 1. predict:  move every particle by the odometry increment plus Gaussian noise (`motion.propagate`);
              particles that leave navigable space keep only `off_map_weight` of their weight.
 2. update:   weight ×= P(z|x) = exp(score / T), the semantic × spatial Hungarian score (`likelihood`); normalise.
+             With `scan_likelihood` (beyond the paper) also × exp(score_scan / T_scan), the depth scan against the
+             BIM's likelihood field (`field`), on every frame with a scan, objects in view or not.
 3. resample: when ESS < δ_ess·M, systematic (low-variance) resampling from the cumulative weights; weights reset.
 4. estimate: weighted mean x, y and circular mean yaw on the storey holding the most weight; its room id.
 
@@ -28,6 +30,7 @@ from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import SmclConfig
 from bimfactor.errors import InputError
+from bimfactor.localization.field import ScanLikelihood
 from bimfactor.localization.likelihood import SemanticLikelihood, polar_coordinates
 from bimfactor.localization.motion import propagate
 from bimfactor.types import Observations, wrap_angle
@@ -140,6 +143,7 @@ class SemanticMCL:
         self.rng = rng
         self.num_particles = int(num_particles or cfg.num_particles)
         self.likelihood = SemanticLikelihood(prior, visibility, cfg)
+        self.scan_likelihood = ScanLikelihood(prior, cfg) if cfg.scan_likelihood else None
         self.navigable = np.stack([layers.navigable.astype(bool) for layers in prior.storeys])  # (S, rows, cols)
         self._free_cells = np.flatnonzero(self.navigable).astype(np.int64)  # flat (storey, row, col) indices
         if len(self._free_cells) == 0:
@@ -147,6 +151,8 @@ class SemanticMCL:
         self.particles = np.zeros((self.num_particles, 3))
         self.storeys = np.zeros(self.num_particles, np.int64)
         self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
+        # Particles injected at the last resampling and not yet weighed by a measurement: left out of the estimate.
+        self.fresh = np.zeros(self.num_particles, bool)
         self.w_slow: float | None = None
         self.w_fast: float | None = None
         self._initialized = False
@@ -233,6 +239,7 @@ class SemanticMCL:
         """M particles uniform over the navigable space of the given storeys (None: all), equal weights."""
         self.particles, self.storeys = self.sample_free_space(self.num_particles, storeys)
         self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
+        self.fresh = np.zeros(self.num_particles, bool)
         self.w_slow = self.w_fast = None
         self._initialized = True
 
@@ -247,19 +254,33 @@ class SemanticMCL:
             self.weights[off_map] *= self.cfg.off_map_weight
             self._normalise("after leaving navigable space")
 
-    def update(self, observations: Observations) -> None:
-        """Weight ×= P(z|x) for every particle and normalise; no observations leave the weights as they are."""
+    def update(self, observations: Observations | None, scan: np.ndarray | None = None) -> None:
+        """Weight ×= P(z|x) for every particle and normalise; nothing to weigh by leaves the weights as they are.
+
+        P(z|x) is the semantic term for the observations and, with `scan_likelihood`, the scan term for the (N, 2)
+        base-frame `scan` endpoints (`field.scan_endpoints`); either may be empty or None.
+        """
         self._require_initialized()
-        if len(observations) == 0:
+        has_observations = observations is not None and len(observations) > 0
+        has_scan = self.scan_likelihood is not None and scan is not None and len(scan) > 0
+        if not (has_observations or has_scan):
             return
-        log_likelihood = self.likelihood.log_likelihood(self.particles, self.storeys, observations)
         if not np.all(self.weights >= 0) or self.weights.sum() <= 0:
             self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
-        if self.cfg.augmented:
-            # Average likelihood on an absolute scale (a perfect match = 1), weighted by the prior weights.
-            w_avg = float(np.dot(self.weights, np.exp(log_likelihood - 1.0 / self.cfg.temperature)))
-            self.w_slow = w_avg if self.w_slow is None else self.w_slow + self.cfg.alpha_slow * (w_avg - self.w_slow)
-            self.w_fast = w_avg if self.w_fast is None else self.w_fast + self.cfg.alpha_fast * (w_avg - self.w_fast)
+        log_likelihood = np.zeros(self.num_particles)
+        if has_observations:
+            semantic = self.likelihood.log_likelihood(self.particles, self.storeys, observations)
+            log_likelihood += semantic
+            if self.cfg.augmented:
+                # Augmented MCL watches the semantic term alone: a wrong place of the same shape fits the scan
+                # as well as the right one. Average likelihood on an absolute scale (a perfect match = 1).
+                w_avg = float(np.dot(self.weights, np.exp(semantic - 1.0 / self.cfg.temperature)))
+                rate_slow, rate_fast = self.cfg.alpha_slow, self.cfg.alpha_fast
+                self.w_slow = w_avg if self.w_slow is None else self.w_slow + rate_slow * (w_avg - self.w_slow)
+                self.w_fast = w_avg if self.w_fast is None else self.w_fast + rate_fast * (w_avg - self.w_fast)
+        if has_scan:
+            log_likelihood += self.scan_likelihood.log_likelihood(self.particles, self.storeys, scan)
+        self.fresh[:] = False
         with np.errstate(divide="ignore"):
             log_w = np.log(self.weights) + log_likelihood
         peak = log_w.max()
@@ -298,15 +319,19 @@ class SemanticMCL:
             storeys = np.concatenate([storeys, fresh_storeys])
         self.particles, self.storeys = particles, storeys
         self.weights = np.full(M, 1.0 / M)
+        self.fresh = np.arange(M) >= M - n_random
         return True, n_random
 
     def estimate(self) -> PoseEstimate:
-        """Weighted mean pose (circular yaw) and covariance on the storey with the most weight; its room id."""
+        """Weighted mean pose (circular yaw) and covariance on the storey with the most weight; its room id.
+
+        Particles injected at the last resampling (`fresh`) are left out until a measurement has weighed them."""
         self._require_initialized()
-        storey_weight = np.bincount(self.storeys, weights=self.weights, minlength=len(self.prior.storeys))
+        weights = np.where(self.fresh, 0.0, self.weights) if not self.fresh.all() else self.weights
+        storey_weight = np.bincount(self.storeys, weights=weights, minlength=len(self.prior.storeys))
         storey = int(np.argmax(storey_weight))
-        on_storey = self.storeys == storey
-        mean, covariance = weighted_pose_stats(self.particles[on_storey], self.weights[on_storey])
+        on_storey = (self.storeys == storey) & (weights > 0)
+        mean, covariance = weighted_pose_stats(self.particles[on_storey], weights[on_storey])
         position_std = float(np.sqrt(max(np.linalg.eigvalsh(covariance[:2, :2])[-1], 0.0)))
         yaw_std = float(np.sqrt(covariance[2, 2]))
         share = float(storey_weight[storey] / storey_weight.sum())
@@ -318,8 +343,10 @@ class SemanticMCL:
         room_id = int(self.prior.room_at(mean[None, :2], storey)[0])
         return PoseEstimate(mean, storey, covariance, bool(converged), room_id, position_std, yaw_std, share)
 
-    def step(self, odom_increment: np.ndarray | None, observations: Observations | None) -> StepResult:
-        """predict (when an increment is given) → update (when observations are given) → resample → estimate."""
+    def step(
+        self, odom_increment: np.ndarray | None, observations: Observations | None, scan: np.ndarray | None = None
+    ) -> StepResult:
+        """predict (when an increment is given) → update (by the observations and scan given) → resample → estimate."""
         if not self._initialized:
             self.initialize()
         timings: dict[str, float] = {}
@@ -335,8 +362,7 @@ class SemanticMCL:
             self.predict(odom_increment)
         lap("predict")
         n_obs = 0 if observations is None else len(observations)
-        if observations is not None:
-            self.update(observations)
+        self.update(observations, scan)
         lap("update")
         ess = self.effective_sample_size()
         resampled, injected = self.resample_if_needed(observations)
@@ -409,11 +435,17 @@ def benchmark_step(
     """Median milliseconds of predict + update + resample per particle count, from a uniform (global) start.
 
     Every repeat starts from freshly spread particles (not timed), the hardest case: particles everywhere, every
-    candidate list different. The observations are `n_obs` objects seen from one pose (padded with distractors).
+    candidate list different. The observations are `n_obs` objects seen from one pose (padded with distractors);
+    with `scan_likelihood`, the update also scores a scan of one endpoint per `scan_beam_deg` of the view.
     `*_ms_*` are wall-clock; `total_cpu_ms_median` is this thread's CPU time (robust to a busy machine).
     """
     rng = np.random.default_rng(seed)
     observations, _, _ = _benchmark_observations(prior, visibility, cfg, n_obs, rng)
+    # With the scan term: one endpoint per bearing bin of the view (timing does not depend on where they land).
+    n_beams = int(np.ceil(cfg.fov_deg / cfg.scan_beam_deg)) if cfg.scan_likelihood else 0
+    bearings = np.linspace(-0.5, 0.5, n_beams) * np.deg2rad(cfg.fov_deg)
+    ranges = rng.uniform(0.5, cfg.scan_max_range_m, n_beams)
+    scan = np.column_stack([ranges * np.cos(bearings), ranges * np.sin(bearings)])
     increment = np.array([0.5, 0.0, np.deg2rad(5.0)])
     rows = []
     for M in n_particles_list:
@@ -425,7 +457,7 @@ def benchmark_step(
             cpu0, t0 = time.thread_time(), time.perf_counter()
             mcl.predict(increment)
             t1 = time.perf_counter()
-            mcl.update(observations)
+            mcl.update(observations, scan)
             t2 = time.perf_counter()
             did, _ = mcl.resample_if_needed()
             t3, cpu3 = time.perf_counter(), time.thread_time()
@@ -434,7 +466,7 @@ def benchmark_step(
             parts["total_cpu"].append((cpu3 - cpu0) * 1e3)
             calls.append(mcl.likelihood.last_stats.hungarian_calls)
             resampled += int(did)
-        row: dict[str, Any] = {"n_particles": M, "n_obs": len(observations), "repeats": repeats}
+        row: dict[str, Any] = {"n_particles": M, "n_obs": len(observations), "n_scan": n_beams, "repeats": repeats}
         for name, values in parts.items():
             row[f"{name}_ms_median"] = statistics.median(values[1:])
         row["total_ms_p90"] = float(np.percentile(parts["total"][1:], 90))

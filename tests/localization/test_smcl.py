@@ -137,7 +137,8 @@ def test_augmented_mcl_injects_random_particles_when_the_short_average_drops(box
     assert mcl.injection_probability() == pytest.approx(0.8)
     resampled, injected = mcl.resample_if_needed()
     assert resampled and abs(injected - 800) < 60
-    paper = SemanticMCL(box_prior, box_visibility, smcl_cfg, np.random.default_rng(0), num_particles=1000)
+    literal = smcl_cfg.model_copy(update={"augmented": False})
+    paper = SemanticMCL(box_prior, box_visibility, literal, np.random.default_rng(0), num_particles=1000)
     paper.initialize()
     paper.w_slow, paper.w_fast = 1.0, 0.2
     assert paper.injection_probability() == 0.0 and paper.resample_if_needed() == (False, 0)

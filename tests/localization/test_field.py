@@ -1,0 +1,112 @@
+"""The scan term: depth → nearest return per bearing bin, scored against the prior's likelihood field."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.visibility import VisibilityTable
+from bimfactor.config import Config, SmclConfig
+from bimfactor.localization.field import ScanLikelihood, scan_endpoints
+from bimfactor.localization.smcl import SemanticMCL
+from bimfactor.sim.sensors import camera_mount
+from bimfactor.types import CameraIntrinsics
+
+W, H = 64, 48
+
+
+def _camera(cfg: Config) -> tuple[CameraIntrinsics, np.ndarray]:
+    return CameraIntrinsics.from_hfov(W, H, cfg.sim.camera.hfov_deg), camera_mount(cfg.sim.camera)
+
+
+def test_endpoints_are_the_nearest_return_per_bearing_bin(test_config: Config) -> None:
+    intrinsics, T_base_camera = _camera(test_config)
+    forward = test_config.sim.camera.mount_forward_m
+    depth = np.full((H, W), 3.0, np.float32)  # a wall 3 m ahead of the (level) camera
+    wall = scan_endpoints(depth, intrinsics, T_base_camera, test_config.smcl)
+    np.testing.assert_allclose(wall[:, 0], forward + 3.0, atol=1e-9)
+    bins = np.floor(np.arctan2(wall[:, 1], wall[:, 0]) / np.deg2rad(test_config.smcl.scan_beam_deg))
+    assert len(np.unique(bins)) == len(wall)  # one endpoint per bin
+    assert 40 <= len(wall) <= 46  # the 90° view in 2° bins (the bearings from the base origin span a bit less)
+    # Rows at the camera's height hold a nearer surface: every bin's endpoint moves onto it.
+    depth[20:28] = 2.0
+    near = scan_endpoints(depth, intrinsics, T_base_camera, test_config.smcl)
+    np.testing.assert_allclose(near[:, 0], forward + 2.0, atol=1e-9)
+    # A nearer surface above the band (the top two rows at 1 m lie 1.20-1.23 m high) is not part of the scan.
+    depth[:] = 3.0
+    depth[:2] = 1.0
+    np.testing.assert_allclose(scan_endpoints(depth, intrinsics, T_base_camera, test_config.smcl), wall)
+
+
+def test_no_return_gives_an_empty_scan(test_config: Config) -> None:
+    intrinsics, T_base_camera = _camera(test_config)
+    empty = scan_endpoints(np.full((H, W), np.nan, np.float32), intrinsics, T_base_camera, test_config.smcl)
+    assert empty.shape == (0, 2)
+
+
+def _divider_scan() -> np.ndarray:
+    """What a robot at (3, 3) facing +x sees of the box prior's dividing wall (face at x = 6): base-frame points."""
+    return np.column_stack([np.full(11, 3.0), np.linspace(-1.0, 1.0, 11)])
+
+
+def test_scan_score_peaks_at_the_pose_that_put_the_walls_where_they_are(box_prior: BimPrior, smcl_cfg: SmclConfig):
+    field = ScanLikelihood(box_prior, smcl_cfg)
+    poses = np.array(
+        [
+            [3.0, 3.0, 0.0],  # truth: every endpoint on the divider's face
+            [3.5, 3.0, 0.0],  # 0.5 m east: endpoints past the 0.2 m wall, in room B
+            [3.0, 3.0, np.deg2rad(30.0)],  # turned: endpoints in room A's free space
+            [40.0, 3.0, 0.0],  # off the grid
+        ]
+    )
+    scores = field.scores(poses, np.zeros(4, np.int64), _divider_scan())
+    assert scores[0] > 0.95
+    sigma = smcl_cfg.scan_sigma_m
+    # Endpoints at x = 6.5 fall in the cell centred at 6.525; the wall's last cell is centred at 6.175.
+    assert scores[1] == pytest.approx(np.exp(-0.5 * (0.35 / sigma) ** 2), abs=1e-6)
+    assert scores[2] < 0.5 * scores[0]
+    assert scores[3] == 0.0
+    np.testing.assert_array_equal(field.scores(poses, np.zeros(4, np.int64), np.zeros((0, 2))), np.zeros(4))
+    np.testing.assert_allclose(
+        field.log_likelihood(poses, np.zeros(4, np.int64), _divider_scan()), scores / smcl_cfg.scan_temperature
+    )
+
+
+def _two_particles(prior: BimPrior, visibility: VisibilityTable, cfg: SmclConfig) -> SemanticMCL:
+    mcl = SemanticMCL(prior, visibility, cfg, np.random.default_rng(0), num_particles=2)
+    mcl.initialize()
+    mcl.particles = np.array([[3.0, 3.0, 0.0], [3.5, 3.0, 0.0]])
+    mcl.storeys = np.zeros(2, np.int64)
+    return mcl
+
+
+def test_the_filter_weighs_by_the_scan_only_when_enabled(
+    box_prior: BimPrior, box_visibility: VisibilityTable, smcl_cfg: SmclConfig
+):
+    cfg = smcl_cfg.model_copy(update={"scan_likelihood": True, "augmented": True})
+    mcl = _two_particles(box_prior, box_visibility, cfg)
+    mcl.update(None, _divider_scan())
+    expected = ScanLikelihood(box_prior, cfg).log_likelihood(mcl.particles, mcl.storeys, _divider_scan())
+    assert np.log(mcl.weights[0] / mcl.weights[1]) == pytest.approx(expected[0] - expected[1])
+    assert mcl.w_slow is None and mcl.w_fast is None  # augmented MCL watches the semantic term only
+    off = _two_particles(box_prior, box_visibility, cfg.model_copy(update={"scan_likelihood": False}))
+    off.update(None, _divider_scan())
+    np.testing.assert_array_equal(off.weights, [0.5, 0.5])
+
+
+def test_injected_particles_stay_out_of_the_estimate_until_weighed(
+    box_prior: BimPrior, box_visibility: VisibilityTable, smcl_cfg: SmclConfig
+):
+    cfg = smcl_cfg.model_copy(update={"augmented": True, "injection": "uniform"})
+    mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(3), num_particles=200)
+    mcl.initialize()
+    mcl.particles[:] = [3.0, 3.0, 0.5]
+    mcl.w_slow, mcl.w_fast = 1.0, 0.5  # inject about half of the particles
+    resampled, injected = mcl.resample_if_needed()
+    assert resampled and 50 < injected < 150 and mcl.fresh.sum() == injected
+    assert np.abs(mcl.particles[mcl.fresh] - [3.0, 3.0, 0.5]).max() > 1.0  # spread over the box
+    np.testing.assert_allclose(mcl.estimate().pose, [3.0, 3.0, 0.5], atol=1e-9)
+    mcl.update(None, _divider_scan())  # a measurement weighs them: they count again
+    assert not mcl.fresh.any()
+    assert np.abs(mcl.estimate().pose - [3.0, 3.0, 0.5]).max() > 1e-6
