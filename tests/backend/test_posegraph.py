@@ -150,3 +150,30 @@ def test_pose_factor_pulls_the_estimate():
     graph.add_pose_factor(19, target, np.diag([1e6, 1e6, 1e6]))
     np.testing.assert_allclose(graph.pose, target, atol=0.01)
     assert np.sqrt(graph.covariance[0, 0]) < 0.01
+
+
+def test_batch_covariances_fall_back_to_the_motion_graph_when_the_marginals_fail(monkeypatch, caplog):
+    """GTSAM may find the full graph's marginals indeterminate at the optimum: the run keeps its optimised poses and
+    reports the prior-and-odometry covariances, which are wider than the full graph's, with a warning."""
+    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    normal = _run_batch(sc, PRECISE)
+    import bimfactor.backend.posegraph as posegraph
+
+    real_marginals, calls = posegraph.gtsam.Marginals, []
+
+    def failing_first(graph, values):
+        calls.append(graph.size())
+        if len(calls) == 1:
+            raise RuntimeError("Indeterminant linear system detected while working near variable x0.")
+        return real_marginals(graph, values)
+
+    monkeypatch.setattr(posegraph.gtsam, "Marginals", failing_first)
+    with caplog.at_level("WARNING", logger="bimfactor.backend.posegraph"):
+        fallback = _run_batch(sc, PRECISE)
+    assert len(calls) == 2 and calls[1] < calls[0]  # the second, smaller graph: prior and odometry only
+    np.testing.assert_allclose(fallback.poses, normal.poses)
+    wider = np.trace(fallback.covariances[:, :2, :2], axis1=1, axis2=2) > np.trace(
+        normal.covariances[:, :2, :2], axis1=1, axis2=2
+    )
+    assert wider[1:].all()  # the landmarks tighten every pose but the prior's
+    assert "pose marginals failed" in caplog.text
