@@ -209,8 +209,10 @@ class SmclConfig(_Strict):
         description="Also weigh particles by the depth scan against the BIM's likelihood field (beyond the paper)."
     )
     scan_beam_deg: float = Field(gt=0.0, description="Scan: one endpoint (the nearest return) per bearing bin.")
-    scan_min_z_m: float = Field(description="Scan: depth points from this height above the floor ...")
-    scan_max_z_m: float = Field(description="... up to this one (the occupancy grid's obstacle band).")
+    scan_min_z_m: float = Field(
+        description="Scan: depth points from this height above the floor up to the top of the occupancy grid's "
+        "obstacle band (bim.grid.band_max_m)."
+    )
     scan_max_range_m: float = Field(gt=0.0, description="Scan: returns beyond this horizontal range are dropped.")
     scan_sigma_m: float = Field(gt=0.0, description="Scan: σ of an endpoint's distance to the nearest obstacle.")
     scan_temperature: float = Field(gt=0.0, description="Scan: T_scan in P(z_scan|x) = exp(score / T_scan).")

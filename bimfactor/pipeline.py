@@ -209,7 +209,7 @@ class Localizer:
         perception_ms = (time.perf_counter() - started) * 1000
         increment = None if self._last_odom is None else odometry_increment(self._last_odom, frame.odom_pose)
         self._last_odom = np.asarray(frame.odom_pose, float)
-        scan = frame_endpoints(frame, self.meta, self.cfg.smcl) if self.cfg.smcl.scan_likelihood else None
+        scan = frame_endpoints(frame, self.meta, self.cfg) if self.cfg.smcl.scan_likelihood else None
         filtered = self.filter.step(increment, seen.observations, scan)
         out = LocalizerStep(
             filtered,

@@ -18,21 +18,21 @@ from __future__ import annotations
 import numpy as np
 
 from bimfactor.bim.prior import BimPrior
-from bimfactor.config import SmclConfig
+from bimfactor.config import Config, SmclConfig
 from bimfactor.registration.scan import backproject_depth, height_band
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
 
 
 def scan_endpoints(
-    depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, cfg: SmclConfig
+    depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, cfg: SmclConfig, max_z_m: float
 ) -> np.ndarray:
     """(N, 2) base-frame x, y of the nearest return per bearing bin among the depth points in the scan band.
 
-    Points are kept between `scan_min_z_m` and `scan_max_z_m` above the floor and within `scan_max_range_m`
-    (horizontal); bins are `scan_beam_deg` wide. NaN depth is no return.
+    Points are kept between `scan_min_z_m` and `max_z_m` (the top of the grid's obstacle band) above the floor
+    and within `scan_max_range_m` (horizontal); bins are `scan_beam_deg` wide. NaN depth is no return.
     """
     points = backproject_depth(depth_m, intrinsics, T_base_camera)
-    points = height_band(points, cfg.scan_min_z_m, cfg.scan_max_z_m)
+    points = height_band(points, cfg.scan_min_z_m, max_z_m)
     ranges = np.hypot(points[:, 0], points[:, 1])
     keep = ranges <= cfg.scan_max_range_m
     points, ranges = points[keep], ranges[keep]
@@ -44,9 +44,9 @@ def scan_endpoints(
     return points[order[first], :2]
 
 
-def frame_endpoints(frame: Frame, meta: SequenceMeta, cfg: SmclConfig) -> np.ndarray:
-    """`scan_endpoints` of one frame's depth image."""
-    return scan_endpoints(frame.depth_m, meta.intrinsics, meta.T_base_camera, cfg)
+def frame_endpoints(frame: Frame, meta: SequenceMeta, cfg: Config) -> np.ndarray:
+    """`scan_endpoints` of one frame's depth image, up to the top of the configured obstacle band."""
+    return scan_endpoints(frame.depth_m, meta.intrinsics, meta.T_base_camera, cfg.smcl, cfg.bim.grid.band_max_m)
 
 
 class ScanLikelihood:

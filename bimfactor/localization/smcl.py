@@ -144,6 +144,7 @@ class SemanticMCL:
         self.num_particles = int(num_particles or cfg.num_particles)
         self.likelihood = SemanticLikelihood(prior, visibility, cfg)
         self.scan_likelihood = ScanLikelihood(prior, cfg) if cfg.scan_likelihood else None
+        self._object_storey = np.asarray([o.storey_index for o in prior.objects], np.int64)
         self.navigable = np.stack([layers.navigable.astype(bool) for layers in prior.storeys])  # (S, rows, cols)
         self._free_cells = np.flatnonzero(self.navigable).astype(np.int64)  # flat (storey, row, col) indices
         if len(self._free_cells) == 0:
@@ -198,7 +199,6 @@ class SemanticMCL:
         if sem.sum() <= 0:
             return empty
         n_objects = sem.size // len(observations)
-        object_storey = np.asarray([o.storey_index for o in self.prior.objects], np.int64)
         ranges = np.asarray(observations.range_m, np.float64)
         bearings = np.asarray(observations.bearing_rad, np.float64)
         poses, storeys = [], []
@@ -213,7 +213,7 @@ class SemanticMCL:
             noise = self.rng.standard_normal((m, 3))
             drawn[:, :2] += self.cfg.sigma_trans_m * noise[:, :2]
             drawn[:, 2] = wrap_angle(drawn[:, 2] + np.deg2rad(self.cfg.sigma_rot_deg) * noise[:, 2])
-            storey = object_storey[k]
+            storey = self._object_storey[k]
             ok = self.on_navigable(drawn, storey)
             offsets, ids = scorer.visibility.candidates(drawn[ok, :2], storey[ok])
             owner = np.repeat(np.arange(int(ok.sum())), np.diff(offsets))

@@ -20,28 +20,32 @@ def _camera(cfg: Config) -> tuple[CameraIntrinsics, np.ndarray]:
     return CameraIntrinsics.from_hfov(W, H, cfg.sim.camera.hfov_deg), camera_mount(cfg.sim.camera)
 
 
+def _endpoints(depth: np.ndarray, cfg: Config) -> np.ndarray:
+    """The scan of a depth image from the test camera, up to the top of the grid's obstacle band."""
+    intrinsics, T_base_camera = _camera(cfg)
+    return scan_endpoints(depth, intrinsics, T_base_camera, cfg.smcl, cfg.bim.grid.band_max_m)
+
+
 def test_endpoints_are_the_nearest_return_per_bearing_bin(test_config: Config) -> None:
-    intrinsics, T_base_camera = _camera(test_config)
     forward = test_config.sim.camera.mount_forward_m
     depth = np.full((H, W), 3.0, np.float32)  # a wall 3 m ahead of the (level) camera
-    wall = scan_endpoints(depth, intrinsics, T_base_camera, test_config.smcl)
+    wall = _endpoints(depth, test_config)
     np.testing.assert_allclose(wall[:, 0], forward + 3.0, atol=1e-9)
     bins = np.floor(np.arctan2(wall[:, 1], wall[:, 0]) / np.deg2rad(test_config.smcl.scan_beam_deg))
     assert len(np.unique(bins)) == len(wall)  # one endpoint per bin
     assert 40 <= len(wall) <= 46  # the 90° view in 2° bins (the bearings from the base origin span a bit less)
     # Rows at the camera's height hold a nearer surface: every bin's endpoint moves onto it.
     depth[20:28] = 2.0
-    near = scan_endpoints(depth, intrinsics, T_base_camera, test_config.smcl)
+    near = _endpoints(depth, test_config)
     np.testing.assert_allclose(near[:, 0], forward + 2.0, atol=1e-9)
     # A nearer surface above the band (the top two rows at 1 m lie 1.20-1.23 m high) is not part of the scan.
     depth[:] = 3.0
     depth[:2] = 1.0
-    np.testing.assert_allclose(scan_endpoints(depth, intrinsics, T_base_camera, test_config.smcl), wall)
+    np.testing.assert_allclose(_endpoints(depth, test_config), wall)
 
 
 def test_no_return_gives_an_empty_scan(test_config: Config) -> None:
-    intrinsics, T_base_camera = _camera(test_config)
-    empty = scan_endpoints(np.full((H, W), np.nan, np.float32), intrinsics, T_base_camera, test_config.smcl)
+    empty = _endpoints(np.full((H, W), np.nan, np.float32), test_config)
     assert empty.shape == (0, 2)
 
 
