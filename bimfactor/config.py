@@ -208,7 +208,12 @@ class SmclConfig(_Strict):
     scan_likelihood: bool = Field(
         description="Also weigh particles by the depth scan against the BIM's likelihood field (beyond the paper)."
     )
-    scan_beam_deg: float = Field(gt=0.0, description="Scan: one endpoint (the nearest return) per bearing bin.")
+    scan_beam_deg: float = Field(gt=0.0, description="Scan: one endpoint (the nearest surface) per bearing bin.")
+    scan_surface_m: float = Field(
+        gt=0.0,
+        description="Scan: a bin's returns within this of its nearest one are its surface; the endpoint is "
+        "their median.",
+    )
     scan_min_z_m: float = Field(
         description="Scan: depth points from this height above the floor up to the top of the occupancy grid's "
         "obstacle band (bim.grid.band_max_m)."
@@ -381,10 +386,14 @@ class BackendConfig(_Strict):
     missed_decay: float = Field(ge=0.0, le=1.0, description="Particle weight kept by a mode no cluster continues.")
     prior_min_sigma_m: float = Field(gt=0.0, description="Floor on the position σ of a new mode's pose prior.")
     prior_min_sigma_deg: float = Field(gt=0.0, description="Floor on the yaw σ of a new mode's pose prior.")
-    odom_sigma_trans_m: float = Field(gt=0.0, description="Odometry translation σ per keyframe, constant part ...")
-    odom_sigma_trans_per_m: float = Field(ge=0.0, description="... plus this × the distance travelled.")
-    odom_sigma_rot_deg: float = Field(gt=0.0, description="Odometry yaw σ per keyframe, constant part ...")
-    odom_sigma_rot_per_rad: float = Field(ge=0.0, description="... plus this × the rotation (rad/rad).")
+    odom_alpha: list[float] = Field(
+        min_length=4,
+        max_length=4,
+        description="α1..α4 of the odometry motion model (Thrun et al., Table 5.6) that "
+        "gives an odometry factor's covariance: rot←rot, rot←trans, trans←trans, trans←rot, as variance ratios.",
+    )
+    odom_sigma_trans_m: float = Field(gt=0.0, description="Odometry factor: a floor on the translation σ ...")
+    odom_sigma_rot_deg: float = Field(gt=0.0, description="... and on the yaw σ.")
     range_sigma_m: float = Field(gt=0.0, description="σ of an observed object's range.")
     bearing_sigma_deg: float = Field(gt=0.0, description="σ of an observed object's bearing.")
     landmark_sigma_m: float = Field(gt=0.0, description="σ tying a BIM landmark to its BIM position (as-built drift).")
@@ -399,6 +408,34 @@ class BackendConfig(_Strict):
     refine_rounds: int = Field(
         ge=0, description="Offline refine: rounds of re-association at the refined poses (0: the forward matches)."
     )
+    scan_factor: bool = Field(
+        description="Each mode's graph also gets a pose factor from correlative matching of the keyframe's 2-D scan "
+        "against the likelihood field (registration.correlative; beyond the paper)."
+    )
+    scan_window_m: float = Field(gt=0.0, description="Scan matching: search ± this in x and y around the mode ...")
+    scan_window_deg: float = Field(gt=0.0, le=90.0, description="... and ± this in yaw.")
+    scan_step_m: float = Field(gt=0.0, description="Scan matching: the coarse search's step in x and y ...")
+    scan_step_deg: float = Field(gt=0.0, description="... and in yaw.")
+    scan_fine_step_m: float = Field(gt=0.0, description="Scan matching: the fine search's step in x and y ...")
+    scan_fine_step_deg: float = Field(gt=0.0, description="... and in yaw (over one coarse cell around its best).")
+    scan_sigma_m: float = Field(gt=0.0, description="Scan matching: σ of an endpoint's distance to the BIM's faces.")
+    scan_coarse_sigma_m: float = Field(
+        gt=0.0, description="Scan matching: the coarse search's σ (a smoother field, so its steps cannot miss a peak)."
+    )
+    scan_candidates: int = Field(ge=1, description="Scan matching: the best coarse poses the fine search refines.")
+    scan_clear_before_m: float = Field(
+        ge=0.0,
+        description="Scan matching: an endpoint whose ray is inside a wall this far before it scores as an "
+        "outlier (seen through a wall).",
+    )
+    scan_outlier: float = Field(gt=0.0, description="Scan matching: ε in log(f + ε), what an off-BIM endpoint costs.")
+    scan_effective_endpoints: float = Field(
+        gt=0.0, description="Scan matching: how many of the endpoints count as independent measurements."
+    )
+    scan_min_endpoints: int = Field(ge=1, description="Scan matching: scans with fewer endpoints are not matched.")
+    scan_min_inliers: int = Field(ge=1, description="Scan matching: least endpoints on the BIM's faces at the match.")
+    scan_min_sigma_m: float = Field(gt=0.0, description="Scan matching: floor on the factor's position σ ...")
+    scan_min_sigma_deg: float = Field(gt=0.0, description="... and on its yaw σ.")
 
 
 LocalizerVariant = Literal["smcl", "smcl+graph", "full"]

@@ -46,6 +46,7 @@ from bimfactor.localization.motion import odometry_increment
 from bimfactor.localization.smcl import SemanticMCL, StepResult
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
+from bimfactor.registration.correlative import CorrelativeMatcher
 from bimfactor.registration.fine import FineRegistration, FineResult
 from bimfactor.types import Frame, Observations, SequenceMeta
 
@@ -112,6 +113,7 @@ class LocalizerStep:
     observations: Observations
     odom_increment: np.ndarray | None
     perception_ms: float
+    scan: np.ndarray | None = None
     graph_ms: float = 0.0
     fine: FineResult | None = None
     fine_ms: float = 0.0
@@ -124,8 +126,9 @@ class LocalizationRun:
     `filter` is the particle filter's own estimate (every variant runs the filter); `graph` the most probable
     mode's (smcl+graph variants; where no mode exists yet, the filter's). `output` is the variant's estimate.
     `modes` lists every mode after each step (most probable first), `final_modes` the surviving modes' graphs,
-    `odom_increments` (T−1, 3) and `observations` what the refinement re-uses; `fine` the fine stage per step
-    (variant full); `snapshots` maps step → (particles, weights).
+    `odom_increments` (T−1, 3), `observations` and `scans` (the (N, 2) base-frame scan endpoints per step, None
+    where no scan was taken) what the refinement re-uses; `fine` the fine stage per step (variant full);
+    `snapshots` maps step → (particles, weights).
     """
 
     variant: str
@@ -137,6 +140,7 @@ class LocalizationRun:
     perception_ms: np.ndarray
     odom_increments: np.ndarray
     observations: list[Observations]
+    scans: list[np.ndarray | None] = field(default_factory=list)
     graph: Track | None = None
     modes: list[list[ModeEstimate]] = field(default_factory=list)
     final_modes: list[ModeHistory] = field(default_factory=list)
@@ -196,6 +200,7 @@ class Localizer:
         self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
         self.filter.initialize()
         self.backend = MultiHypothesisBackend.from_prior(prior, cfg.backend) if self.variant in GRAPH_VARIANTS else None
+        self.matcher = CorrelativeMatcher(prior, cfg.backend) if self.backend and cfg.backend.scan_factor else None
         self.fine = FineRegistration.for_prior(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None
         # The frames before the current one that a submap stitches in (registration.submap_keyframes − 1).
         self._recent: deque[Frame] = deque(maxlen=cfg.registration.submap_keyframes - 1)
@@ -209,8 +214,8 @@ class Localizer:
         perception_ms = (time.perf_counter() - started) * 1000
         increment = None if self._last_odom is None else odometry_increment(self._last_odom, frame.odom_pose)
         self._last_odom = np.asarray(frame.odom_pose, float)
-        scan = frame_endpoints(frame, self.meta, self.cfg) if self.cfg.smcl.scan_likelihood else None
-        filtered = self.filter.step(increment, seen.observations, scan)
+        scan = frame_endpoints(frame, self.meta, self.cfg) if self.cfg.smcl.scan_likelihood or self.matcher else None
+        filtered = self.filter.step(increment, seen.observations, scan if self.cfg.smcl.scan_likelihood else None)
         out = LocalizerStep(
             filtered,
             None,
@@ -221,6 +226,7 @@ class Localizer:
             seen.observations,
             increment,
             perception_ms,
+            scan,
         )
         if self.backend is not None:
             self._graph_step(out)
@@ -235,7 +241,8 @@ class Localizer:
         started = time.perf_counter()
         modes = extract_modes(self.filter.particles, self.filter.weights, self.cfg.backend, self.filter.storeys)
         associate = semantic_associator(self.filter.likelihood, out.observations)
-        out.graph = self.backend.step(modes, out.odom_increment, out.observations, associate)
+        scan_match = None if self.matcher is None or out.scan is None else self.matcher.factor_fn(out.scan)
+        out.graph = self.backend.step(modes, out.odom_increment, out.observations, associate, None, scan_match)
         out.graph_ms = (time.perf_counter() - started) * 1000
         if out.graph is not None:
             self._output_mode(out, out.graph.best)
@@ -335,6 +342,7 @@ def localize_sequence(
         perception_ms=np.asarray([r.perception_ms for r in rows]),
         odom_increments=np.asarray([r.odom_increment for r in rows[1:]], float).reshape(-1, 3),
         observations=[r.observations for r in rows],
+        scans=[r.scan for r in rows],
         graph=graph,
         modes=[r.graph.modes if r.graph is not None else [] for r in rows],
         final_modes=localizer.backend.histories() if localizer.backend is not None else [],
@@ -363,9 +371,10 @@ class RefinedRun:
 def refine_run(run: LocalizationRun, prior: BimPrior, cfg: Config) -> RefinedRun:
     """Batch Levenberg–Marquardt smoothing of the whole trajectory of every mode that survived the forward pass.
 
-    After a full forward pass, the fine stage's accepted pose factors of each mode enter its batch graph. The run
-    must come from a graph variant (ValueError otherwise). A run in which the filter never formed a mode has nothing
-    to refine: its `modes` are empty and the estimate is the forward pass's.
+    With `backend.scan_factor` and the run's scans, every keyframe's scan is matched anew from each mode's
+    hindsight trajectory (`refine_mode`). After a full forward pass, the fine stage's accepted pose factors of each
+    mode enter its batch graph. The run must come from a graph variant (ValueError otherwise). A run in which the
+    filter never formed a mode has nothing to refine: its `modes` are empty and the estimate is the forward pass's.
     """
     if run.graph is None:
         raise ValueError(f"refinement needs a pose-graph variant ({', '.join(GRAPH_VARIANTS)}), not {run.variant}")
@@ -376,8 +385,12 @@ def refine_run(run: LocalizationRun, prior: BimPrior, cfg: Config) -> RefinedRun
     likelihood = SemanticLikelihood(prior, visibility_of(prior, cfg), cfg.smcl)
     associate_fns = [semantic_associator(likelihood, obs) for obs in run.observations]
     landmark_xy = prior.object_positions()[:, :2]
+    measure_fns = None
+    if cfg.backend.scan_factor and run.scans:
+        matcher = CorrelativeMatcher(prior, cfg.backend)
+        measure_fns = [None if scan is None else matcher.factor_fn(scan) for scan in run.scans]
     refined = [
-        refine_mode(mode, run.odom_increments, run.observations, associate_fns, landmark_xy, cfg.backend)
+        refine_mode(mode, run.odom_increments, run.observations, associate_fns, landmark_xy, cfg.backend, measure_fns)
         for mode in run.final_modes
     ]
     refine_ms = (time.perf_counter() - started) * 1000

@@ -14,6 +14,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from bimfactor.config import BackendConfig
+from bimfactor.localization.motion import odometry_covariance
 from bimfactor.types import Observations
 
 __all__ = [
@@ -27,7 +28,7 @@ __all__ = [
     "landmark_factors",
     "landmark_prior_factor",
     "odometry_factor",
-    "odometry_sigmas",
+    "odometry_noise_covariance",
     "pose_prior_factor",
     "to_pose2",
 ]
@@ -66,12 +67,11 @@ def covariance_body_to_world(covariance: np.ndarray, yaw: float) -> np.ndarray:
 # ------------------------------------------------------------------------------------------ noise models
 
 
-def odometry_sigmas(increment: np.ndarray, cfg: BackendConfig) -> np.ndarray:
-    """(3,) σ of one (3,) robot-frame odometry increment: a floor plus a share of the distance / rotation."""
-    dist = float(np.hypot(increment[0], increment[1]))
-    sigma_xy = cfg.odom_sigma_trans_m + cfg.odom_sigma_trans_per_m * dist
-    sigma_yaw = np.deg2rad(cfg.odom_sigma_rot_deg) + cfg.odom_sigma_rot_per_rad * abs(float(increment[2]))
-    return np.array([sigma_xy, sigma_xy, sigma_yaw])
+def odometry_noise_covariance(increment: np.ndarray, cfg: BackendConfig) -> np.ndarray:
+    """(3, 3) covariance of one (3,) robot-frame odometry increment: the odometry motion model's (α1..α4 =
+    `odom_alpha`, `localization.motion.odometry_covariance`) plus a diagonal floor."""
+    floor = np.array([cfg.odom_sigma_trans_m, cfg.odom_sigma_trans_m, np.deg2rad(cfg.odom_sigma_rot_deg)]) ** 2
+    return odometry_covariance(increment, cfg.odom_alpha) + np.diag(floor)
 
 
 def _robust(base: gtsam.noiseModel.Base, cfg: BackendConfig) -> gtsam.noiseModel.Base:
@@ -109,11 +109,11 @@ def information_pose_factor(i: int, pose: np.ndarray, information_body: np.ndarr
 def odometry_factor(
     i: int, increment: np.ndarray, cfg: BackendConfig, covariance: np.ndarray | None = None
 ) -> gtsam.BetweenFactorPose2:
-    """X(i−1) → X(i) by a (3,) robot-frame increment; noise from `odometry_sigmas` or a given (3, 3) covariance."""
+    """X(i−1) → X(i) by a (3,) robot-frame increment; noise from `odometry_noise_covariance` or a given (3, 3)
+    covariance."""
     if covariance is None:
-        noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(increment, cfg))
-    else:
-        noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, np.float64))
+        covariance = odometry_noise_covariance(increment, cfg)
+    noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, np.float64))
     return gtsam.BetweenFactorPose2(X(i - 1), X(i), to_pose2(increment), noise)
 
 

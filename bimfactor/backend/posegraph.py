@@ -5,7 +5,9 @@ Per mode k (a `ModeGraph`), keyed by keyframe index i and BIM object id j:
 2. BetweenFactorPose2 X(i−1) → X(i) per odometry increment;
 3. for every observation matched to object j: a robust BearingRangeFactor2D X(i) → L(j), and once per object a
    tight PriorFactorPoint2 holding L(j) at its BIM position (σ = `landmark_sigma_m`: as-built reality deviates);
-4. optionally a PriorFactorPose2 from a fine registrar (`add_pose_factor`).
+4. optionally PriorFactorPose2s: the keyframe's scan matched against the BIM's walls from the mode's predicted pose
+   (`MultiHypothesisBackend.step`'s `pose_factor_fn`, kept apart as `scan_factors`) and a fine registrar's result
+   (`add_pose_factor`).
 Online, ISAM2 takes one update per keyframe (one more only when re-association changes the matches).
 
 Mode probability (`MultiHypothesisBackend.step`): with w_k the mode's particle-weight share and, over the K
@@ -52,6 +54,11 @@ log = logging.getLogger(__name__)
 
 AssociateFn = Callable[[np.ndarray, int], list[tuple[int, int]]]
 """(3,) pose, storey → (observation index, BIM object id) pairs for the current step's observations."""
+PoseFactor = tuple[int, np.ndarray, np.ndarray]
+"""A pose factor on X(i): keyframe index, (3,) pose, (3, 3) body-frame information."""
+PoseFactorFn = Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray] | None]
+"""(3,) predicted pose, storey → a measured (3,) pose with (3, 3) body-frame information, or None (e.g. the current
+keyframe's scan matched against the BIM from that pose; `registration.correlative`)."""
 
 
 def floored_covariance(covariance: np.ndarray, cfg: BackendConfig) -> np.ndarray:
@@ -132,7 +139,8 @@ class ModeGraph:
         self.prior_pose, self.prior_covariance = self.pose.copy(), self.covariance.copy()
         self.poses: dict[int, np.ndarray] = {}
         self.associations: dict[int, list[tuple[int, int]]] = {}
-        self.pose_factors: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self.pose_factors: list[PoseFactor] = []
+        self.scan_factors: list[PoseFactor] = []
         self._landmarks: set[int] = set()
         self._landmark_factor_indices: dict[int, list[int]] = {}
         self._pending = gtsam.NonlinearFactorGraph()
@@ -197,14 +205,16 @@ class ModeGraph:
         log.debug("mode %d keyframe %d re-associated: %d matches", self.mode_id, i, len(association))
         return True
 
-    def add_pose_factor(self, i: int, pose: np.ndarray, information: np.ndarray) -> None:
-        """A PriorFactorPose2 on X(i) at a (3,) pose with (3, 3) body-frame information (the fine registrar's result).
+    def add_pose_factor(self, i: int, pose: np.ndarray, information: np.ndarray, scan: bool = False) -> None:
+        """A PriorFactorPose2 on X(i) at a (3,) pose with (3, 3) body-frame information: a fine registrar's result,
+        or with `scan` the keyframe's scan match.
 
-        Applied now (one ISAM2 update) when X(i) is in the graph, else with keyframe i; kept in `pose_factors` for
-        the offline refinement.
+        Applied now (one ISAM2 update) when X(i) is in the graph, else with keyframe i; kept in `pose_factors` (or
+        `scan_factors`) for the offline refinement.
         """
         factor = information_pose_factor(i, pose, information)
-        self.pose_factors.append((i, np.asarray(pose, np.float64).copy(), np.asarray(information, np.float64).copy()))
+        kept = self.scan_factors if scan else self.pose_factors
+        kept.append((i, np.asarray(pose, np.float64).copy(), np.asarray(information, np.float64).copy()))
         if i in self.poses:
             graph = gtsam.NonlinearFactorGraph()
             graph.add(factor)
@@ -242,6 +252,7 @@ class ModeGraph:
             self.trajectory(),
             [list(self.associations[i]) for i in sorted(self.poses)],
             list(self.pose_factors),
+            list(self.scan_factors),
         )
 
     # -------------------------------------------------------------------------------- helpers
@@ -291,8 +302,8 @@ class ModeEstimate:
 @dataclass
 class ModeHistory:
     """A mode's whole graph as plain data: its birth prior on X(first_index) ((3,) pose, (3, 3) world-frame
-    covariance), (n, 3) ISAM2-smoothed poses of keyframes first_index … first_index + n − 1, their matches, and the
-    fine registrar's pose factors (keyframe index, (3,) pose, (3, 3) body-frame information)."""
+    covariance), (n, 3) ISAM2-smoothed poses of keyframes first_index … first_index + n − 1, their matches, the
+    fine registrar's pose factors and the scan matches' (`PoseFactor`s)."""
 
     mode_id: int
     storey: int
@@ -302,7 +313,8 @@ class ModeHistory:
     prior_covariance: np.ndarray
     poses: np.ndarray
     associations: list[list[tuple[int, int]]]
-    pose_factors: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)
+    pose_factors: list[PoseFactor] = field(default_factory=list)
+    scan_factors: list[PoseFactor] = field(default_factory=list)
 
 
 @dataclass
@@ -349,10 +361,13 @@ class MultiHypothesisBackend:
         observations: Observations,
         associate_fn: AssociateFn,
         odom_covariance: np.ndarray | None = None,
+        pose_factor_fn: PoseFactorFn | None = None,
     ) -> BackendStep | None:
         """Track the modes, update every mode's graph with the keyframe, weigh the modes; see the module docstring.
 
-        Returns None when there is no mode at all (no cluster heavy enough to spawn one and none tracked).
+        `pose_factor_fn`, when given, measures each mode's keyframe pose from its predicted pose (the scan match);
+        a measurement enters the mode's graph with the keyframe. Returns None when there is no mode at all (no
+        cluster heavy enough to spawn one and none tracked).
         """
         self.index += 1
         i = self.index
@@ -376,6 +391,9 @@ class MultiHypothesisBackend:
             else:
                 predicted, increment = graph.predict(odom_increment), odom_increment
             association = list(associate_fn(predicted, mode.storey))
+            measured = None if pose_factor_fn is None else pose_factor_fn(predicted, mode.storey)
+            if measured is not None:
+                graph.add_pose_factor(i, *measured, scan=True)
             graph.add_keyframe(i, observations, association, increment, odom_covariance)
             if graph.reassociate(observations, associate_fn, predicted):
                 reassociated.append(mode.id)
@@ -482,7 +500,7 @@ def batch_refine(
     cfg: BackendConfig,
     initial_poses: np.ndarray | None = None,
     odom_covariances: np.ndarray | None = None,
-    pose_factors: Sequence[tuple[int, np.ndarray, np.ndarray]] = (),
+    pose_factors: Sequence[PoseFactor] = (),
     prior_index: int = 0,
 ) -> BatchResult:
     """Full graph of a T-keyframe trajectory optimised with Levenberg–Marquardt.

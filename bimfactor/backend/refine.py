@@ -3,11 +3,14 @@
 For a mode that the back end still tracks at the end of a sequence (born at keyframe i0, on one storey):
 1. initial guess: its ISAM2-smoothed poses from i0 on; before i0, dead reckoning backwards from X(i0);
 2. matches: the forward pass's from i0 on; before i0, the associator's at the initial guess;
-3. `batch_refine` over all T keyframes: the mode's birth prior on X(i0), odometry between every pair of keyframes,
-   robust bearing-range factors to the BIM landmarks and the fine registrar's pose factors the forward pass accepted
-   (variant full), so the steps before the mode existed are placed in hindsight;
-4. up to `refine_rounds` times: re-associate every keyframe at the refined poses and optimise again while the matches
-   change (hindsight association: the smoothed poses put observations next to the right objects).
+3. scan factors: with the keyframes' scans (`measure_fns`), every keyframe's scan matched against the BIM's walls
+   from the initial guess, before i0 too; without them, the forward pass's;
+4. `batch_refine` over all T keyframes: the mode's birth prior on X(i0), odometry between every pair of keyframes,
+   robust bearing-range factors to the BIM landmarks, the scan factors and the fine registrar's pose factors the
+   forward pass accepted (variant full), so the steps before the mode existed are placed in hindsight;
+5. up to `refine_rounds` times: re-associate (and re-match the scans of) every keyframe at the refined poses and
+   optimise again while the matches change (hindsight association: the smoothed poses put observations next to the
+   right objects).
 """
 
 from __future__ import annotations
@@ -18,7 +21,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bimfactor.backend.posegraph import AssociateFn, BatchResult, ModeHistory, batch_refine, dead_reckoning
+from bimfactor.backend.posegraph import (
+    AssociateFn,
+    BatchResult,
+    ModeHistory,
+    PoseFactor,
+    PoseFactorFn,
+    batch_refine,
+    dead_reckoning,
+)
 from bimfactor.config import BackendConfig
 from bimfactor.types import Observations
 
@@ -53,12 +64,14 @@ def refine_mode(
     associate_fns: Sequence[AssociateFn],
     landmark_xy: np.ndarray,
     cfg: BackendConfig,
+    measure_fns: Sequence[PoseFactorFn | None] | None = None,
 ) -> RefinedMode:
     """Smooth one mode over all T keyframes (see the module docstring).
 
     `odom_increments` (T−1, 3) robot-frame odometry between keyframes; `observations` and `associate_fns` one per
     keyframe (an associator maps a pose and storey to (observation index, object id) pairs for that keyframe's
-    observations); `landmark_xy` (N, 2) BIM object positions by id; `cfg.refine_rounds` bounds the re-association.
+    observations); `landmark_xy` (N, 2) BIM object positions by id; `cfg.refine_rounds` bounds the re-association;
+    `measure_fns`, one per keyframe (None: no scan), match the keyframe's scan from a pose.
     """
     T = len(observations)
     i0, n = mode.first_index, len(mode.poses)
@@ -69,6 +82,14 @@ def refine_mode(
     associations = [list(associate_fns[t](initial[t], mode.storey)) for t in range(i0)] + [
         list(a) for a in mode.associations
     ]
+    if measure_fns is not None and len(measure_fns) != T:
+        raise ValueError(f"mode {mode.mode_id}: {len(measure_fns)} scan matchers for {T} keyframes")
+
+    def scan_factors(poses: np.ndarray) -> list[PoseFactor]:
+        if measure_fns is None:
+            return list(mode.scan_factors)
+        measured = [(t, fn(poses[t], mode.storey)) for t, fn in enumerate(measure_fns) if fn is not None]
+        return [(t, *m) for t, m in measured if m is not None]
 
     def optimise(start: np.ndarray, matches: list[list[tuple[int, int]]]) -> BatchResult:
         return batch_refine(
@@ -80,7 +101,7 @@ def refine_mode(
             landmark_xy,
             cfg,
             initial_poses=start,
-            pose_factors=mode.pose_factors,
+            pose_factors=list(mode.pose_factors) + scan_factors(start),
             prior_index=i0,
         )
 
@@ -88,8 +109,8 @@ def refine_mode(
     done = 0
     for _ in range(cfg.refine_rounds):
         again = [list(associate_fns[t](batch.poses[t], mode.storey)) for t in range(T)]
-        if [set(a) for a in again] == [set(a) for a in associations]:
-            break
+        if measure_fns is None and [set(a) for a in again] == [set(a) for a in associations]:
+            break  # with scans, the round still re-matches them from the refined poses
         associations, done = again, done + 1
         batch = optimise(batch.poses, associations)
     log.debug(

@@ -16,8 +16,9 @@ tells places of the same shape apart.
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
-from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.prior import BimPrior, StoreyLayers
 from bimfactor.config import Config, SmclConfig
 from bimfactor.registration.scan import backproject_depth, height_band
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
@@ -26,10 +27,13 @@ from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
 def scan_endpoints(
     depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, cfg: SmclConfig, max_z_m: float
 ) -> np.ndarray:
-    """(N, 2) base-frame x, y of the nearest return per bearing bin among the depth points in the scan band.
+    """(N, 2) base-frame x, y of one endpoint per bearing bin: the nearest surface's median return.
 
     Points are kept between `scan_min_z_m` and `max_z_m` (the top of the grid's obstacle band) above the floor
-    and within `scan_max_range_m` (horizontal); bins are `scan_beam_deg` wide. NaN depth is no return.
+    and within `scan_max_range_m` (horizontal); bins are `scan_beam_deg` wide. NaN depth is no return. In each bin
+    the returns within `scan_surface_m` of the nearest one form the nearest surface, and the endpoint is their
+    median by range: the nearest return alone is the minimum of hundreds of noisy samples of a wall, biased short
+    by about 3σ of the depth noise (15 cm at 5 m for a RealSense-like camera).
     """
     points = backproject_depth(depth_m, intrinsics, T_base_camera)
     points = height_band(points, cfg.scan_min_z_m, max_z_m)
@@ -40,8 +44,13 @@ def scan_endpoints(
         return np.zeros((0, 2))
     bins = np.floor(np.arctan2(points[:, 1], points[:, 0]) / np.deg2rad(cfg.scan_beam_deg)).astype(np.int64)
     order = np.lexsort((ranges, bins))  # by bin, then nearest first
-    _, first = np.unique(bins[order], return_index=True)
-    return points[order[first], :2]
+    bins, ranges = bins[order], ranges[order]
+    _, first, counts = np.unique(bins, return_index=True, return_counts=True)
+    # Sorted by range within each bin, the nearest surface is a prefix of the bin's run; its median is halfway.
+    group = np.repeat(np.arange(len(first)), counts)
+    on_surface = ranges <= ranges[first][group] + cfg.scan_surface_m
+    surface_counts = np.bincount(group, weights=on_surface, minlength=len(first)).astype(np.int64)
+    return points[order[first + surface_counts // 2], :2]
 
 
 def frame_endpoints(frame: Frame, meta: SequenceMeta, cfg: Config) -> np.ndarray:
@@ -49,40 +58,126 @@ def frame_endpoints(frame: Frame, meta: SequenceMeta, cfg: Config) -> np.ndarray
     return scan_endpoints(frame.depth_m, meta.intrinsics, meta.T_base_camera, cfg.smcl, cfg.bim.grid.band_max_m)
 
 
+class LikelihoodField:
+    """exp(−d² / 2σ²) per grid cell of every storey, looked up for scan endpoints placed by poses.
+
+    d is the prior's clearance layer, the distance from a free cell to the nearest obstacle, walls or furniture
+    (0 inside them). With `faces`, d is the distance to the nearest face of a wall or a piece of furniture, from
+    inside too: a scan matcher needs it, because inside thick walls and furniture footprints the clearance is a
+    plateau of equally good poses. (A camera below a table top sees its legs, which stand at the footprint's edge.)
+    The filter's particles never stand inside walls, so they use the clearance.
+    """
+
+    def __init__(self, prior: BimPrior, sigma_m: float, faces: bool = False) -> None:
+        self.grid = prior.grid
+        distance = np.stack([self._distance(layers, faces) for layers in prior.storeys])
+        # In 1/255 steps (a quarter of float32's memory: the lookups are random, so cache misses are their cost),
+        # flattened, with one 0 appended for "off grid".
+        field = np.rint(255.0 * np.exp(-0.5 * (distance / sigma_m) ** 2)).astype(np.uint8)
+        self._field = np.append(field.ravel(), np.uint8(0))
+        self._walls = np.append(np.stack([layers.structure for layers in prior.storeys]).ravel(), False)
+
+    def _distance(self, layers: StoreyLayers, faces: bool) -> np.ndarray:
+        if not faces:
+            return layers.clearance_m.astype(np.float32)
+        return np.minimum(self._to_faces(layers.structure), self._to_faces(layers.furniture))
+
+    def _to_faces(self, solid: np.ndarray) -> np.ndarray:
+        """Distance to the nearest face of a (rows, cols) bool layer, from outside or inside."""
+        # Either side of a face the nearest cells are one cell from the other side's: half a cell puts the face at 0.
+        res = np.float32(self.grid.resolution_m)
+        outside = ndimage.distance_transform_edt(~solid).astype(np.float32) * res
+        inside = ndimage.distance_transform_edt(solid).astype(np.float32) * res
+        return np.maximum(outside + inside - np.float32(0.5) * res, np.float32(0.0))
+
+    def _flat(self, poses: np.ndarray, storeys: np.ndarray | int, points: np.ndarray) -> np.ndarray:
+        """(M, N) flat field indices of (N, 2) base-frame points placed by (M, 3) poses; the last index off the grid."""
+        grid = self.grid
+        c = np.cos(poses[:, 2])[:, None] / grid.resolution_m
+        s = np.sin(poses[:, 2])[:, None] / grid.resolution_m
+        x0 = ((poses[:, 0] - grid.origin_x) / grid.resolution_m)[:, None]
+        y0 = ((poses[:, 1] - grid.origin_y) / grid.resolution_m)[:, None]
+        col = np.floor(x0 + c * points[None, :, 0] - s * points[None, :, 1]).astype(np.int64)
+        row = np.floor(y0 + s * points[None, :, 0] + c * points[None, :, 1]).astype(np.int64)
+        inside = (row >= 0) & (row < grid.rows) & (col >= 0) & (col < grid.cols)
+        storeys = np.broadcast_to(np.asarray(storeys, np.int64).reshape(-1), (len(poses),))
+        flat = (storeys[:, None] * grid.rows + row) * grid.cols + col
+        return np.where(inside, flat, len(self._field) - 1)
+
+    def values(
+        self, poses: np.ndarray, storeys: np.ndarray | int, endpoints: np.ndarray, clear_before_m: float = 0.0
+    ) -> np.ndarray:
+        """(M, N) uint8: 255 · exp(−d² / 2σ²) of each of the (N, 2) base-frame endpoints placed by each of the (M, 3)
+        poses on its storey ((M,) or one for all); 0 off the grid.
+
+        With `clear_before_m` > 0, an endpoint whose ray is inside a wall that far before it (the return would come
+        from behind a wall the sensor cannot see through) also scores 0.
+        """
+        poses = np.asarray(poses, np.float64).reshape(-1, 3)
+        endpoints = np.asarray(endpoints, np.float64).reshape(-1, 2)
+        values = self._field[self._flat(poses, storeys, endpoints)]
+        if clear_before_m > 0.0 and len(endpoints):
+            ranges = np.maximum(np.hypot(endpoints[:, 0], endpoints[:, 1]), 1e-9)
+            before = endpoints * np.maximum(1.0 - clear_before_m / ranges, 0.0)[:, None]
+            values = np.where(self._walls[self._flat(poses, storeys, before)], np.uint8(0), values)
+        return values
+
+    def grid_values(
+        self,
+        pose: np.ndarray,
+        dxy: np.ndarray,
+        dyaw: np.ndarray,
+        storey: int,
+        endpoints: np.ndarray,
+        clear_before_m: float = 0.0,
+    ) -> np.ndarray:
+        """(Y·T, N) `values` at the poses of a search grid around a (3,) pose: every (Y,) yaw offset (outer) with
+        every (T, 2) x, y offset (inner), all on one storey. The same numbers as `values` for those poses, at about
+        half the cost: the endpoints are rotated once per yaw and moved per translation."""
+        endpoints = np.asarray(endpoints, np.float64).reshape(-1, 2)
+        flat = self._grid_flat(pose, dxy, dyaw, storey, endpoints)
+        values = self._field[flat]
+        if clear_before_m > 0.0 and len(endpoints):
+            ranges = np.maximum(np.hypot(endpoints[:, 0], endpoints[:, 1]), 1e-9)
+            before = endpoints * np.maximum(1.0 - clear_before_m / ranges, 0.0)[:, None]
+            values[self._walls[self._grid_flat(pose, dxy, dyaw, storey, before)]] = 0
+        return values.reshape(len(dyaw) * len(dxy), len(endpoints))
+
+    def _grid_flat(
+        self, pose: np.ndarray, dxy: np.ndarray, dyaw: np.ndarray, storey: int, points: np.ndarray
+    ) -> np.ndarray:
+        """(Y, T, N) flat field indices of `grid_values`' poses; the last index off the grid."""
+        grid = self.grid
+        res = grid.resolution_m
+        yaws = float(pose[2]) + np.asarray(dyaw, np.float64)
+        c, s = np.cos(yaws)[:, None] / res, np.sin(yaws)[:, None] / res
+        rx = (c * points[None, :, 0] - s * points[None, :, 1]).astype(np.float32)  # (Y, N) grid units
+        ry = (s * points[None, :, 0] + c * points[None, :, 1]).astype(np.float32)
+        tx = ((float(pose[0]) + np.asarray(dxy)[:, 0] - grid.origin_x) / res).astype(np.float32)  # (T,)
+        ty = ((float(pose[1]) + np.asarray(dxy)[:, 1] - grid.origin_y) / res).astype(np.float32)
+        col = np.floor(tx[None, :, None] + rx[:, None, :]).astype(np.int64)
+        row = np.floor(ty[None, :, None] + ry[:, None, :]).astype(np.int64)
+        inside = (row >= 0) & (row < grid.rows) & (col >= 0) & (col < grid.cols)
+        flat = (storey * grid.rows + row) * grid.cols + col
+        return np.where(inside, flat, len(self._field) - 1)
+
+
 class ScanLikelihood:
     """Scores particles' poses by how well a base-frame scan lands on the prior's obstacles."""
 
     def __init__(self, prior: BimPrior, cfg: SmclConfig) -> None:
-        self.grid = prior.grid
         self.cfg = cfg
-        # The field itself, exp(−d² / 2σ²) per cell of every storey in 1/255 steps (a quarter of float32's memory:
-        # the lookups are random, so cache misses are their cost), flattened, with one 0 appended for "off grid".
-        clearance = np.stack([layers.clearance_m for layers in prior.storeys]).astype(np.float32)
-        field = np.rint(255.0 * np.exp(-0.5 * (clearance / cfg.scan_sigma_m) ** 2)).astype(np.uint8)
-        self._field = np.append(field.ravel(), np.uint8(0))
+        self.field = LikelihoodField(prior, cfg.scan_sigma_m)
 
     def scores(self, particles: np.ndarray, storeys: np.ndarray, endpoints: np.ndarray) -> np.ndarray:
         """(M,) mean over the (N, 2) endpoints of exp(−d² / 2σ²) at each particle's pose; 0 for an empty scan.
 
         An endpoint off the grid scores 0.
         """
-        particles = np.asarray(particles, np.float64).reshape(-1, 3)
-        endpoints = np.asarray(endpoints, np.float64).reshape(-1, 2)
-        M, N = len(particles), len(endpoints)
-        if N == 0:
-            return np.zeros(M)
-        grid = self.grid
-        # Endpoints in grid units relative to the grid origin, for every particle: (M, N) column and row.
-        c = np.cos(particles[:, 2])[:, None] / grid.resolution_m
-        s = np.sin(particles[:, 2])[:, None] / grid.resolution_m
-        x0 = ((particles[:, 0] - grid.origin_x) / grid.resolution_m)[:, None]
-        y0 = ((particles[:, 1] - grid.origin_y) / grid.resolution_m)[:, None]
-        col = np.floor(x0 + c * endpoints[None, :, 0] - s * endpoints[None, :, 1]).astype(np.int64)
-        row = np.floor(y0 + s * endpoints[None, :, 0] + c * endpoints[None, :, 1]).astype(np.int64)
-        inside = (row >= 0) & (row < grid.rows) & (col >= 0) & (col < grid.cols)
-        flat = (np.asarray(storeys, np.int64)[:, None] * grid.rows + row) * grid.cols + col
-        flat = np.where(inside, flat, len(self._field) - 1)
-        return self._field[flat].mean(axis=1, dtype=np.float64) / 255.0
+        values = self.field.values(particles, storeys, endpoints)
+        if values.shape[1] == 0:
+            return np.zeros(len(values))
+        return values.mean(axis=1, dtype=np.float64) / 255.0
 
     def log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, endpoints: np.ndarray) -> np.ndarray:
         """(M,) log P(z_scan|x) = score / `scan_temperature`."""

@@ -12,11 +12,43 @@ import numpy as np
 from bimfactor.types import se2_between, se2_compose, wrap_angle
 
 _MIN_TURN_RATE = 1e-9  # rad/s: below this a velocity command is a straight line
+ODOMETRY_MIN_TRANSLATION_M = 1e-4  # below this an increment is a pure turn: δrot1 = 0, δrot2 = Δθ
 
 
 def odometry_increment(odom_prev: np.ndarray, odom_curr: np.ndarray) -> np.ndarray:
     """(3,) dx, dy, dyaw in the robot frame between two consecutive (3,) odometry poses T_odom_base."""
     return se2_between(np.asarray(odom_prev, float), np.asarray(odom_curr, float))
+
+
+def odometry_increments(poses: np.ndarray) -> np.ndarray:
+    """(N, 3) poses → (N−1, 3) increments (δrot1, δtrans, δrot2) of the odometry motion model."""
+    poses = np.asarray(poses, float)
+    d = np.diff(poses[:, :2], axis=0)
+    trans = np.hypot(d[:, 0], d[:, 1])
+    turn = wrap_angle(np.diff(poses[:, 2]))
+    rot1 = np.where(trans >= ODOMETRY_MIN_TRANSLATION_M, wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - poses[:-1, 2]), 0.0)
+    rot2 = wrap_angle(turn - rot1)
+    return np.stack([rot1, trans, rot2], axis=1)
+
+
+def odometry_increment_variances(increments: np.ndarray, alpha: list[float] | np.ndarray) -> np.ndarray:
+    """(N, 3) variances of the noise on (δrot1, δtrans, δrot2) for (N, 3) increments (Thrun et al., Table 5.6)."""
+    a1, a2, a3, a4 = alpha
+    rot1, trans, rot2 = np.asarray(increments, float).T
+    return np.stack(
+        [a1 * rot1**2 + a2 * trans**2, a3 * trans**2 + a4 * (rot1**2 + rot2**2), a1 * rot2**2 + a2 * trans**2], axis=1
+    )
+
+
+def odometry_covariance(increment: np.ndarray, alpha: list[float] | np.ndarray) -> np.ndarray:
+    """(3, 3) covariance of a (3,) robot-frame increment (dx, dy, dyaw) under the odometry motion model's noise
+    (α1..α4 as in `odometry_increment_variances`), propagated through (δrot1, δtrans, δrot2) → (dx, dy, dyaw)."""
+    dx, dy, dyaw = np.asarray(increment, np.float64)
+    rot1, trans, rot2 = odometry_increments(np.array([[0.0, 0.0, 0.0], [dx, dy, dyaw]]))[0]
+    variances = odometry_increment_variances(np.array([[rot1, trans, rot2]]), alpha)[0]
+    c, s = np.cos(rot1), np.sin(rot1)
+    jacobian = np.array([[-trans * s, c, 0.0], [trans * c, s, 0.0], [1.0, 0.0, 1.0]])
+    return jacobian @ np.diag(variances) @ jacobian.T
 
 
 def velocity_increment(v_mps: float, omega_rps: float, dt_s: float) -> np.ndarray:

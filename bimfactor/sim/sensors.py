@@ -14,6 +14,7 @@ import numpy as np
 from scipy import special
 
 from bimfactor.config import CameraSimConfig, DepthNoiseConfig
+from bimfactor.localization.motion import odometry_increment_variances, odometry_increments
 from bimfactor.sim.world import SimWorld
 from bimfactor.types import CameraIntrinsics, se2_to_matrix, wrap_angle
 
@@ -22,7 +23,6 @@ R_BASE_CAMERA_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0
 LIGHT_DIRECTION = np.array([0.35, 0.55, 1.0]) / np.linalg.norm([0.35, 0.55, 1.0])  # world frame, towards the light
 AMBIENT = 0.45  # shade = AMBIENT + (1 − AMBIENT)·|n·l|
 BACKGROUND_RGB = np.array([150.0, 175.0, 205.0], np.float32)  # where a ray leaves the building
-ODOMETRY_MIN_TRANSLATION_M = 1e-4  # below this an increment is a pure turn: δrot1 = 0, δrot2 = Δθ
 
 
 class Rendering(NamedTuple):
@@ -133,26 +133,6 @@ def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------ wheel odometry
-
-
-def odometry_increments(poses: np.ndarray) -> np.ndarray:
-    """(N, 3) poses → (N−1, 3) increments (δrot1, δtrans, δrot2) of the odometry motion model."""
-    poses = np.asarray(poses, float)
-    d = np.diff(poses[:, :2], axis=0)
-    trans = np.hypot(d[:, 0], d[:, 1])
-    turn = wrap_angle(np.diff(poses[:, 2]))
-    rot1 = np.where(trans >= ODOMETRY_MIN_TRANSLATION_M, wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - poses[:-1, 2]), 0.0)
-    rot2 = wrap_angle(turn - rot1)
-    return np.stack([rot1, trans, rot2], axis=1)
-
-
-def odometry_increment_variances(increments: np.ndarray, alpha: list[float] | np.ndarray) -> np.ndarray:
-    """(N, 3) variances of the noise on (δrot1, δtrans, δrot2) for (N, 3) increments (Thrun et al., Table 5.6)."""
-    a1, a2, a3, a4 = alpha
-    rot1, trans, rot2 = np.asarray(increments, float).T
-    return np.stack(
-        [a1 * rot1**2 + a2 * trans**2, a3 * trans**2 + a4 * (rot1**2 + rot2**2), a1 * rot2**2 + a2 * trans**2], axis=1
-    )
 
 
 def simulate_odometry(gt_poses: np.ndarray, alpha: list[float] | np.ndarray, rng: np.random.Generator) -> np.ndarray:

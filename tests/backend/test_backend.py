@@ -5,17 +5,22 @@ import pytest
 
 from bimfactor.backend.modes import Mode
 from bimfactor.backend.posegraph import MultiHypothesisBackend, semantic_associator
-from bimfactor.backend.synthetic import loop_scenario, nearest_landmark_associator
+from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, loop_scenario, nearest_landmark_associator
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import load_config
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.types import Observations, wrap_angle
 from tests.localization.handmade import embedding, make_prior, object_id
 
-# The sensor and BIM the tolerances below are set for: σ_r 15 cm, σ_b 3°, BIM σ 10 cm (the loop scenario draws its
-# noise from them).
+# The sensor, odometry and BIM the tolerances below are set for: σ_r 15 cm, σ_b 3°, odometry σ 5 % of the motion,
+# BIM σ 10 cm (the loop scenario draws its noise from them).
 CFG = load_config().backend.model_copy(
-    update={"range_sigma_m": 0.15, "bearing_sigma_deg": 3.0, "landmark_sigma_m": 0.1}
+    update={
+        "range_sigma_m": 0.15,
+        "bearing_sigma_deg": 3.0,
+        "landmark_sigma_m": 0.1,
+        "odom_alpha": PRECISE_ODOMETRY_ALPHA,
+    }
 )
 CLUSTER_COV = np.diag([0.2, 0.2, np.deg2rad(5.0)]) ** 2
 GATE_M = 1.0

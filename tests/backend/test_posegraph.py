@@ -4,14 +4,22 @@ import numpy as np
 import pytest
 
 from bimfactor.backend.factors import covariance_body_to_world, covariance_world_to_body
-from bimfactor.backend.posegraph import ModeGraph, batch_refine
-from bimfactor.backend.synthetic import LoopScenario, loop_scenario
+from bimfactor.backend.modes import Mode
+from bimfactor.backend.posegraph import ModeGraph, MultiHypothesisBackend, batch_refine
+from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, LoopScenario, loop_scenario
 from bimfactor.config import load_config
 from bimfactor.types import se2_compose, wrap_angle
 
 BASE = load_config().backend
-# A precise sensor and BIM for the accuracy tests (σ_r 5 cm, σ_b 1°, BIM σ 2 cm; truth = BIM).
-PRECISE = BASE.model_copy(update={"range_sigma_m": 0.05, "bearing_sigma_deg": 1.0, "landmark_sigma_m": 0.02})
+# A precise sensor, odometry and BIM for the accuracy tests (σ_r 5 cm, σ_b 1°, BIM σ 2 cm; truth = BIM).
+PRECISE = BASE.model_copy(
+    update={
+        "range_sigma_m": 0.05,
+        "bearing_sigma_deg": 1.0,
+        "landmark_sigma_m": 0.02,
+        "odom_alpha": PRECISE_ODOMETRY_ALPHA,
+    }
+)
 FIRST_COV = np.diag([0.1, 0.1, np.deg2rad(2.0)]) ** 2
 CHI2_3DOF_95 = 7.815
 WRONG_MATCH_STEP = 10
@@ -177,3 +185,28 @@ def test_batch_covariances_fall_back_to_the_motion_graph_when_the_marginals_fail
     )
     assert wider[1:].all()  # the landmarks tighten every pose but the prior's
     assert "pose marginals failed" in caplog.text
+
+
+def test_a_scan_measurement_enters_the_mode_graph_with_its_keyframe_and_is_kept_apart():
+    """`pose_factor_fn` measures each mode's keyframe pose from its prediction: a tight measurement at the truth
+    pulls a mode born off the truth onto it, and the history keeps it as a scan factor, not a fine one."""
+    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    backend = MultiHypothesisBackend(sc.landmark_xy, PRECISE)
+    information = np.diag([1 / 0.01**2, 1 / 0.01**2, 1 / np.deg2rad(0.2) ** 2])
+    asked = []
+
+    def measure(pose, storey):
+        asked.append(pose.copy())
+        t = len(asked) - 1
+        return (sc.true_poses[t], information) if t % 2 == 0 else None  # every other keyframe
+
+    born_off = np.array([0.4, -0.3, np.deg2rad(8.0)])
+    for t in range(5):
+        clusters = [Mode(sc.true_poses[t] + born_off, np.diag([0.3, 0.3, np.deg2rad(10.0)]) ** 2, 1.0)]
+        increment = None if t == 0 else sc.increments[t - 1]
+        step = backend.step(clusters, increment, sc.observations[t], lambda p, s: [], None, measure)
+    np.testing.assert_allclose(asked[0], sc.true_poses[0] + born_off)  # measured from the mode's own prediction
+    history = backend.histories()[0]
+    assert [i for i, _, _ in history.scan_factors] == [0, 2, 4] and history.pose_factors == []
+    assert np.linalg.norm(step.pose[:2] - sc.true_poses[4, :2]) < 0.03
+    assert abs(wrap_angle(step.pose[2] - sc.true_poses[4, 2])) < np.deg2rad(0.5)

@@ -26,7 +26,7 @@ def _endpoints(depth: np.ndarray, cfg: Config) -> np.ndarray:
     return scan_endpoints(depth, intrinsics, T_base_camera, cfg.smcl, cfg.bim.grid.band_max_m)
 
 
-def test_endpoints_are_the_nearest_return_per_bearing_bin(test_config: Config) -> None:
+def test_endpoints_are_the_nearest_surface_per_bearing_bin(test_config: Config) -> None:
     forward = test_config.sim.camera.mount_forward_m
     depth = np.full((H, W), 3.0, np.float32)  # a wall 3 m ahead of the (level) camera
     wall = _endpoints(depth, test_config)
@@ -42,6 +42,22 @@ def test_endpoints_are_the_nearest_return_per_bearing_bin(test_config: Config) -
     depth[:] = 3.0
     depth[:2] = 1.0
     np.testing.assert_allclose(_endpoints(depth, test_config), wall)
+
+
+def test_an_endpoint_is_the_median_of_its_nearest_surface_not_its_nearest_noisy_return(test_config: Config) -> None:
+    """A wall 5 m ahead seen with 5 cm depth noise: the nearest of a bin's hundreds of returns is ~3σ short, the
+    median of the returns within `scan_surface_m` of it is on the wall; a far wall behind does not count."""
+    surface_m = test_config.smcl.scan_surface_m
+    rng = np.random.default_rng(0)
+    depth = (5.0 + 0.05 * rng.standard_normal((H, W))).astype(np.float32)
+    depth[:, ::7] = 9.0  # columns of a far wall seen through gaps: beyond the nearest surface
+    scan = _endpoints(depth, test_config)
+    ranges = scan[:, 0] - test_config.sim.camera.mount_forward_m
+    assert abs(np.mean(ranges) - 5.0) < 0.015  # unbiased (the nearest returns: 5 m − ~2.5σ)
+    assert np.all(np.abs(ranges - 5.0) < 0.2)  # each a sample of the noise, none on the far wall
+    assert surface_m > 3 * 0.05  # the surface holds the whole ±3σ spread of the noise
+    nearest = np.delete(depth, np.s_[::7], axis=1).min(axis=0).mean()  # per column, fewer returns than a bin
+    assert nearest < 5.0 - 0.08
 
 
 def test_no_return_gives_an_empty_scan(test_config: Config) -> None:

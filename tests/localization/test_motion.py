@@ -1,10 +1,20 @@
-"""The kinematic motion model: increments from odometry and velocities, and the noise the paper adds."""
+"""The kinematic motion model: increments from odometry and velocities, the noise the paper adds, and the odometry
+motion model's covariance the pose graphs use."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from bimfactor.localization.motion import odometry_increment, propagate, propagate_velocity, velocity_increment
+from bimfactor.localization.motion import (
+    odometry_covariance,
+    odometry_increment,
+    odometry_increment_variances,
+    odometry_increments,
+    propagate,
+    propagate_velocity,
+    velocity_increment,
+)
 
 SIGMA_TRANS_M = 0.2
 SIGMA_ROT_RAD = np.deg2rad(10.0)
@@ -57,3 +67,17 @@ def test_velocity_form_equals_increment_form_with_the_same_generator():
     a = propagate_velocity(particles, 0.8, 0.3, 0.5, 0.1, 0.05, np.random.default_rng(7))
     b = propagate(particles, velocity_increment(0.8, 0.3, 0.5), 0.1, 0.05, np.random.default_rng(7))
     np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("increment", [[0.5, 0.0, 0.0], [0.4, 0.1, 0.3], [0.0, 0.0, 0.3]])
+def test_odometry_covariance_matches_the_sampled_motion_model(increment):
+    """Sample the odometry motion model (as the simulator does) and compare the increments' spread."""
+    alpha = [0.05, 0.01, 0.05, 0.01]
+    rng = np.random.default_rng(0)
+    start = np.zeros(3)
+    parts = odometry_increments(np.array([start, increment]))[0]
+    sigma = np.sqrt(odometry_increment_variances(parts[None], alpha)[0])
+    rot1, trans, rot2 = (parts + sigma * rng.standard_normal((100_000, 3))).T
+    sampled = np.column_stack([trans * np.cos(rot1), trans * np.sin(rot1), rot1 + rot2])
+    expected = odometry_covariance(np.array(increment), alpha)
+    np.testing.assert_allclose(np.cov(sampled.T), expected, rtol=0.1, atol=1e-4)
