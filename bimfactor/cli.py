@@ -25,6 +25,7 @@ from bimfactor import __version__
 from bimfactor.errors import BimfactorError, InputError
 
 if TYPE_CHECKING:
+    from bimfactor.bim.ifc import IfcModel
     from bimfactor.bim.prior import BimPrior
     from bimfactor.config import Config
 
@@ -720,7 +721,7 @@ def refine(
         from bimfactor.bim.prior import BimPrior
         from bimfactor.evaluation.report import ensure_run_destination, run_metrics, track_metrics, write_refined
         from bimfactor.io.sequence import read_sequence
-        from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run
+        from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run, scan_matcher
 
         if cfg.localization.variant not in GRAPH_VARIANTS:
             raise InputError(
@@ -729,10 +730,17 @@ def refine(
         ensure_run_destination(output)
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
+        matcher = scan_matcher(prior, cfg)
         run = localize_sequence(
-            prior, sequence.meta, sequence, cfg, cfg.seed if seed is None else seed, prior_dir=prior_dir
+            prior,
+            sequence.meta,
+            sequence,
+            cfg,
+            cfg.seed if seed is None else seed,
+            prior_dir=prior_dir,
+            matcher=matcher,
         )
-        refined = refine_run(run, prior, cfg)
+        refined = refine_run(run, prior, cfg, matcher)
         title = f"{sequence.meta.name} refined against {prior_dir}"
         write_refined(refined, prior, output, cfg.dump_yaml(), title=title)
         typer.echo(
@@ -878,14 +886,26 @@ def bench_graph(
         typer.echo(f"results: {output / 'report.json'}")
 
 
-def _paper_floor_prior(output: Path, cfg: Config) -> Path:
-    """OUT/prior, the paper-floor preset's prior built from OUT/paper-floor.ifc (both written now)."""
+def _bench_world(prior_dir: Path | None, output: Path, cfg: Config) -> tuple[BimPrior, IfcModel]:
+    """The prior and IFC model a simulation benchmark runs on: `prior_dir`'s, or (None) the paper-floor preset's,
+    written now to OUT/paper-floor.ifc and built into OUT/prior."""
     from bimfactor.bim.prior import build_prior
     from bimfactor.bim.synth import write_building
+    from bimfactor.sim.simulate import load_world_inputs
 
-    write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
-    build_prior(output / "paper-floor.ifc", cfg).save(output / "prior", config_yaml=cfg.dump_yaml())
-    return output / "prior"
+    output.mkdir(parents=True, exist_ok=True)
+    if prior_dir is None:
+        prior_dir = output / "prior"
+        write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
+        build_prior(output / "paper-floor.ifc", cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
+    return load_world_inputs(prior_dir, cfg)
+
+
+def _echo_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) -> None:
+    """Write a benchmark's results (`_write_bench`) and print them."""
+    results = _write_bench(output, name, result, cfg)
+    typer.echo(json.dumps(result, indent=1, default=float))
+    typer.echo(f"results: {results}")
 
 
 @bench_app.command("registration", short_help="Time of one fine registration at the default voxel, and the fine stage.")
@@ -919,16 +939,10 @@ def bench_registration(
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
         from bimfactor.registration.compare import benchmark_registration
-        from bimfactor.sim.simulate import load_world_inputs
 
-        output.mkdir(parents=True, exist_ok=True)
-        if prior_dir is None:
-            prior_dir = _paper_floor_prior(output, cfg)
-        prior, model = load_world_inputs(prior_dir, cfg)
+        prior, model = _bench_world(prior_dir, output, cfg)
         result = benchmark_registration(prior, model, cfg, method, n_keyframes=keyframes, repeats=repeats)
-        results = _write_bench(output, "registration", result, cfg)
-        typer.echo(json.dumps(result, indent=1, default=float))
-        typer.echo(f"results: {results}")
+        _echo_bench(output, "registration", result, cfg)
 
 
 @bench_app.command("scanmatch", short_help="Scan matching against the BIM: accuracy, covariance honesty, time.")
@@ -958,16 +972,10 @@ def bench_scanmatch(
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
         from bimfactor.registration.correlative import benchmark_scan_matching
-        from bimfactor.sim.simulate import load_world_inputs
 
-        output.mkdir(parents=True, exist_ok=True)
-        if prior_dir is None:
-            prior_dir = _paper_floor_prior(output, cfg)
-        prior, model = load_world_inputs(prior_dir, cfg)
+        prior, model = _bench_world(prior_dir, output, cfg)
         result = benchmark_scan_matching(prior, model, cfg, every=every)
-        results = _write_bench(output, "scanmatch", result, cfg)
-        typer.echo(json.dumps(result, indent=1, default=float))
-        typer.echo(f"results: {results}")
+        _echo_bench(output, "scanmatch", result, cfg)
 
 
 @bench_app.command("smcl", short_help="Particle-filter step time (predict + update + resample) against M.")

@@ -170,6 +170,13 @@ class LocalizationRun:
         return self.output.rooms
 
 
+def scan_matcher(prior: BimPrior, cfg: Config) -> CorrelativeMatcher | None:
+    """The matcher of the graphs' scan factors (`backend.scan_factor`; None when off). Building it takes about a
+    second on the paper floor (distance transforms of the whole grid), so a forward pass and its refinement share
+    one."""
+    return CorrelativeMatcher(prior, cfg.backend) if cfg.backend.scan_factor else None
+
+
 def visibility_of(prior: BimPrior, cfg: Config) -> VisibilityTable:
     """The prior's stored visible-object table, or one built now for priors saved without it."""
     return prior.visibility or VisibilityTable.build(prior, cfg.smcl)
@@ -179,7 +186,8 @@ class Localizer:
     """Global localization of one sequence against one prior, in the configured variant.
 
     The full variant reads the IFC file the prior was built from (its surface models, built once per building);
-    `prior_dir` helps find a relative `source_file`.
+    `prior_dir` helps find a relative `source_file`. Graph variants use `matcher` for the scan factors, or build
+    their own (`scan_matcher`).
     """
 
     def __init__(
@@ -190,6 +198,7 @@ class Localizer:
         seed: int,
         text_embedder: TextEmbedder | None = None,
         prior_dir: str | Path | None = None,
+        matcher: CorrelativeMatcher | None = None,
     ) -> None:
         self.prior = prior
         self.meta = meta
@@ -200,7 +209,7 @@ class Localizer:
         self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
         self.filter.initialize()
         self.backend = MultiHypothesisBackend.from_prior(prior, cfg.backend) if self.variant in GRAPH_VARIANTS else None
-        self.matcher = CorrelativeMatcher(prior, cfg.backend) if self.backend and cfg.backend.scan_factor else None
+        self.matcher = (matcher or scan_matcher(prior, cfg)) if self.backend else None
         self.fine = FineRegistration.for_prior(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None
         # The frames before the current one that a submap stitches in (registration.submap_keyframes − 1).
         self._recent: deque[Frame] = deque(maxlen=cfg.registration.submap_keyframes - 1)
@@ -215,7 +224,7 @@ class Localizer:
         increment = None if self._last_odom is None else odometry_increment(self._last_odom, frame.odom_pose)
         self._last_odom = np.asarray(frame.odom_pose, float)
         scan = frame_endpoints(frame, self.meta, self.cfg) if self.cfg.smcl.scan_likelihood or self.matcher else None
-        filtered = self.filter.step(increment, seen.observations, scan if self.cfg.smcl.scan_likelihood else None)
+        filtered = self.filter.step(increment, seen.observations, scan)  # the filter ignores it without its scan term
         out = LocalizerStep(
             filtered,
             None,
@@ -281,12 +290,14 @@ def localize_sequence(
     text_embedder: TextEmbedder | None = None,
     show_progress: bool = True,
     prior_dir: str | Path | None = None,
+    matcher: CorrelativeMatcher | None = None,
 ) -> LocalizationRun:
     """Localize every frame of a sequence; ground truth, when the frames have it, is carried along.
 
-    `prior_dir`, the prior's folder, helps the full variant find a relative IFC `source_file`.
+    `prior_dir`, the prior's folder, helps the full variant find a relative IFC `source_file`; `matcher` is the
+    graph variants' scan matcher (`scan_matcher`; built when not given).
     """
-    localizer = Localizer(prior, meta, cfg, seed, text_embedder, prior_dir)
+    localizer = Localizer(prior, meta, cfg, seed, text_embedder, prior_dir, matcher)
     frames = list(frames)
     snapshot_steps = set(snapshot_steps)
     rows: list[LocalizerStep] = []
@@ -368,11 +379,14 @@ class RefinedRun:
     refine_ms: float
 
 
-def refine_run(run: LocalizationRun, prior: BimPrior, cfg: Config) -> RefinedRun:
+def refine_run(
+    run: LocalizationRun, prior: BimPrior, cfg: Config, matcher: CorrelativeMatcher | None = None
+) -> RefinedRun:
     """Batch Levenberg–Marquardt smoothing of the whole trajectory of every mode that survived the forward pass.
 
     With `backend.scan_factor` and the run's scans, every keyframe's scan is matched anew from each mode's
-    hindsight trajectory (`refine_mode`). After a full forward pass, the fine stage's accepted pose factors of each
+    hindsight trajectory (`refine_mode`), by `matcher` (the forward pass's, or one built now). After a full
+    forward pass, the fine stage's accepted pose factors of each
     mode enter its batch graph. The run must come from a graph variant (ValueError otherwise). A run in which the
     filter never formed a mode has nothing to refine: its `modes` are empty and the estimate is the forward pass's.
     """
@@ -387,7 +401,7 @@ def refine_run(run: LocalizationRun, prior: BimPrior, cfg: Config) -> RefinedRun
     landmark_xy = prior.object_positions()[:, :2]
     measure_fns = None
     if cfg.backend.scan_factor and run.scans:
-        matcher = CorrelativeMatcher(prior, cfg.backend)
+        matcher = matcher or CorrelativeMatcher(prior, cfg.backend)
         measure_fns = [None if scan is None else matcher.factor_fn(scan) for scan in run.scans]
     refined = [
         refine_mode(mode, run.odom_increments, run.observations, associate_fns, landmark_xy, cfg.backend, measure_fns)

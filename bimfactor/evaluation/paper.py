@@ -63,15 +63,17 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
     from bimfactor.config import Config
     from bimfactor.evaluation.metrics import inside_ellipse, orientation_errors_deg, translation_errors_m
     from bimfactor.evaluation.report import track_metrics
-    from bimfactor.pipeline import localize_sequence, refine_run
+    from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run, scan_matcher
     from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
 
     cfg = Config.model_validate_json(cfg_json)
     variants = cfg.evaluation.variants
     prior, model = load_world_inputs(prior_dir, cfg)
     sim = simulate_sequence(prior, model, cfg, trajectory, cfg.seed, progress=False)
+    online_variants = forward_variants(variants)
+    matcher = scan_matcher(prior, cfg) if any(v in GRAPH_VARIANTS for v in online_variants) else None
     forward = {}
-    for online in forward_variants(variants):
+    for online in online_variants:
         online_cfg = cfg.model_copy(update={"localization": cfg.localization.model_copy(update={"variant": online})})
         forward[online] = localize_sequence(
             prior,
@@ -81,12 +83,13 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
             seed=cfg.seed * 1000 + 17 * trajectory + repeat,
             show_progress=False,
             prior_dir=prior_dir,
+            matcher=matcher,
         )
     run = next(iter(forward.values()))  # every forward pass runs the same filter: its estimate is the smcl one
     assert run.gt_poses is not None and run.gt_rooms is not None
     tracks = {"smcl": run.filter, **{online: r.graph for online, r in forward.items() if r.graph is not None}}
     if "refine" in variants:
-        tracks["refine"] = refine_run(forward["smcl+graph"], prior, cfg).estimate
+        tracks["refine"] = refine_run(forward["smcl+graph"], prior, cfg, matcher).estimate
     results = []
     for variant in variants:
         track = tracks[variant]

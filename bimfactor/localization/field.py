@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from bimfactor.bim.prior import BimPrior, StoreyLayers
+from bimfactor.bim.prior import BimPrior
 from bimfactor.config import Config, SmclConfig
 from bimfactor.registration.scan import backproject_depth, height_band
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
@@ -58,40 +58,49 @@ def frame_endpoints(frame: Frame, meta: SequenceMeta, cfg: Config) -> np.ndarray
     return scan_endpoints(frame.depth_m, meta.intrinsics, meta.T_base_camera, cfg.smcl, cfg.bim.grid.band_max_m)
 
 
+def face_distances(prior: BimPrior) -> np.ndarray:
+    """(storeys, rows, cols) float32 metres from each cell to the nearest face of a wall or a piece of furniture, from
+    outside or inside (0 on a face): the distance a scan matcher's `LikelihoodField` needs. Inside thick walls and
+    furniture footprints the clearance layer is a plateau of equally good poses. (A camera below a table top sees
+    its legs, which stand at the footprint's edge.)"""
+    res = np.float32(prior.grid.resolution_m)
+
+    def to_faces(solid: np.ndarray) -> np.ndarray:
+        # Either side of a face the nearest cells are one cell from the other side's: half a cell puts the face at 0.
+        outside = ndimage.distance_transform_edt(~solid).astype(np.float32) * res
+        inside = ndimage.distance_transform_edt(solid).astype(np.float32) * res
+        return np.maximum(outside + inside - np.float32(0.5) * res, np.float32(0.0))
+
+    return np.stack([np.minimum(to_faces(layers.structure), to_faces(layers.furniture)) for layers in prior.storeys])
+
+
 class LikelihoodField:
     """exp(−d² / 2σ²) per grid cell of every storey, looked up for scan endpoints placed by poses.
 
-    d is the prior's clearance layer, the distance from a free cell to the nearest obstacle, walls or furniture
-    (0 inside them). With `faces`, d is the distance to the nearest face of a wall or a piece of furniture, from
-    inside too: a scan matcher needs it, because inside thick walls and furniture footprints the clearance is a
-    plateau of equally good poses. (A camera below a table top sees its legs, which stand at the footprint's edge.)
-    The filter's particles never stand inside walls, so they use the clearance.
+    d is `distance` ((storeys, rows, cols) metres), by default the prior's clearance layer: the distance from a free
+    cell to the nearest obstacle, walls or furniture, 0 inside them. The filter's particles never stand inside walls,
+    so they use the clearance; a scan matcher uses `face_distances`.
     """
 
-    def __init__(self, prior: BimPrior, sigma_m: float, faces: bool = False) -> None:
+    def __init__(self, prior: BimPrior, sigma_m: float, distance: np.ndarray | None = None) -> None:
         self.grid = prior.grid
-        distance = np.stack([self._distance(layers, faces) for layers in prior.storeys])
+        if distance is None:
+            distance = np.stack([layers.clearance_m for layers in prior.storeys]).astype(np.float32)
         # In 1/255 steps (a quarter of float32's memory: the lookups are random, so cache misses are their cost),
         # flattened, with one 0 appended for "off grid".
         field = np.rint(255.0 * np.exp(-0.5 * (distance / sigma_m) ** 2)).astype(np.uint8)
         self._field = np.append(field.ravel(), np.uint8(0))
         self._walls = np.append(np.stack([layers.structure for layers in prior.storeys]).ravel(), False)
 
-    def _distance(self, layers: StoreyLayers, faces: bool) -> np.ndarray:
-        if not faces:
-            return layers.clearance_m.astype(np.float32)
-        return np.minimum(self._to_faces(layers.structure), self._to_faces(layers.furniture))
-
-    def _to_faces(self, solid: np.ndarray) -> np.ndarray:
-        """Distance to the nearest face of a (rows, cols) bool layer, from outside or inside."""
-        # Either side of a face the nearest cells are one cell from the other side's: half a cell puts the face at 0.
-        res = np.float32(self.grid.resolution_m)
-        outside = ndimage.distance_transform_edt(~solid).astype(np.float32) * res
-        inside = ndimage.distance_transform_edt(solid).astype(np.float32) * res
-        return np.maximum(outside + inside - np.float32(0.5) * res, np.float32(0.0))
+    def _index(self, storeys: np.ndarray | int, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+        """Flat field indices of integer (row, col) cells on their storeys; the last index for cells off the grid."""
+        grid = self.grid
+        inside = (row >= 0) & (row < grid.rows) & (col >= 0) & (col < grid.cols)
+        flat = (storeys * grid.rows + row) * grid.cols + col
+        return np.where(inside, flat, len(self._field) - 1)
 
     def _flat(self, poses: np.ndarray, storeys: np.ndarray | int, points: np.ndarray) -> np.ndarray:
-        """(M, N) flat field indices of (N, 2) base-frame points placed by (M, 3) poses; the last index off the grid."""
+        """(M, N) flat field indices of (N, 2) base-frame points placed by (M, 3) poses."""
         grid = self.grid
         c = np.cos(poses[:, 2])[:, None] / grid.resolution_m
         s = np.sin(poses[:, 2])[:, None] / grid.resolution_m
@@ -99,10 +108,30 @@ class LikelihoodField:
         y0 = ((poses[:, 1] - grid.origin_y) / grid.resolution_m)[:, None]
         col = np.floor(x0 + c * points[None, :, 0] - s * points[None, :, 1]).astype(np.int64)
         row = np.floor(y0 + s * points[None, :, 0] + c * points[None, :, 1]).astype(np.int64)
-        inside = (row >= 0) & (row < grid.rows) & (col >= 0) & (col < grid.cols)
         storeys = np.broadcast_to(np.asarray(storeys, np.int64).reshape(-1), (len(poses),))
-        flat = (storeys[:, None] * grid.rows + row) * grid.cols + col
-        return np.where(inside, flat, len(self._field) - 1)
+        return self._index(storeys[:, None], row, col)
+
+    def _grid_flat(
+        self, pose: np.ndarray, dxy: np.ndarray, dyaw: np.ndarray, storey: int, points: np.ndarray
+    ) -> np.ndarray:
+        """(Y, T, N) flat field indices of `grid_values`' poses."""
+        grid = self.grid
+        res = grid.resolution_m
+        yaws = float(pose[2]) + np.asarray(dyaw, np.float64)
+        c, s = np.cos(yaws)[:, None] / res, np.sin(yaws)[:, None] / res
+        rx = (c * points[None, :, 0] - s * points[None, :, 1]).astype(np.float32)  # (Y, N) grid units
+        ry = (s * points[None, :, 0] + c * points[None, :, 1]).astype(np.float32)
+        tx = ((float(pose[0]) + np.asarray(dxy)[:, 0] - grid.origin_x) / res).astype(np.float32)  # (T,)
+        ty = ((float(pose[1]) + np.asarray(dxy)[:, 1] - grid.origin_y) / res).astype(np.float32)
+        col = np.floor(tx[None, :, None] + rx[:, None, :]).astype(np.int64)
+        row = np.floor(ty[None, :, None] + ry[:, None, :]).astype(np.int64)
+        return self._index(storey, row, col)
+
+    @staticmethod
+    def _before(endpoints: np.ndarray, clear_before_m: float) -> np.ndarray:
+        """(N, 2) the points `clear_before_m` short of each endpoint along its ray (the base origin at the least)."""
+        ranges = np.maximum(np.hypot(endpoints[:, 0], endpoints[:, 1]), 1e-9)
+        return endpoints * np.maximum(1.0 - clear_before_m / ranges, 0.0)[:, None]
 
     def values(
         self, poses: np.ndarray, storeys: np.ndarray | int, endpoints: np.ndarray, clear_before_m: float = 0.0
@@ -117,9 +146,7 @@ class LikelihoodField:
         endpoints = np.asarray(endpoints, np.float64).reshape(-1, 2)
         values = self._field[self._flat(poses, storeys, endpoints)]
         if clear_before_m > 0.0 and len(endpoints):
-            ranges = np.maximum(np.hypot(endpoints[:, 0], endpoints[:, 1]), 1e-9)
-            before = endpoints * np.maximum(1.0 - clear_before_m / ranges, 0.0)[:, None]
-            values = np.where(self._walls[self._flat(poses, storeys, before)], np.uint8(0), values)
+            values[self._walls[self._flat(poses, storeys, self._before(endpoints, clear_before_m))]] = 0
         return values
 
     def grid_values(
@@ -135,31 +162,11 @@ class LikelihoodField:
         every (T, 2) x, y offset (inner), all on one storey. The same numbers as `values` for those poses, at about
         half the cost: the endpoints are rotated once per yaw and moved per translation."""
         endpoints = np.asarray(endpoints, np.float64).reshape(-1, 2)
-        flat = self._grid_flat(pose, dxy, dyaw, storey, endpoints)
-        values = self._field[flat]
+        values = self._field[self._grid_flat(pose, dxy, dyaw, storey, endpoints)]
         if clear_before_m > 0.0 and len(endpoints):
-            ranges = np.maximum(np.hypot(endpoints[:, 0], endpoints[:, 1]), 1e-9)
-            before = endpoints * np.maximum(1.0 - clear_before_m / ranges, 0.0)[:, None]
+            before = self._before(endpoints, clear_before_m)
             values[self._walls[self._grid_flat(pose, dxy, dyaw, storey, before)]] = 0
         return values.reshape(len(dyaw) * len(dxy), len(endpoints))
-
-    def _grid_flat(
-        self, pose: np.ndarray, dxy: np.ndarray, dyaw: np.ndarray, storey: int, points: np.ndarray
-    ) -> np.ndarray:
-        """(Y, T, N) flat field indices of `grid_values`' poses; the last index off the grid."""
-        grid = self.grid
-        res = grid.resolution_m
-        yaws = float(pose[2]) + np.asarray(dyaw, np.float64)
-        c, s = np.cos(yaws)[:, None] / res, np.sin(yaws)[:, None] / res
-        rx = (c * points[None, :, 0] - s * points[None, :, 1]).astype(np.float32)  # (Y, N) grid units
-        ry = (s * points[None, :, 0] + c * points[None, :, 1]).astype(np.float32)
-        tx = ((float(pose[0]) + np.asarray(dxy)[:, 0] - grid.origin_x) / res).astype(np.float32)  # (T,)
-        ty = ((float(pose[1]) + np.asarray(dxy)[:, 1] - grid.origin_y) / res).astype(np.float32)
-        col = np.floor(tx[None, :, None] + rx[:, None, :]).astype(np.int64)
-        row = np.floor(ty[None, :, None] + ry[:, None, :]).astype(np.int64)
-        inside = (row >= 0) & (row < grid.rows) & (col >= 0) & (col < grid.cols)
-        flat = (storey * grid.rows + row) * grid.cols + col
-        return np.where(inside, flat, len(self._field) - 1)
 
 
 class ScanLikelihood:

@@ -7,11 +7,11 @@ scored by
 
     log P(z | x) = (N_eff / N) · Σ_n log(f_n(x) + ε),    f_n = exp(−d_n² / 2σ²),
 
-with d_n the distance of endpoint n to the nearest face of a wall or a piece of furniture (`LikelihoodField` with
-`faces`), ε (`scan_outlier`) bounding what an endpoint on clutter or a moved object can cost, and N_eff
+with d_n the distance of endpoint n to the nearest face of a wall or a piece of furniture (`face_distances`),
+ε (`scan_outlier`) bounding what an endpoint on clutter or a moved object can cost, and N_eff
 (`scan_effective_endpoints`) the endpoints that count as independent (neighbouring returns of one wall share its
-as-built and grid errors). An endpoint whose ray was inside a wall `scan_clear_before_m` before it scores as an outlier:
-a sensor cannot see the far face of a wall.
+as-built and grid errors). An endpoint whose ray was inside a wall `scan_clear_before_m` before it scores as an
+outlier: a sensor cannot see the far face of a wall.
 
 1. Coarse: the whole window (± `scan_window_m`, ± `scan_window_deg`) in `scan_step_m` / `scan_step_deg` steps,
    scored in a smoother field (σ = `scan_coarse_sigma_m`) so that no peak falls between the steps;
@@ -46,7 +46,7 @@ from bimfactor.backend.factors import covariance_world_to_body
 from bimfactor.bim.ifc import IfcModel
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import BackendConfig, Config
-from bimfactor.localization.field import LikelihoodField
+from bimfactor.localization.field import LikelihoodField, face_distances
 from bimfactor.progress import progress
 from bimfactor.types import wrap_angle
 
@@ -125,8 +125,9 @@ class CorrelativeMatcher:
     """Matches base-frame 2-D scans (`localization.field.scan_endpoints`) against one prior's likelihood field."""
 
     def __init__(self, prior: BimPrior, cfg: BackendConfig) -> None:
-        self.field = LikelihoodField(prior, cfg.scan_sigma_m, faces=True)
-        self.coarse_field = LikelihoodField(prior, cfg.scan_coarse_sigma_m, faces=True)
+        distance = face_distances(prior)
+        self.field = LikelihoodField(prior, cfg.scan_sigma_m, distance)
+        self.coarse_field = LikelihoodField(prior, cfg.scan_coarse_sigma_m, distance)
         self.cfg = cfg
         window_rad, coarse_rad = np.deg2rad(cfg.scan_window_deg), np.deg2rad(cfg.scan_step_deg)
         self._coarse_grid = _SearchGrid(cfg.scan_window_m, cfg.scan_step_m, window_rad, coarse_rad)
@@ -134,16 +135,12 @@ class CorrelativeMatcher:
             cfg.scan_step_m, cfg.scan_fine_step_m, coarse_rad, np.deg2rad(cfg.scan_fine_step_deg)
         )
         self._coarse, self._fine = self._coarse_grid.offsets, self._fine_grid.offsets
-        self._edge = (np.abs(self._coarse[:, :2]).max(axis=1) >= _axis(cfg.scan_window_m, cfg.scan_step_m)[-1]) | (
-            np.abs(self._coarse[:, 2]) >= _axis(window_rad, coarse_rad)[-1]
-        )
+        self._edge = np.any(np.abs(self._coarse) >= np.abs(self._coarse).max(axis=0), axis=1)
         self._fine_half = np.abs(self._fine).max(axis=0)
         scale = np.array([cfg.scan_window_m, cfg.scan_window_m, window_rad])
         self._tie_break = 1e-6 * ((self._coarse / scale) ** 2).sum(axis=1)
-        # Each grid's quantisation, step² / 12 per axis, is part of the distribution's spread.
+        # The coarse grid's quantisation, step² / 12 per axis, is part of the whole window's spread.
         self._coarse_floor = np.diag([cfg.scan_step_m, cfg.scan_step_m, coarse_rad]) ** 2 / 12.0
-        fine_rad = np.deg2rad(cfg.scan_fine_step_deg)
-        self._fine_floor = np.diag([cfg.scan_fine_step_m, cfg.scan_fine_step_m, fine_rad]) ** 2 / 12.0
         self._min_cov = np.diag([cfg.scan_min_sigma_m, cfg.scan_min_sigma_m, np.deg2rad(cfg.scan_min_sigma_deg)]) ** 2
 
     def factor_fn(self, endpoints: np.ndarray) -> Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray] | None]:
@@ -192,7 +189,7 @@ class CorrelativeMatcher:
         endpoints = np.asarray(endpoints, np.float64).reshape(-1, 2)
         cfg = self.cfg
         if len(endpoints) < cfg.scan_min_endpoints:
-            return ScanMatch(pose, np.full((3, 3), np.nan), 0.0, False, f"{len(endpoints)} endpoints")
+            return ScanMatch(pose, np.full((3, 3), np.nan), 0, False, f"{len(endpoints)} endpoints")
         coarse = pose + self._coarse
         log_c, _ = self._search(self._coarse_grid, pose, storey, endpoints, coarse=True)
         # Ties (a flat direction: one wall, a corridor) go to the pose nearest the start, not to the window's edge.

@@ -7,7 +7,7 @@ import pytest
 
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import BackendConfig, Config
-from bimfactor.localization.field import LikelihoodField
+from bimfactor.localization.field import LikelihoodField, face_distances
 from bimfactor.registration.correlative import CorrelativeMatcher
 from bimfactor.types import wrap_angle
 from tests.localization.handmade import make_prior
@@ -75,7 +75,7 @@ def test_a_scan_is_not_matched_through_a_wall(box, cfg):
     match = CorrelativeMatcher(box, cfg).match(truth + np.array([0.25, 0.0, 0.0]), 0, scan)
     assert match.accepted, match.reason
     assert abs(match.pose[0] - truth[0]) < 0.04
-    seen_through = LikelihoodField(box, cfg.scan_sigma_m, faces=True)
+    seen_through = LikelihoodField(box, cfg.scan_sigma_m, face_distances(box))
     east_face = truth + np.array([0.2 + 0.05, 0.0, 0.0])
     assert seen_through.values(east_face[None], 0, scan).mean() > 0.75 * 255  # without the ray check, about as good
     assert seen_through.values(east_face[None], 0, scan, cfg.scan_clear_before_m).mean() < 50
