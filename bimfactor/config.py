@@ -186,6 +186,10 @@ class SmclConfig(_Strict):
     fov_extent: bool = Field(
         description="An object is in view when any of its footprint is (false: its centre, the literal reading)."
     )
+    footprint_match: bool = Field(
+        description="A node is expected at the point of its object's footprint nearest to it, the seen part's "
+        "centroid lying anywhere on a large object (false: at the object's centre, the literal reading)."
+    )
     ess_threshold: float = Field(gt=0.0, le=1.0, description="δ_ess, resample when ESS < δ_ess·M (paper: 0.5).")
     sigma_trans_m: float = Field(ge=0.0, description="σ_trans, motion noise (paper: 0.2 m).")
     sigma_rot_deg: float = Field(ge=0.0, description="σ_rot, motion noise (paper: 10°).")

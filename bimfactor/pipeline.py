@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bimfactor.backend.factors import Landmarks
 from bimfactor.backend.modes import extract_modes
 from bimfactor.backend.posegraph import (
     BackendStep,
@@ -398,13 +399,13 @@ def refine_run(
     started = time.perf_counter()
     likelihood = SemanticLikelihood(prior, visibility_of(prior, cfg), cfg.smcl)
     associate_fns = [semantic_associator(likelihood, obs) for obs in run.observations]
-    landmark_xy = prior.object_positions()[:, :2]
+    landmarks = Landmarks.from_prior(prior)
     measure_fns = None
     if cfg.backend.scan_factor and run.scans:
         matcher = matcher or CorrelativeMatcher(prior, cfg.backend)
         measure_fns = [None if scan is None else matcher.factor_fn(scan) for scan in run.scans]
     refined = [
-        refine_mode(mode, run.odom_increments, run.observations, associate_fns, landmark_xy, cfg.backend, measure_fns)
+        refine_mode(mode, run.odom_increments, run.observations, associate_fns, landmarks, cfg.backend, measure_fns)
         for mode in run.final_modes
     ]
     refine_ms = (time.perf_counter() - started) * 1000

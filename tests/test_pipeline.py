@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from bimfactor.backend.factors import Landmarks
 from bimfactor.backend.posegraph import semantic_associator
 from bimfactor.backend.refine import refine_mode
 from bimfactor.config import Config, load_config
@@ -151,8 +152,8 @@ def test_refine_of_a_full_pass_keeps_its_icp_factors(
     pinned = dataclasses.replace(mode, pose_factors=[(last, target, np.diag([1e6, 1e6, 1e6]))])
     likelihood = SemanticLikelihood(paper_floor.prior, visibility_of(paper_floor.prior, cfg), cfg.smcl)
     associate_fns = [semantic_associator(likelihood, obs) for obs in run.observations]
-    landmark_xy = paper_floor.prior.object_positions()[:, :2]
-    out = refine_mode(pinned, run.odom_increments, run.observations, associate_fns, landmark_xy, cfg.backend)
+    landmarks = Landmarks.from_prior(paper_floor.prior)
+    out = refine_mode(pinned, run.odom_increments, run.observations, associate_fns, landmarks, cfg.backend)
     np.testing.assert_allclose(out.poses[last], target, atol=0.01)
 
 

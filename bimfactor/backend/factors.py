@@ -8,6 +8,8 @@ GTSAM's Pose2 tangent space is body-frame (dx, dy, dθ); covariances the rest of
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -19,6 +21,7 @@ from bimfactor.types import Observations
 
 __all__ = [
     "L",
+    "Landmarks",
     "X",
     "bearing_range_noise",
     "covariance_body_to_world",
@@ -34,6 +37,31 @@ __all__ = [
 ]
 
 Association = Sequence[tuple[int, int]]  # (observation index, BIM object id) pairs
+
+
+@dataclass(frozen=True)
+class Landmarks:
+    """The BIM objects as landmarks, row = object id: (N, 2) footprint centres and (N, 2) footprint sizes (x, y)."""
+
+    xy: np.ndarray
+    size: np.ndarray
+
+    @classmethod
+    def of(cls, landmarks: Landmarks | np.ndarray) -> Landmarks:
+        """Landmarks as given, or point landmarks (zero footprint) at the first two columns of an (N, ≥2) array."""
+        if isinstance(landmarks, Landmarks):
+            return landmarks
+        xy = np.asarray(landmarks, np.float64).reshape(len(landmarks), -1)[:, :2].copy()
+        return cls(xy, np.zeros_like(xy))
+
+    @classmethod
+    def from_prior(cls, prior: Any) -> Landmarks:
+        """A BimPrior's objects: their footprint boxes' centres and sizes."""
+        sizes = np.asarray([o.size_m[:2] for o in prior.objects], np.float64).reshape(-1, 2)
+        return cls(prior.object_positions()[:, :2].copy(), sizes)
+
+    def __len__(self) -> int:
+        return len(self.xy)
 
 
 def to_pose2(pose: np.ndarray) -> gtsam.Pose2:
@@ -117,10 +145,13 @@ def odometry_factor(
     return gtsam.BetweenFactorPose2(X(i - 1), X(i), to_pose2(increment), noise)
 
 
-def landmark_prior_factor(object_id: int, position_xy: np.ndarray, cfg: BackendConfig) -> gtsam.PriorFactorPoint2:
-    """Holds L(j) at its (2,) BIM position with σ = `landmark_sigma_m` (as-built deviates from the model)."""
-    noise = gtsam.noiseModel.Isotropic.Sigma(2, cfg.landmark_sigma_m)
-    return gtsam.PriorFactorPoint2(L(object_id), np.asarray(position_xy, np.float64)[:2], noise)
+def landmark_prior_factor(object_id: int, landmarks: Landmarks, cfg: BackendConfig) -> gtsam.PriorFactorPoint2:
+    """Holds L(j) at its footprint's centre; per axis σ² = `landmark_sigma_m`² (as-built deviates from the model)
+    + size² / 12 (a perceived node is the centroid of the part seen, anywhere on the footprint: its variance as a
+    uniform point of the box), so one end of a 3 m table holds L(j) 0.9 m along the table, not at the centre."""
+    sigmas = np.sqrt(cfg.landmark_sigma_m**2 + landmarks.size[object_id] ** 2 / 12.0)
+    noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+    return gtsam.PriorFactorPoint2(L(object_id), landmarks.xy[object_id].copy(), noise)
 
 
 def landmark_factors(

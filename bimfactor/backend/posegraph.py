@@ -35,6 +35,7 @@ from scipy.optimize import linear_sum_assignment
 from bimfactor.backend.factors import (
     Association,
     L,
+    Landmarks,
     X,
     bearing_range_noise,
     covariance_body_to_world,
@@ -111,7 +112,7 @@ def semantic_associator(
 
 
 class ModeGraph:
-    """The ISAM2 pose graph of one mode; `landmark_xy` (N, 2) holds BIM object positions, row = object id."""
+    """The ISAM2 pose graph of one mode; `landmarks` are the BIM objects (an (N, 2) array: points), row = id."""
 
     def __init__(
         self,
@@ -119,14 +120,14 @@ class ModeGraph:
         first_index: int,
         pose: np.ndarray,
         covariance_world: np.ndarray,
-        landmark_xy: np.ndarray,
+        landmarks: Landmarks | np.ndarray,
         cfg: BackendConfig,
         storey: int = 0,
     ) -> None:
         self.mode_id = mode_id
         self.storey = storey
         self.cfg = cfg
-        self.landmark_xy = np.asarray(landmark_xy, np.float64)
+        self.landmarks = Landmarks.of(landmarks)
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(cfg.relinearize_threshold)
         params.relinearizeSkip = 1
@@ -272,8 +273,8 @@ class ModeGraph:
             j = int(j)
             if j not in self._landmarks:
                 self._landmarks.add(j)
-                graph.add(landmark_prior_factor(j, self.landmark_xy[j], self.cfg))
-                values.insert(L(j), self.landmark_xy[j, :2].copy())
+                graph.add(landmark_prior_factor(j, self.landmarks, self.cfg))
+                values.insert(L(j), self.landmarks.xy[j].copy())
 
     def _refresh(self) -> None:
         i = self.last_index
@@ -342,9 +343,9 @@ class BackendStep:
 class MultiHypothesisBackend:
     """Per-mode pose graphs driven by the particle filter's modes; `step` once per keyframe."""
 
-    def __init__(self, landmark_xy: np.ndarray, cfg: BackendConfig) -> None:
+    def __init__(self, landmarks: Landmarks | np.ndarray, cfg: BackendConfig) -> None:
         self.cfg = cfg
-        self.landmark_xy = np.asarray(landmark_xy, np.float64)[:, :2]
+        self.landmarks = Landmarks.of(landmarks)
         self.tracker = ModeTracker(cfg)
         self.graphs: dict[int, ModeGraph] = {}
         self.index = -1
@@ -352,7 +353,7 @@ class MultiHypothesisBackend:
     @classmethod
     def from_prior(cls, prior: Any, cfg: BackendConfig) -> MultiHypothesisBackend:
         """A back end whose landmarks are a BimPrior's objects (row = object id)."""
-        return cls(prior.object_positions()[:, :2], cfg)
+        return cls(Landmarks.from_prior(prior), cfg)
 
     def step(
         self,
@@ -385,7 +386,7 @@ class MultiHypothesisBackend:
         for mode in self.tracker.modes:
             graph = self.graphs.get(mode.id)
             if graph is None:
-                graph = ModeGraph(mode.id, i, mode.mean, mode.covariance, self.landmark_xy, self.cfg, mode.storey)
+                graph = ModeGraph(mode.id, i, mode.mean, mode.covariance, self.landmarks, self.cfg, mode.storey)
                 self.graphs[mode.id] = graph
                 predicted, increment = graph.pose.copy(), None
             else:
@@ -496,7 +497,7 @@ def batch_refine(
     increments: np.ndarray,
     observations: Sequence[Observations],
     associations: Sequence[Association],
-    landmark_xy: np.ndarray,
+    landmarks: Landmarks | np.ndarray,
     cfg: BackendConfig,
     initial_poses: np.ndarray | None = None,
     odom_covariances: np.ndarray | None = None,
@@ -506,10 +507,10 @@ def batch_refine(
     """Full graph of a T-keyframe trajectory optimised with Levenberg–Marquardt.
 
     `first_pose` / `first_covariance` are the pose prior on X(prior_index) (default: the first keyframe);
-    `increments` (T−1, 3) robot-frame odometry; `observations` / `associations` one per keyframe; `landmark_xy`
-    (N, 2) BIM positions by object id; `initial_poses` (T, 3) (default: dead reckoning from the prior);
-    `odom_covariances` (T−1, 3, 3) optional; `pose_factors` (i, (3,) pose, (3, 3) body information) from a fine
-    registrar.
+    `increments` (T−1, 3) robot-frame odometry; `observations` / `associations` one per keyframe; `landmarks`
+    the BIM objects by id (an (N, 2) array: point landmarks); `initial_poses` (T, 3) (default: dead reckoning
+    from the prior); `odom_covariances` (T−1, 3, 3) optional; `pose_factors` (i, (3,) pose, (3, 3) body
+    information) from a fine registrar.
     """
     increments = np.asarray(increments, np.float64).reshape(-1, 3)
     T = len(increments) + 1
@@ -517,7 +518,7 @@ def batch_refine(
         raise ValueError(f"{T} keyframes need {T} observations and associations")
     if not 0 <= prior_index < T:
         raise ValueError(f"prior index {prior_index} is outside the {T} keyframes")
-    landmark_xy = np.asarray(landmark_xy, np.float64)[:, :2]
+    landmarks = Landmarks.of(landmarks)
     if initial_poses is None:
         initial_poses = dead_reckoning(first_pose, prior_index, increments)
     # The motion part (pose prior, odometry, fine-registration pose factors) on its own also gives the fallback
@@ -541,8 +542,8 @@ def batch_refine(
         for _, j in associations[t]:
             if int(j) not in seen:
                 seen.add(int(j))
-                graph.add(landmark_prior_factor(int(j), landmark_xy[int(j)], cfg))
-                values.insert(L(int(j)), landmark_xy[int(j)].copy())
+                graph.add(landmark_prior_factor(int(j), landmarks, cfg))
+                values.insert(L(int(j)), landmarks.xy[int(j)].copy())
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(cfg.lm_max_iterations)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bimfactor.backend.factors import Landmarks
 from bimfactor.backend.posegraph import (
     AssociateFn,
     BatchResult,
@@ -62,7 +63,7 @@ def refine_mode(
     odom_increments: np.ndarray,
     observations: Sequence[Observations],
     associate_fns: Sequence[AssociateFn],
-    landmark_xy: np.ndarray,
+    landmarks: Landmarks | np.ndarray,
     cfg: BackendConfig,
     measure_fns: Sequence[PoseFactorFn | None] | None = None,
 ) -> RefinedMode:
@@ -70,8 +71,9 @@ def refine_mode(
 
     `odom_increments` (T−1, 3) robot-frame odometry between keyframes; `observations` and `associate_fns` one per
     keyframe (an associator maps a pose and storey to (observation index, object id) pairs for that keyframe's
-    observations); `landmark_xy` (N, 2) BIM object positions by id; `cfg.refine_rounds` bounds the re-association;
-    `measure_fns`, one per keyframe (None: no scan), match the keyframe's scan from a pose.
+    observations); `landmarks` the BIM objects by id (`factors.Landmarks`; an (N, 2) array: points);
+    `cfg.refine_rounds` bounds the re-association; `measure_fns`, one per keyframe (None: no scan), match the
+    keyframe's scan from a pose.
     """
     T = len(observations)
     i0, n = mode.first_index, len(mode.poses)
@@ -98,7 +100,7 @@ def refine_mode(
             odom_increments,
             observations,
             matches,
-            landmark_xy,
+            landmarks,
             cfg,
             initial_poses=start,
             pose_factors=list(mode.pose_factors) + scan_factors(start),

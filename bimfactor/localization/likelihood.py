@@ -7,7 +7,10 @@ embedding f_j. The pair score is
     φ = φ_sem · φ_dist · φ_ang,  φ_sem = cos(f_j, C_k),  φ_dist = exp(−|d_obs − d| / σ_d),
     φ_ang = exp(κ_α (cos(α_obs − α) − 1)),
 
-with pairs whose φ_sem is below `semantic_threshold` screened out (φ = 0). A one-to-one assignment of
+with pairs whose φ_sem is below `semantic_threshold` screened out (φ = 0). With `footprint_match` (beyond the
+paper) d and α are those of the point of k's footprint box nearest to where observation j puts the node: a node is
+the centroid of the object's seen part, which lies anywhere on a large object's footprint, so a 3 m table seen from
+one end is not penalised for being a metre from the table's centre. A one-to-one assignment of
 observations to candidates maximises the summed φ (Hungarian); the particle's score is that sum divided by the
 number of observations K, so an observation without a partner counts 0 (a particle that explains fewer of the
 observations scores lower; clutter that no particle explains lowers every particle alike). The likelihood is
@@ -192,6 +195,8 @@ class SemanticLikelihood:
         self.half_fov_rad = 0.5 * np.deg2rad(cfg.fov_deg)
         # Footprint radius: half the diagonal of the object's axis-aligned footprint (0: centre-only FOV test).
         sizes = np.asarray([o.size_m[:2] for o in prior.objects], np.float64).reshape(-1, 2)
+        # World-frame footprint boxes (the objects' axis-aligned extents) for `footprint_match`.
+        self.object_lo, self.object_hi = self.object_xy - sizes / 2, self.object_xy + sizes / 2
         self.object_radius_m = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1]) if cfg.fov_extent else np.zeros(len(sizes))
         self.last_stats = ScoreStats()
 
@@ -241,11 +246,14 @@ class SemanticLikelihood:
         if len(k_idx) == 0:
             self.last_stats = stats
             return np.zeros((M, K, 0), np.float32), np.full((M, 0), -1, np.int64)
-        d_obs = np.asarray(observations.range_m, np.float64)
-        a_obs = np.asarray(observations.bearing_rad, np.float64)
+        d_obs = np.asarray(observations.range_m, np.float64)[k_idx]
+        a_obs = np.asarray(observations.bearing_rad, np.float64)[k_idx]
+        if self.cfg.footprint_match:
+            d_exp, a_exp = self.footprint_polar(particles[owner[e_idx]], ids[e_idx], d_obs, a_obs)
+        else:
+            d_exp, a_exp = d[e_idx], alpha[e_idx]
         phi = sem[k_idx, e_idx] * np.exp(
-            -np.abs(d_obs[k_idx] - d[e_idx]) / self.cfg.sigma_d_m
-            + self.cfg.kappa_alpha * (np.cos(a_obs[k_idx] - alpha[e_idx]) - 1.0)
+            -np.abs(d_obs - d_exp) / self.cfg.sigma_d_m + self.cfg.kappa_alpha * (np.cos(a_obs - a_exp) - 1.0)
         )
         # Columns: the candidates that take part in a pair, numbered per particle.
         used = np.flatnonzero(np.bincount(e_idx, minlength=len(ids)))  # sorted, like np.unique but cheaper
@@ -259,6 +267,21 @@ class SemanticLikelihood:
         ids_pad[used_owner, col_of_used] = ids[used]
         self.last_stats = stats
         return phi_pad, ids_pad
+
+    def footprint_polar(
+        self, poses: np.ndarray, ids: np.ndarray, range_m: np.ndarray, bearing_rad: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Expected (d, α) of objects `ids` from (P, 3) `poses` for nodes observed at (`range_m`, `bearing_rad`):
+        the polar coordinates of the point of each object's footprint box nearest to the node's world point.
+
+        A node is the centroid of the object's seen part, which lies anywhere on a large object's footprint (a
+        3 m table seen from one end is observed a metre and more from its centre); inside the box it matches
+        exactly, outside it the distance to the box is what the spatial terms see.
+        """
+        heading = poses[:, 2] + bearing_rad
+        seen = poses[:, :2] + range_m[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+        nearest = np.clip(seen, self.object_lo[ids], self.object_hi[ids])
+        return polar_coordinates(poses, nearest)
 
     def _half_extent(self, ids: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Half the angle objects `ids` subtend at distances `d` (their footprint circles; π/2 from inside one)."""

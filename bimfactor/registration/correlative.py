@@ -116,9 +116,10 @@ def _laplace_covariance(poses: np.ndarray, log_p: np.ndarray, about: np.ndarray,
     hessian = np.array(
         [[2 * coef[4], coef[7], coef[8]], [coef[7], 2 * coef[5], coef[9]], [coef[8], coef[9], 2 * coef[6]]]
     )
-    if np.any(np.linalg.eigvalsh(-hessian) <= 0.0):
+    eigenvalues, vectors = np.linalg.eigh(-hessian)
+    if eigenvalues[0] <= 1e-9 * max(eigenvalues[-1], 0.0) or eigenvalues[-1] <= 0.0:
         return None
-    return np.linalg.inv(-hessian)
+    return (vectors / eigenvalues) @ vectors.T  # the inverse, positive definite by construction
 
 
 class CorrelativeMatcher:

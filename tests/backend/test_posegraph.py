@@ -3,12 +3,13 @@
 import numpy as np
 import pytest
 
-from bimfactor.backend.factors import covariance_body_to_world, covariance_world_to_body
+from bimfactor.backend.factors import Landmarks, covariance_body_to_world, covariance_world_to_body
 from bimfactor.backend.modes import Mode
 from bimfactor.backend.posegraph import ModeGraph, MultiHypothesisBackend, batch_refine
 from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, LoopScenario, loop_scenario
 from bimfactor.config import load_config
-from bimfactor.types import se2_compose, wrap_angle
+from bimfactor.localization.likelihood import polar_coordinates
+from bimfactor.types import Observations, se2_compose, wrap_angle
 
 BASE = load_config().backend
 # A precise sensor, odometry and BIM for the accuracy tests (σ_r 5 cm, σ_b 1°, BIM σ 2 cm; truth = BIM).
@@ -210,3 +211,23 @@ def test_a_scan_measurement_enters_the_mode_graph_with_its_keyframe_and_is_kept_
     assert [i for i, _, _ in history.scan_factors] == [0, 2, 4] and history.pose_factors == []
     assert np.linalg.norm(step.pose[:2] - sc.true_poses[4, :2]) < 0.03
     assert abs(wrap_angle(step.pose[2] - sc.true_poses[4, 2])) < np.deg2rad(0.5)
+
+
+def test_a_long_objects_landmark_gives_way_along_its_footprint():
+    """A node on the near end of a 3 m table, 1.4 m from its centre, seen from six keyframes: as a point landmark
+    the table drags the poses towards its centre; with its footprint in the landmark prior it barely does."""
+    truth = np.array([[x, 0.0, 0.0] for x in np.arange(0.0, 3.0, 0.5)])
+    seen = np.array([[6.6, 2.0]])  # the table's footprint: x 6.5–9.5, y 1.8–2.2
+
+    def final_error(landmarks) -> float:
+        graph = ModeGraph(0, 0, truth[0], np.diag([0.3, 0.3, np.deg2rad(5.0)]) ** 2, landmarks, BASE)
+        for t, pose in enumerate(truth):
+            d, alpha = polar_coordinates(pose, seen)
+            obs = Observations(np.zeros((1, 4), np.float32), d, alpha, ["table"])
+            graph.add_keyframe(t, obs, [(0, 0)], None if t == 0 else np.array([0.5, 0.0, 0.0]))
+        return float(np.hypot(*(graph.pose[:2] - truth[-1, :2])))
+
+    point = final_error(np.array([[8.0, 2.0]]))
+    footprint = final_error(Landmarks(np.array([[8.0, 2.0]]), np.array([[3.0, 0.4]])))
+    assert point > 0.5
+    assert footprint < 0.25

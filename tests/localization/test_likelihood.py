@@ -56,7 +56,7 @@ def test_likelihood_is_exp_score_over_temperature():
 
 
 def test_pair_scores_of_one_particle_match_hand_computed_values(box_prior, box_visibility, smcl_cfg):
-    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
+    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg.model_copy(update={"footprint_match": False}))
     particle = np.array([[4.0, 3.0, np.pi]])  # facing west: the chair is 1 m straight ahead
     obs = observe(("chair", 1.5, 0.2), ("cabinet", 3.0, -0.5))
     phi, ids = scorer.pair_scores(particle, np.array([0]), obs)
@@ -132,13 +132,32 @@ def test_a_partly_seen_object_is_a_candidate_at_the_edge_of_the_view(box_prior, 
     # right, outside the 90° FOV, but most of its footprint is inside.
     particle = np.array([[8.2, 2.2, np.deg2rad(90.5)]])
     obs = observe(("table", 1.1, -np.deg2rad(40.0)))
-    centre_only = SemanticLikelihood(box_prior, box_visibility, smcl_cfg.model_copy(update={"fov_extent": False}))
+    paper = smcl_cfg.model_copy(update={"footprint_match": False})
+    centre_only = SemanticLikelihood(box_prior, box_visibility, paper.model_copy(update={"fov_extent": False}))
     assert centre_only.scores(particle, np.array([0]), obs)[0] == 0.0
-    extent = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
+    extent = SemanticLikelihood(box_prior, box_visibility, paper)
     d = np.hypot(0.8, 0.8)
     # The expected bearing is the centre's clipped to the FOV edge (−45°).
     expected = np.exp(-abs(1.1 - d) / 1.2) * np.exp(5.0 * (np.cos(np.deg2rad(5.0)) - 1.0))
     assert extent.scores(particle, np.array([0]), obs)[0] == pytest.approx(expected, rel=1e-5)
+
+
+def test_footprint_match_expects_a_node_at_the_nearest_point_of_its_object(box_prior, box_visibility, smcl_cfg):
+    # The table's footprint is x 8.4–9.6, y 2.6–3.4. From (6, 3) facing east its centre is 3 m ahead.
+    cfg = smcl_cfg.model_copy(update={"semantic": "cosine"})  # one-hot embeddings: φ_sem = 1 for the label
+    particle = np.array([[6.0, 3.0, 0.0]])
+    on_near_end = observe(("table", 2.6, 0.0))  # (8.6, 3): on the footprint, 0.4 m from its near edge
+    beyond = observe(("table", 1.9, 0.0))  # (7.9, 3): 0.5 m short of the near edge (8.4, 3)
+    footprint = SemanticLikelihood(box_prior, box_visibility, cfg)
+    centre = SemanticLikelihood(box_prior, box_visibility, cfg.model_copy(update={"footprint_match": False}))
+    assert footprint.scores(particle, np.array([0]), on_near_end)[0] == pytest.approx(1.0)
+    assert centre.scores(particle, np.array([0]), on_near_end)[0] == pytest.approx(np.exp(-0.4 / 1.2))
+    assert footprint.scores(particle, np.array([0]), beyond)[0] == pytest.approx(np.exp(-0.5 / 1.2))
+    # Off the axis: the nearest footprint point of (8.0, 3.9) is the corner (8.4, 3.4), at its own bearing.
+    obs = observe(("table", np.hypot(2.0, 0.9), np.arctan2(0.9, 2.0)))
+    d, a = np.hypot(2.4, 0.4), np.arctan2(0.4, 2.4)
+    expected = np.exp(-abs(np.hypot(2.0, 0.9) - d) / 1.2) * np.exp(5.0 * (np.cos(np.arctan2(0.9, 2.0) - a) - 1.0))
+    assert footprint.scores(particle, np.array([0]), obs)[0] == pytest.approx(expected, rel=1e-6)
 
 
 def test_softmax_semantic_term_is_the_class_probability_over_the_prior_labels(box_prior, box_visibility, smcl_cfg):
