@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bimfactor.errors import ConfigError
 
@@ -180,7 +180,16 @@ class PerceptionConfig(_Strict):
 
 
 class SmclConfig(_Strict):
-    num_particles: int = Field(ge=1, description="M (paper: 1000).")
+    num_particles: int = Field(ge=1, description="M (paper: 1000); with `kld_sampling` the fewest particles.")
+    kld_sampling: bool = Field(
+        description="KLD-sampling (Fox 2003, as in AMCL), beyond the paper: start with `max_particles` and resample "
+        "as many as the occupied pose bins need, between M and `max_particles`; false: M throughout."
+    )
+    max_particles: int = Field(ge=1, description="KLD-sampling: the initial and largest particle count.")
+    kld_epsilon: float = Field(gt=0.0, lt=1.0, description="KLD-sampling: bound ε on the KL divergence.")
+    kld_z: float = Field(gt=0.0, description="KLD-sampling: z_(1−δ), the standard normal quantile (2.33: δ = 0.01).")
+    kld_bin_m: float = Field(gt=0.0, description="KLD-sampling: bin size in x and y.")
+    kld_bin_deg: float = Field(gt=0.0, description="KLD-sampling: bin size in yaw.")
     fov_deg: float = Field(gt=0.0, le=360.0, description="Visibility sector field of view (paper: 90°).")
     visible_radius_m: float = Field(gt=0.0, description="Visibility sector radius r.")
     fov_extent: bool = Field(
@@ -237,6 +246,12 @@ class SmclConfig(_Strict):
     converged_storey_share: float = Field(
         gt=0.0, le=1.0, description="... and the estimated storey holds at least this share of the weight."
     )
+
+    @model_validator(mode="after")
+    def _particle_bounds(self) -> SmclConfig:
+        if self.kld_sampling and self.max_particles < self.num_particles:
+            raise ValueError(f"max_particles {self.max_particles} is below num_particles {self.num_particles}")
+        return self
 
 
 class CameraSimConfig(_Strict):

@@ -139,6 +139,7 @@ class LocalizationRun:
     ess: np.ndarray
     n_observations: np.ndarray
     perception_ms: np.ndarray
+    n_particles: np.ndarray
     odom_increments: np.ndarray
     observations: list[Observations]
     scans: list[np.ndarray | None] = field(default_factory=list)
@@ -352,6 +353,7 @@ def localize_sequence(
         ess=np.asarray([r.filtered.ess for r in rows]),
         n_observations=np.asarray([r.filtered.n_observations for r in rows]),
         perception_ms=np.asarray([r.perception_ms for r in rows]),
+        n_particles=np.asarray([r.filtered.n_particles for r in rows], np.int64),
         odom_increments=np.asarray([r.odom_increment for r in rows[1:]], float).reshape(-1, 3),
         observations=[r.observations for r in rows],
         scans=[r.scan for r in rows],

@@ -27,8 +27,8 @@ POSE_COLUMNS = [
 ]  # fmt: skip
 GT_COLUMNS = ["gt_x", "gt_y", "gt_yaw", "gt_room"]
 STEP_COLUMNS = [
-    "step", "timestamp_s", *POSE_COLUMNS, "converged", "ess", "n_observations", "filter_ms", "perception_ms",
-    "n_modes", "mode_id", "mode_probability", "graph_ms", "icp_accepted", "icp_ms", *GT_COLUMNS,
+    "step", "timestamp_s", *POSE_COLUMNS, "converged", "ess", "n_particles", "n_observations", "filter_ms",
+    "perception_ms", "n_modes", "mode_id", "mode_probability", "graph_ms", "icp_accepted", "icp_ms", *GT_COLUMNS,
 ]  # fmt: skip
 MODE_COLUMNS = [
     "step", "rank", "mode_id", "probability", "particle_weight", "normalised_residual", "n_matches", *POSE_COLUMNS,
@@ -107,8 +107,8 @@ def write_run(run: LocalizationRun, prior: BimPrior, out_dir: str | Path, config
         icp = [int(fine.accepted[i]), f"{fine_ms[i]:.3f}"] if fine is not None and fine.ran[i] else ["", ""]
         rows.append(
             [i, _num(run.timestamps_s[i]), *_pose_cells(out.poses[i], out.storeys[i], out.rooms[i], out.covariances[i]),
-             int(run.converged[i]), _num(run.ess[i]), int(run.n_observations[i]), f"{run.filter.step_ms[i]:.3f}",
-             f"{run.perception_ms[i]:.3f}", "" if modes is None else len(modes), *best,
+             int(run.converged[i]), _num(run.ess[i]), int(run.n_particles[i]), int(run.n_observations[i]),
+             f"{run.filter.step_ms[i]:.3f}", f"{run.perception_ms[i]:.3f}", "" if modes is None else len(modes), *best,
              "" if modes is None else f"{graph_ms[i]:.3f}", *icp, *_gt_cells(run.gt_poses, run.gt_rooms, i)]
         )  # fmt: skip
     write_text_atomic(out_dir / "steps.csv", _csv(STEP_COLUMNS, rows))

@@ -7,6 +7,9 @@ One step reads like the paper:
              With `scan_likelihood` (beyond the paper) also × exp(score_scan / T_scan), the depth scan against the
              BIM's likelihood field (`field`), on every frame with a scan, objects in view or not.
 3. resample: when ESS < δ_ess·M, systematic (low-variance) resampling from the cumulative weights; weights reset.
+             With `kld_sampling` (beyond the paper; Fox 2003, AMCL's rule) the filter starts with `max_particles`
+             and each resampling keeps as many as the pose bins the draws occupy need (`kld_particle_count`),
+             never fewer than M: a global start over a large floor is sampled densely, a converged cloud cheaply.
 4. estimate: weighted mean x, y and circular mean yaw on the storey holding the most weight; its room id.
 
 The storey is part of the state: every particle carries a storey index (into `prior.storeys`). Initialization
@@ -62,6 +65,7 @@ class StepResult:
     injected: int = 0
     n_observations: int = 0
     timings_ms: dict[str, float] = field(default_factory=dict)
+    n_particles: int = 0
 
     @property
     def pose(self) -> np.ndarray:
@@ -91,6 +95,17 @@ def effective_sample_size(weights: np.ndarray) -> float:
     """ESS = 1 / Σ w² of (M,) normalised weights."""
     w = np.asarray(weights, np.float64)
     return float(1.0 / np.dot(w, w))
+
+
+def kld_particle_count(bins: np.ndarray | int, epsilon: float, z: float) -> np.ndarray:
+    """Particles that keep the KL divergence between the sample and the belief below ε with probability 1 − δ
+    when the sample occupies k bins (Fox 2003, Eq. 13; z = z_(1−δ)):
+    n = (k − 1) / (2ε) · (1 − 2 / (9(k − 1)) + √(2 / (9(k − 1))) · z)³, and 1 for a single bin."""
+    k = np.asarray(bins, np.float64)
+    km1 = np.maximum(k - 1.0, 1.0)
+    a = 2.0 / (9.0 * km1)
+    n = km1 / (2.0 * epsilon) * (1.0 - a + np.sqrt(a) * z) ** 3
+    return np.where(k <= 1, 1, np.ceil(n)).astype(np.int64)
 
 
 def systematic_resample(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -141,7 +156,11 @@ class SemanticMCL:
         self.prior = prior
         self.cfg = cfg
         self.rng = rng
-        self.num_particles = int(num_particles or cfg.num_particles)
+        # A given count is fixed (benchmarks); otherwise M, or M … max_particles with KLD-sampling.
+        self.min_particles = int(num_particles or cfg.num_particles)
+        adaptive = num_particles is None and cfg.kld_sampling
+        self.max_particles = int(cfg.max_particles) if adaptive else self.min_particles
+        self.num_particles = self.max_particles  # the current count
         self.likelihood = SemanticLikelihood(prior, visibility, cfg)
         self.scan_likelihood = ScanLikelihood(prior, cfg) if cfg.scan_likelihood else None
         self._object_storey = np.asarray([o.storey_index for o in prior.objects], np.int64)
@@ -236,7 +255,9 @@ class SemanticMCL:
     # -------------------------------------------------------------------------------- the cycle
 
     def initialize(self, storeys: list[int] | None = None) -> None:
-        """M particles uniform over the navigable space of the given storeys (None: all), equal weights."""
+        """M (KLD-sampling: `max_particles`) particles uniform over the navigable space of the given storeys (None:
+        all), equal weights."""
+        self.num_particles = self.max_particles
         self.particles, self.storeys = self.sample_free_space(self.num_particles, storeys)
         self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
         self.fresh = np.zeros(self.num_particles, bool)
@@ -299,6 +320,7 @@ class SemanticMCL:
     def resample_if_needed(self, observations: Observations | None = None) -> tuple[bool, int]:
         """Systematic resampling when ESS < δ_ess·M (or random particles are due); returns (resampled, injected).
 
+        With KLD-sampling the new count is `kld_resample`'s, and the random particles are drawn for it.
         Random particles come from `observations` (`injection: observations`, see `sample_from_observations`;
         uniform where they yield too few) or uniformly over free space (`injection: uniform`)."""
         self._require_initialized()
@@ -306,7 +328,13 @@ class SemanticMCL:
         n_random = int(self.rng.binomial(M, self.injection_probability())) if self.cfg.augmented else 0
         if self.effective_sample_size() >= self.cfg.ess_threshold * M and n_random == 0:
             return False, 0
-        keep = systematic_resample(self.weights, M - n_random, self.rng)
+        if self.max_particles > self.min_particles:
+            keep = self.kld_resample()
+            M = len(keep)
+            n_random = int(self.rng.binomial(M, self.injection_probability())) if n_random else 0
+            keep = keep[: M - n_random]
+        else:
+            keep = systematic_resample(self.weights, M - n_random, self.rng)
         particles, storeys = self.particles[keep], self.storeys[keep]
         if n_random:
             fresh, fresh_storeys = np.zeros((0, 3)), np.zeros(0, np.int64)
@@ -318,16 +346,35 @@ class SemanticMCL:
             particles = np.concatenate([particles, fresh])
             storeys = np.concatenate([storeys, fresh_storeys])
         self.particles, self.storeys = particles, storeys
+        self.num_particles = M
         self.weights = np.full(M, 1.0 / M)
         self.fresh = np.arange(M) >= M - n_random
         return True, n_random
+
+    def kld_resample(self) -> np.ndarray:
+        """Indices of a KLD-sized resample: `max_particles` systematic draws in random order, cut at the first n
+        that reaches both M and `kld_particle_count` of the (storey, x, y, yaw) bins the first n draws occupy."""
+        cfg = self.cfg
+        draws = systematic_resample(self.weights, self.max_particles, self.rng)
+        draws = draws[self.rng.permutation(len(draws))]
+        poses = self.particles[draws]
+        cells = np.floor(poses[:, :2] / cfg.kld_bin_m).astype(np.int64)
+        cells -= cells.min(axis=0)
+        yaw = np.floor((wrap_angle(poses[:, 2]) + np.pi) / np.deg2rad(cfg.kld_bin_deg)).astype(np.int64)
+        span = cells.max(axis=0) + 1
+        keys = ((self.storeys[draws] * span[0] + cells[:, 0]) * span[1] + cells[:, 1]) * (yaw.max() + 1) + yaw
+        first_in_bin = np.zeros(len(draws), bool)
+        first_in_bin[np.unique(keys, return_index=True)[1]] = True
+        need = np.maximum(kld_particle_count(np.cumsum(first_in_bin), cfg.kld_epsilon, cfg.kld_z), self.min_particles)
+        enough = np.flatnonzero(np.arange(1, len(draws) + 1) >= need)
+        return draws[: enough[0] + 1] if len(enough) else draws
 
     def estimate(self) -> PoseEstimate:
         """Weighted mean pose (circular yaw) and covariance on the storey with the most weight; its room id.
 
         Particles injected at the last resampling (`fresh`) are left out until a measurement has weighed them."""
         self._require_initialized()
-        weights = np.where(self.fresh, 0.0, self.weights) if not self.fresh.all() else self.weights
+        weights = self._estimate_weights()
         storey_weight = np.bincount(self.storeys, weights=weights, minlength=len(self.prior.storeys))
         storey = int(np.argmax(storey_weight))
         on_storey = (self.storeys == storey) & (weights > 0)
@@ -369,9 +416,13 @@ class SemanticMCL:
         lap("resample")
         estimate = self.estimate()
         lap("estimate")
-        return StepResult(estimate, ess, resampled, injected, n_obs, timings)
+        return StepResult(estimate, ess, resampled, injected, n_obs, timings, self.num_particles)
 
     # -------------------------------------------------------------------------------- helpers
+
+    def _estimate_weights(self) -> np.ndarray:
+        """The weights with the particles injected at the last resampling zeroed (all of them: as they are)."""
+        return np.where(self.fresh, 0.0, self.weights) if not self.fresh.all() else self.weights
 
     def _normalise(self, when: str) -> None:
         total = self.weights.sum()

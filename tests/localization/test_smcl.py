@@ -14,6 +14,7 @@ from bimfactor.localization.smcl import (
     benchmark_step,
     circular_mean,
     effective_sample_size,
+    kld_particle_count,
     systematic_resample,
     weighted_pose_stats,
 )
@@ -127,6 +128,42 @@ def test_resampling_happens_below_the_ess_threshold_and_resets_weights(box_prior
     np.testing.assert_allclose(mcl.weights, np.full(100, 0.01))
     assert (mcl.particles == keep3).all(axis=1).sum() == 75
     assert (mcl.particles == keep7).all(axis=1).sum() == 25
+
+
+def test_kld_particle_count_matches_fox_2003():
+    # k = 30 bins, ε = 0.05, z = 2.33: 29 / 0.1 · (1 − 2/261 + √(2/261) · 2.33)³
+    a = 2.0 / (9.0 * 29)
+    assert kld_particle_count(30, 0.05, 2.33) == int(np.ceil(290.0 * (1.0 - a + np.sqrt(a) * 2.33) ** 3))
+    counts = kld_particle_count(np.array([1, 2, 10, 100, 1000]), 0.05, 2.33)
+    assert counts[0] == 1 and np.all(np.diff(counts) > 0)  # more occupied bins need more particles
+    assert kld_particle_count(100, 0.01, 2.33) > kld_particle_count(100, 0.05, 2.33)  # a tighter bound needs more
+
+
+def test_kld_sampling_starts_wide_and_shrinks_to_m_on_a_converged_cloud(box_prior, box_visibility, smcl_cfg):
+    cfg = smcl_cfg.model_copy(
+        update={"kld_sampling": True, "num_particles": 200, "max_particles": 3000, "augmented": False}
+    )
+    mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0))
+    mcl.initialize()
+    assert mcl.num_particles == len(mcl.particles) == len(mcl.weights) == 3000
+    # A spread belief (the weight on a uniform quarter of the particles) occupies hundreds of bins: it keeps
+    # more particles than M …
+    mcl.weights = np.where(np.arange(3000) % 4 == 0, 1.0, 1e-9)
+    mcl.weights /= mcl.weights.sum()
+    assert mcl.resample_if_needed() == (True, 0)
+    spread = mcl.num_particles
+    assert 200 < spread <= 3000 and len(mcl.particles) == len(mcl.weights) == spread
+    np.testing.assert_allclose(mcl.weights, np.full(spread, 1.0 / spread))
+    # … a belief on three particles (three bins) needs a handful: the count falls to M.
+    mcl.weights = np.zeros(spread)
+    mcl.weights[[0, 1, 2]] = 1.0 / 3
+    assert mcl.resample_if_needed() == (True, 0)
+    assert mcl.num_particles == len(mcl.particles) == 200
+    assert len({tuple(p) for p in mcl.particles}) <= 3
+    # A count given to the constructor is fixed (benchmarks measure one M).
+    fixed = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0), num_particles=500)
+    fixed.initialize()
+    assert fixed.num_particles == 500
 
 
 def test_augmented_mcl_injects_random_particles_when_the_short_average_drops(box_prior, box_visibility, smcl_cfg):
