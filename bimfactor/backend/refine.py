@@ -1,7 +1,9 @@
 """Offline refinement: each surviving mode's whole trajectory smoothed by batch Levenberg–Marquardt.
 
 For a mode that the back end still tracks at the end of a sequence (born at keyframe i0, on one storey):
-1. initial guess: its ISAM2-smoothed poses from i0 on; before i0, dead reckoning backwards from X(i0);
+1. initial guess: its ISAM2-smoothed poses from i0 on; before i0, tracked backwards from X(i0): each keyframe's
+   pose predicted by the inverse odometry increment and, with the keyframes' scans, corrected by matching its scan
+   from that prediction (dead reckoning alone drifts metres over tens of keyframes, beyond the matcher's window);
 2. matches: the forward pass's from i0 on; before i0, the associator's at the initial guess;
 3. scan factors: with the keyframes' scans (`measure_fns`), every keyframe's scan matched against the BIM's walls
    from the initial guess, before i0 too; without them, the forward pass's;
@@ -32,7 +34,7 @@ from bimfactor.backend.posegraph import (
     dead_reckoning,
 )
 from bimfactor.config import BackendConfig
-from bimfactor.types import Observations
+from bimfactor.types import Observations, se2_compose, se2_inverse
 
 log = logging.getLogger(__name__)
 
@@ -79,13 +81,15 @@ def refine_mode(
     i0, n = mode.first_index, len(mode.poses)
     if len(associate_fns) != T or len(odom_increments) != T - 1 or i0 + n != T:
         raise ValueError(f"mode {mode.mode_id}: keyframes {i0}…{i0 + n - 1} do not end a {T}-keyframe sequence")
+    if measure_fns is not None and len(measure_fns) != T:
+        raise ValueError(f"mode {mode.mode_id}: {len(measure_fns)} scan matchers for {T} keyframes")
     initial = dead_reckoning(mode.poses[0], i0, odom_increments)
     initial[i0:] = mode.poses
+    if measure_fns is not None:
+        initial[:i0] = _track_backwards(initial[i0], odom_increments[:i0], measure_fns[:i0], mode.storey)
     associations = [list(associate_fns[t](initial[t], mode.storey)) for t in range(i0)] + [
         list(a) for a in mode.associations
     ]
-    if measure_fns is not None and len(measure_fns) != T:
-        raise ValueError(f"mode {mode.mode_id}: {len(measure_fns)} scan matchers for {T} keyframes")
 
     def scan_factors(poses: np.ndarray) -> list[PoseFactor]:
         if measure_fns is None:
@@ -124,3 +128,18 @@ def refine_mode(
         done,
     )
     return RefinedMode(mode.mode_id, mode.storey, mode.probability, i0, batch, associations, done)
+
+
+def _track_backwards(
+    anchor: np.ndarray, increments: np.ndarray, measure_fns: Sequence[PoseFactorFn | None], storey: int
+) -> np.ndarray:
+    """(n, 3) poses of the n keyframes before an anchor pose, from the last to the first: each predicted from its
+    successor by the inverse increment, then replaced by its scan's match from that prediction when one is
+    accepted (`measure_fns[t]`; None or a rejection keeps the prediction)."""
+    poses = np.empty((len(increments), 3))
+    after = np.asarray(anchor, np.float64)
+    for t in range(len(increments) - 1, -1, -1):
+        predicted = se2_compose(after, se2_inverse(increments[t]))
+        measured = None if measure_fns[t] is None else measure_fns[t](predicted, storey)
+        poses[t] = after = predicted if measured is None else np.asarray(measured[0], np.float64)
+    return poses

@@ -136,7 +136,36 @@ def test_scans_are_matched_anew_from_the_hindsight_trajectory_before_the_birth_t
         mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, cfg, [matcher(t) for t in range(20)]
     )
     assert sorted(asked) == list(range(len(sc.true_poses)))
-    assert all(n == 2 for n in asked.values())  # the first optimisation and one re-matching round
+    # The first optimisation and one re-matching round; before the birth also the backward tracking.
+    assert all(n == (3 if t < BORN_AT else 2) for t, n in asked.items())
     assert _rms_m(refined.poses, sc.true_poses) < 0.01
     without_scans = refine_mode(mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, cfg)
     assert _rms_m(without_scans.poses, sc.true_poses) > 1.0  # the forward pass's (wrong) scan factor is used
+
+
+def test_keyframes_before_the_birth_are_tracked_backwards_through_their_scans():
+    """Odometry that turns 4° too far per keyframe puts dead reckoning back from the birth metres off; tracked
+    backwards, each keyframe's scan is matched from its predecessor's correction and every match lands."""
+    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    mode = _late_mode(sc, PRECISE)
+    drifting = sc.increments.copy()
+    drifting[:, 2] += np.deg2rad(4.0)
+    information = np.diag([1 / 0.005**2, 1 / 0.005**2, 1 / np.deg2rad(0.1) ** 2])
+    window_m, window_rad = 0.5, np.deg2rad(18.0)  # the correlative matcher's search window
+
+    def matcher(t: int):
+        def measure(pose, storey):
+            off = pose - sc.true_poses[t]
+            if np.hypot(*off[:2]) > window_m or abs(wrap_angle(off[2])) > window_rad:
+                return None
+            return sc.true_poses[t], information
+
+        return measure
+
+    dead_reckoned = dead_reckoning(mode.poses[0], BORN_AT, drifting)
+    assert _rms_m(dead_reckoned[:BORN_AT], sc.true_poses[:BORN_AT]) > 1.0
+    unmatched = [lambda pose, storey: [] for _ in range(20)]  # no landmark to pull the early keyframes back
+    refined = refine_mode(
+        mode, drifting, sc.observations, unmatched, sc.landmark_xy, PRECISE, [matcher(t) for t in range(20)]
+    )
+    assert _rms_m(refined.poses[:BORN_AT], sc.true_poses[:BORN_AT]) < 0.05
