@@ -141,6 +141,12 @@ def test_unknown_config_key_from_set(tmp_path: Path) -> None:
     assert not (tmp_path / "x.ifc").exists()
 
 
+def test_inconsistent_particle_bounds_are_a_one_line_error(tmp_path: Path) -> None:
+    result = invoke("synth", "-o", tmp_path / "x.ifc", "--set", "smcl.max_particles=500")
+    assert_one_line_error(result, contains="max_particles 500 is below num_particles 1000")
+    assert not (tmp_path / "x.ifc").exists()
+
+
 def test_unknown_config_key_in_preset_file(tmp_path: Path) -> None:
     preset = tmp_path / "mine.yaml"
     preset.write_text("bim:\n  grid:\n    resolution_m: 0.1\n    nope: 1\n")
