@@ -57,11 +57,7 @@ class Landmarks:
     @classmethod
     def from_prior(cls, prior: Any) -> Landmarks:
         """A BimPrior's objects: their footprint boxes' centres and sizes."""
-        sizes = np.asarray([o.size_m[:2] for o in prior.objects], np.float64).reshape(-1, 2)
-        return cls(prior.object_positions()[:, :2].copy(), sizes)
-
-    def __len__(self) -> int:
-        return len(self.xy)
+        return cls(prior.object_positions()[:, :2].copy(), prior.object_sizes()[:, :2].copy())
 
 
 def to_pose2(pose: np.ndarray) -> gtsam.Pose2:

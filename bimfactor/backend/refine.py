@@ -3,7 +3,8 @@
 For a mode that the back end still tracks at the end of a sequence (born at keyframe i0, on one storey):
 1. initial guess: its ISAM2-smoothed poses from i0 on; before i0, tracked backwards from X(i0): each keyframe's
    pose predicted by the inverse odometry increment and, with the keyframes' scans, corrected by matching its scan
-   from that prediction (dead reckoning alone drifts metres over tens of keyframes, beyond the matcher's window);
+   from that prediction (without scans: dead reckoning, which drifts metres over tens of keyframes, beyond the
+   matcher's window);
 2. matches: the forward pass's from i0 on; before i0, the associator's at the initial guess;
 3. scan factors: with the keyframes' scans (`measure_fns`), every keyframe's scan matched against the BIM's walls
    from the initial guess, before i0 too; without them, the forward pass's;
@@ -31,7 +32,6 @@ from bimfactor.backend.posegraph import (
     PoseFactor,
     PoseFactorFn,
     batch_refine,
-    dead_reckoning,
 )
 from bimfactor.config import BackendConfig
 from bimfactor.types import Observations, se2_compose, se2_inverse
@@ -83,10 +83,8 @@ def refine_mode(
         raise ValueError(f"mode {mode.mode_id}: keyframes {i0}…{i0 + n - 1} do not end a {T}-keyframe sequence")
     if measure_fns is not None and len(measure_fns) != T:
         raise ValueError(f"mode {mode.mode_id}: {len(measure_fns)} scan matchers for {T} keyframes")
-    initial = dead_reckoning(mode.poses[0], i0, odom_increments)
-    initial[i0:] = mode.poses
-    if measure_fns is not None:
-        initial[:i0] = _track_backwards(initial[i0], odom_increments[:i0], measure_fns[:i0], mode.storey)
+    before = [None] * i0 if measure_fns is None else measure_fns[:i0]
+    initial = np.concatenate([_track_backwards(mode.poses[0], odom_increments[:i0], before, mode.storey), mode.poses])
     associations = [list(associate_fns[t](initial[t], mode.storey)) for t in range(i0)] + [
         list(a) for a in mode.associations
     ]

@@ -161,6 +161,10 @@ class BimPrior:
         """(N, 3) object centres in the world frame."""
         return np.asarray([o.position_m for o in self.objects], dtype=np.float64).reshape(-1, 3)
 
+    def object_sizes(self) -> np.ndarray:
+        """(N, 3) object extents along the world axes (their axis-aligned boxes are centre ± size / 2)."""
+        return np.asarray([o.size_m for o in self.objects], dtype=np.float64).reshape(-1, 3)
+
     def room_at(self, xy: np.ndarray, storey_index: int = 0) -> np.ndarray:
         """(N,) room id at each world point of (N, 2) xy (OUTSIDE / NO_ROOM off the rooms)."""
         rc = self.grid.world_to_cell(xy)

@@ -141,7 +141,7 @@ class VisibilityTable:
         lattice = GridSpec(grid.origin_x, grid.origin_y, cell_m, rows, cols)
         reach = cfg.visible_radius_m + cell_m * np.sqrt(2.0)  # any point of a cell is this close to its origin
         positions = prior.object_positions()[:, :2]
-        sizes = np.asarray([o.size_m[:2] for o in prior.objects], np.float64).reshape(-1, 2)
+        sizes = prior.object_sizes()[:, :2]
         storey_of = np.asarray([o.storey_index for o in prior.objects], np.int64)
 
         cell_rows = np.full((len(prior.storeys), rows, cols), -1, np.int32)

@@ -194,7 +194,7 @@ class SemanticLikelihood:
             )
         self.half_fov_rad = 0.5 * np.deg2rad(cfg.fov_deg)
         # Footprint radius: half the diagonal of the object's axis-aligned footprint (0: centre-only FOV test).
-        sizes = np.asarray([o.size_m[:2] for o in prior.objects], np.float64).reshape(-1, 2)
+        sizes = prior.object_sizes()[:, :2]
         # World-frame footprint boxes (the objects' axis-aligned extents) for `footprint_match`.
         self.object_lo, self.object_hi = self.object_xy - sizes / 2, self.object_xy + sizes / 2
         self.object_radius_m = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1]) if cfg.fov_extent else np.zeros(len(sizes))

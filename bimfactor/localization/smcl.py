@@ -160,7 +160,6 @@ class SemanticMCL:
         self.min_particles = int(num_particles or cfg.num_particles)
         adaptive = num_particles is None and cfg.kld_sampling
         self.max_particles = int(cfg.max_particles) if adaptive else self.min_particles
-        self.num_particles = self.max_particles  # the current count
         self.likelihood = SemanticLikelihood(prior, visibility, cfg)
         self.scan_likelihood = ScanLikelihood(prior, cfg) if cfg.scan_likelihood else None
         self._object_storey = np.asarray([o.storey_index for o in prior.objects], np.int64)
@@ -168,14 +167,19 @@ class SemanticMCL:
         self._free_cells = np.flatnonzero(self.navigable).astype(np.int64)  # flat (storey, row, col) indices
         if len(self._free_cells) == 0:
             raise InputError("the prior has no navigable space to spread particles over")
-        self.particles = np.zeros((self.num_particles, 3))
-        self.storeys = np.zeros(self.num_particles, np.int64)
-        self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
+        self.particles = np.zeros((self.max_particles, 3))
+        self.storeys = np.zeros(self.max_particles, np.int64)
+        self.weights = np.full(self.max_particles, 1.0 / self.max_particles)
         # Particles injected at the last resampling and not yet weighed by a measurement: left out of the estimate.
-        self.fresh = np.zeros(self.num_particles, bool)
+        self.fresh = np.zeros(self.max_particles, bool)
         self.w_slow: float | None = None
         self.w_fast: float | None = None
         self._initialized = False
+
+    @property
+    def num_particles(self) -> int:
+        """The current particle count (KLD-sampling changes it at each resampling)."""
+        return len(self.particles)
 
     # -------------------------------------------------------------------------------- sampling
 
@@ -257,10 +261,9 @@ class SemanticMCL:
     def initialize(self, storeys: list[int] | None = None) -> None:
         """M (KLD-sampling: `max_particles`) particles uniform over the navigable space of the given storeys (None:
         all), equal weights."""
-        self.num_particles = self.max_particles
-        self.particles, self.storeys = self.sample_free_space(self.num_particles, storeys)
+        self.particles, self.storeys = self.sample_free_space(self.max_particles, storeys)
         self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
-        self.fresh = np.zeros(self.num_particles, bool)
+        self.fresh = np.zeros(self.max_particles, bool)
         self.w_slow = self.w_fast = None
         self._initialized = True
 
@@ -346,7 +349,6 @@ class SemanticMCL:
             particles = np.concatenate([particles, fresh])
             storeys = np.concatenate([storeys, fresh_storeys])
         self.particles, self.storeys = particles, storeys
-        self.num_particles = M
         self.weights = np.full(M, 1.0 / M)
         self.fresh = np.arange(M) >= M - n_random
         return True, n_random
@@ -374,7 +376,7 @@ class SemanticMCL:
 
         Particles injected at the last resampling (`fresh`) are left out until a measurement has weighed them."""
         self._require_initialized()
-        weights = self._estimate_weights()
+        weights = np.where(self.fresh, 0.0, self.weights) if not self.fresh.all() else self.weights
         storey_weight = np.bincount(self.storeys, weights=weights, minlength=len(self.prior.storeys))
         storey = int(np.argmax(storey_weight))
         on_storey = (self.storeys == storey) & (weights > 0)
@@ -419,10 +421,6 @@ class SemanticMCL:
         return StepResult(estimate, ess, resampled, injected, n_obs, timings, self.num_particles)
 
     # -------------------------------------------------------------------------------- helpers
-
-    def _estimate_weights(self) -> np.ndarray:
-        """The weights with the particles injected at the last resampling zeroed (all of them: as they are)."""
-        return np.where(self.fresh, 0.0, self.weights) if not self.fresh.all() else self.weights
 
     def _normalise(self, when: str) -> None:
         total = self.weights.sum()
