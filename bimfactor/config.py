@@ -427,6 +427,11 @@ class BackendConfig(_Strict):
     refine_rounds: int = Field(
         ge=0, description="Offline refine: rounds of re-association at the refined poses (0: the forward matches)."
     )
+    refine_retired_min_keyframes: int = Field(
+        ge=1,
+        description="Offline refine: modes pruned in the forward pass after this many keyframes are refined too "
+        "(tracked to the end by odometry and scan matching) and compete by their fit to the whole sequence.",
+    )
     scan_factor: bool = Field(
         description="Each mode's graph also gets a pose factor from correlative matching of the keyframe's 2-D scan "
         "against the likelihood field (registration.correlative; beyond the paper)."

@@ -41,10 +41,10 @@ from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
-from bimfactor.localization.field import frame_endpoints
+from bimfactor.localization.field import ScanLikelihood, frame_endpoints
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.motion import odometry_increment
-from bimfactor.localization.smcl import SemanticMCL, StepResult
+from bimfactor.localization.smcl import SemanticMCL, StepResult, mixture_pose_covariance
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
 from bimfactor.registration.correlative import CorrelativeMatcher
@@ -127,6 +127,7 @@ class LocalizationRun:
     `filter` is the particle filter's own estimate (every variant runs the filter); `graph` the most probable
     mode's (smcl+graph variants; where no mode exists yet, the filter's). `output` is the variant's estimate.
     `modes` lists every mode after each step (most probable first), `final_modes` the surviving modes' graphs,
+    `retired_modes` the graphs of modes pruned after `backend.refine_retired_min_keyframes` keyframes,
     `odom_increments` (T−1, 3), `observations` and `scans` (the (N, 2) base-frame scan endpoints per step, None
     where no scan was taken) what the refinement re-uses; `fine` the fine stage per step (variant full);
     `snapshots` maps step → (particles, weights).
@@ -146,6 +147,7 @@ class LocalizationRun:
     graph: Track | None = None
     modes: list[list[ModeEstimate]] = field(default_factory=list)
     final_modes: list[ModeHistory] = field(default_factory=list)
+    retired_modes: list[ModeHistory] = field(default_factory=list)
     fine: FineTrack | None = None
     gt_poses: np.ndarray | None = None
     gt_rooms: np.ndarray | None = None
@@ -277,9 +279,25 @@ class Localizer:
         out.fine_ms = (time.perf_counter() - started) * 1000
 
     def _output_mode(self, out: LocalizerStep, mode: ModeEstimate) -> None:
-        """A mode's estimate as the step's output pose, covariance, storey and room."""
-        out.pose, out.covariance, out.storey = mode.pose, mode.covariance, mode.storey
+        """A mode's estimate as the step's output pose, storey and room; its covariance is the whole belief's about
+        that pose (`belief_covariance`)."""
+        out.pose, out.storey = mode.pose, mode.storey
+        out.covariance = belief_covariance(mode, out)
         out.room_id = int(self.prior.room_at(mode.pose[None, :2], mode.storey)[0])
+
+
+def belief_covariance(best: ModeEstimate, out: LocalizerStep) -> np.ndarray:
+    """(3, 3) uncertainty of reporting `best`'s pose: the second moment about it of the mixture of every mode (its
+    graph's Gaussian, weighted by its probability × the particle weight the modes hold) and the filter's belief
+    (weighted by the particle weight no mode holds). Converged, it is the best mode's graph covariance; while
+    other places keep weight, their distance enters, so the 95 % ellipse reaches the rival modes."""
+    assert out.graph is not None
+    modes = [best if m.mode_id == best.mode_id else m for m in out.graph.modes]
+    clustered = min(sum(m.particle_weight for m in modes), 1.0)
+    means = [m.pose for m in modes] + [out.filtered.pose]
+    covariances = [m.covariance for m in modes] + [out.filtered.covariance]
+    weights = [clustered * m.probability for m in modes] + [1.0 - clustered]
+    return mixture_pose_covariance(best.pose, np.array(means), np.array(covariances), np.array(weights))
 
 
 def localize_sequence(
@@ -360,6 +378,7 @@ def localize_sequence(
         graph=graph,
         modes=[r.graph.modes if r.graph is not None else [] for r in rows],
         final_modes=localizer.backend.histories() if localizer.backend is not None else [],
+        retired_modes=list(localizer.backend.retired) if localizer.backend is not None else [],
         fine=fine,
         gt_poses=gt_poses,
         gt_rooms=gt_rooms,
@@ -372,26 +391,33 @@ def localize_sequence(
 
 @dataclass
 class RefinedRun:
-    """The offline pass over a localized run: every surviving mode refined (most probable first), and the
-    estimate, the most probable mode's refined trajectory; its `step_ms` is the forward pass's step time plus the
-    refinement's time shared over the steps."""
+    """The offline pass over a localized run: every candidate mode refined, best fit first, with its fit
+    (`fits`, the filter's measurement log-likelihood summed along the refined trajectory), and the estimate, the
+    best fit's refined trajectory; its `step_ms` is the forward pass's step time plus the refinement's time shared
+    over the steps."""
 
     forward: LocalizationRun
     modes: list[RefinedMode]
     estimate: Track
     refine_ms: float
+    fits: list[float] = field(default_factory=list)
 
 
 def refine_run(
     run: LocalizationRun, prior: BimPrior, cfg: Config, matcher: CorrelativeMatcher | None = None
 ) -> RefinedRun:
-    """Batch Levenberg–Marquardt smoothing of the whole trajectory of every mode that survived the forward pass.
+    """Batch Levenberg–Marquardt smoothing of the whole trajectory of every candidate mode of the forward pass.
+
+    Candidates are the modes alive at the end and those pruned after `backend.refine_retired_min_keyframes`
+    keyframes (a mode that lost to a late rival in the forward pass may still explain the whole sequence best).
+    Each is refined over all keyframes (`refine_mode`) and scored by the filter's measurement model, semantic and
+    scan terms, summed over its refined trajectory; the best fit is the estimate.
 
     With `backend.scan_factor` and the run's scans, every keyframe's scan is matched anew from each mode's
-    hindsight trajectory (`refine_mode`), by `matcher` (the forward pass's, or one built now). After a full
-    forward pass, the fine stage's accepted pose factors of each
-    mode enter its batch graph. The run must come from a graph variant (ValueError otherwise). A run in which the
-    filter never formed a mode has nothing to refine: its `modes` are empty and the estimate is the forward pass's.
+    hindsight trajectory, by `matcher` (the forward pass's, or one built now). After a full forward pass, the fine
+    stage's accepted pose factors of each mode enter its batch graph. The run must come from a graph variant
+    (ValueError otherwise). A run in which the filter never formed a mode has nothing to refine: its `modes` are
+    empty and the estimate is the forward pass's.
     """
     if run.graph is None:
         raise ValueError(f"refinement needs a pose-graph variant ({', '.join(GRAPH_VARIANTS)}), not {run.variant}")
@@ -408,8 +434,12 @@ def refine_run(
         measure_fns = [None if scan is None else matcher.factor_fn(scan) for scan in run.scans]
     refined = [
         refine_mode(mode, run.odom_increments, run.observations, associate_fns, landmarks, cfg.backend, measure_fns)
-        for mode in run.final_modes
+        for mode in [*run.final_modes, *run.retired_modes]
     ]
+    scan_likelihood = ScanLikelihood(prior, cfg.smcl) if run.scans else None
+    fits = [_measurement_fit(m.poses, m.storey, run, likelihood, scan_likelihood) for m in refined]
+    order = sorted(range(len(refined)), key=lambda k: -fits[k])
+    refined, fits = [refined[k] for k in order], [fits[k] for k in order]
     refine_ms = (time.perf_counter() - started) * 1000
     best = refined[0]
     T = len(best.poses)
@@ -420,5 +450,25 @@ def refine_run(
         rooms=prior.room_at(best.poses[:, :2], best.storey),
         step_ms=run.graph.step_ms + refine_ms / T,
     )
-    log.info("refined %d modes in %.0f ms", len(refined), refine_ms)
-    return RefinedRun(run, refined, estimate, refine_ms)
+    log.info("refined %d modes in %.0f ms; best fit: mode %d", len(refined), refine_ms, best.mode_id)
+    return RefinedRun(run, refined, estimate, refine_ms, fits)
+
+
+def _measurement_fit(
+    poses: np.ndarray,
+    storey: int,
+    run: LocalizationRun,
+    likelihood: SemanticLikelihood,
+    scan_likelihood: ScanLikelihood | None,
+) -> float:
+    """Σ_t log P(z_t | x_t) of the filter's measurement model (semantic and, with scans, scan terms) along (T, 3)
+    poses on one storey."""
+    storeys = np.array([storey])
+    total = 0.0
+    for t, pose in enumerate(poses):
+        if len(run.observations[t]):
+            total += float(likelihood.log_likelihood(pose[None], storeys, run.observations[t])[0])
+        scan = run.scans[t] if run.scans else None
+        if scan_likelihood is not None and scan is not None and len(scan):
+            total += float(scan_likelihood.log_likelihood(pose[None], storeys, scan)[0])
+    return total

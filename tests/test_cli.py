@@ -455,6 +455,8 @@ def test_refine_writes_the_refined_run(demo_prior: Path, short_sequence: Path, t
         Path(m["trajectory"]).name for m in modes
     )
     assert all(m["error_after"] <= m["error_before"] for m in modes)
+    fits = [m["measurement_fit"] for m in modes]
+    assert fits == sorted(fits, reverse=True) and any(m["alive_at_end"] for m in modes)
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["variant"] == "refine" and metrics["forward"]["trans_err_m"] >= 0.0
     estimate = np.loadtxt(out / "estimate.txt")

@@ -82,7 +82,12 @@ def test_the_graph_output_is_the_most_probable_mode(runs: dict[str, Localization
         assert probabilities == sorted(probabilities, reverse=True)
         assert sum(probabilities) == pytest.approx(1.0)
         np.testing.assert_array_equal(run.poses[i], modes[0].pose)
-        np.testing.assert_array_equal(run.covariances[i], modes[0].covariance)
+        # The reported covariance is the whole belief's about that pose: the best mode's share of it, plus rivals.
+        clustered = min(sum(m.particle_weight for m in modes), 1.0)
+        own = clustered * modes[0].probability * modes[0].covariance
+        assert np.all(np.linalg.eigvalsh(run.covariances[i] - own) > -1e-12)
+        if clustered > 0.999 and modes[0].probability > 0.999:
+            np.testing.assert_allclose(run.covariances[i], modes[0].covariance, rtol=0.01, atol=1e-9)
         assert np.all(np.linalg.eigvalsh(run.covariances[i]) > 0)
     assert run.final_modes and run.final_modes[0].mode_id == run.modes[-1][0].mode_id
 
@@ -98,7 +103,11 @@ def test_refine_improves_or_matches_the_forward_pass(
 ) -> None:
     run = runs["smcl+graph"]
     refined, _ = _refined(paper_floor, run, config_overrides)
-    assert refined.modes and [m.mode_id for m in refined.modes] == [m.mode_id for m in run.final_modes]
+    # Candidates: the surviving modes and the long-lived pruned ones, best fit to the whole sequence first.
+    candidates = [*run.final_modes, *run.retired_modes]
+    assert refined.modes and sorted(m.mode_id for m in refined.modes) == sorted(m.mode_id for m in candidates)
+    assert all(len(m.poses) >= load_config().backend.refine_retired_min_keyframes for m in run.retired_modes)
+    assert len(refined.fits) == len(refined.modes) and refined.fits == sorted(refined.fits, reverse=True)
     estimate = refined.estimate
     assert estimate.poses.shape == run.poses.shape and estimate.covariances.shape == run.covariances.shape
     np.testing.assert_array_equal(estimate.poses, refined.modes[0].poses)

@@ -349,6 +349,8 @@ class MultiHypothesisBackend:
         self.tracker = ModeTracker(cfg)
         self.graphs: dict[int, ModeGraph] = {}
         self.index = -1
+        # Modes pruned after `refine_retired_min_keyframes` keyframes: offline refinement's other candidates.
+        self.retired: list[ModeHistory] = []
 
     @classmethod
     def from_prior(cls, prior: Any, cfg: BackendConfig) -> MultiHypothesisBackend:
@@ -406,9 +408,12 @@ class MultiHypothesisBackend:
         merged = self.tracker.merge_converged()
         for _, absorbed in merged:
             self.graphs.pop(absorbed, None)
+        retiring = {m.id: m.probability for m in self.tracker.modes}
         pruned = self.tracker.prune()
         for mode_id in pruned:
-            self.graphs.pop(mode_id, None)
+            graph = self.graphs.pop(mode_id)
+            if len(graph.poses) >= self.cfg.refine_retired_min_keyframes:
+                self.retired.append(graph.history(retiring[mode_id]))
         estimates = [self._estimate(mode, costs[mode.id], len(observations)) for mode in self.tracker.modes]
         estimates.sort(key=lambda e: -e.probability)
         t_end = time.perf_counter()

@@ -1,11 +1,11 @@
 """Offline refinement: each surviving mode's whole trajectory smoothed by batch Levenberg–Marquardt.
 
-For a mode that the back end still tracks at the end of a sequence (born at keyframe i0, on one storey):
-1. initial guess: its ISAM2-smoothed poses from i0 on; before i0, tracked backwards from X(i0): each keyframe's
-   pose predicted by the inverse odometry increment and, with the keyframes' scans, corrected by matching its scan
-   from that prediction (without scans: dead reckoning, which drifts metres over tens of keyframes, beyond the
-   matcher's window);
-2. matches: the forward pass's from i0 on; before i0, the associator's at the initial guess;
+For a mode of the forward pass (born at keyframe i0, on one storey; tracked to the end, or pruned at keyframe i1):
+1. initial guess: its ISAM2-smoothed poses over its keyframes; before i0, tracked backwards from X(i0): each
+   keyframe's pose predicted by the inverse odometry increment and, with the keyframes' scans, corrected by matching
+   its scan from that prediction (without scans: dead reckoning, which drifts metres over tens of keyframes, beyond
+   the matcher's window); after i1, tracked forwards from X(i1) the same way;
+2. matches: the forward pass's over its keyframes; elsewhere, the associator's at the initial guess;
 3. scan factors: with the keyframes' scans (`measure_fns`), every keyframe's scan matched against the BIM's walls
    from the initial guess, before i0 too; without them, the forward pass's;
 4. `batch_refine` over all T keyframes: the mode's birth prior on X(i0), odometry between every pair of keyframes,
@@ -79,14 +79,19 @@ def refine_mode(
     """
     T = len(observations)
     i0, n = mode.first_index, len(mode.poses)
-    if len(associate_fns) != T or len(odom_increments) != T - 1 or i0 + n != T:
-        raise ValueError(f"mode {mode.mode_id}: keyframes {i0}…{i0 + n - 1} do not end a {T}-keyframe sequence")
+    i1 = i0 + n  # the first keyframe after the mode's
+    if len(associate_fns) != T or len(odom_increments) != T - 1 or n < 1 or i1 > T:
+        raise ValueError(f"mode {mode.mode_id}: keyframes {i0}…{i1 - 1} do not lie in a {T}-keyframe sequence")
     if measure_fns is not None and len(measure_fns) != T:
         raise ValueError(f"mode {mode.mode_id}: {len(measure_fns)} scan matchers for {T} keyframes")
-    before = [None] * i0 if measure_fns is None else measure_fns[:i0]
-    initial = np.concatenate([_track_backwards(mode.poses[0], odom_increments[:i0], before, mode.storey), mode.poses])
-    associations = [list(associate_fns[t](initial[t], mode.storey)) for t in range(i0)] + [
-        list(a) for a in mode.associations
+    scans = [None] * T if measure_fns is None else list(measure_fns)
+    before = _track(mode.poses[0], odom_increments[:i0], scans[:i0], mode.storey, backwards=True)
+    after = _track(mode.poses[-1], odom_increments[i1 - 1 :], scans[i1:], mode.storey, backwards=False)
+    initial = np.concatenate([before, mode.poses, after])
+    own = range(i0, i1)
+    associations = [
+        list(mode.associations[t - i0]) if t in own else list(associate_fns[t](initial[t], mode.storey))
+        for t in range(T)
     ]
 
     def scan_factors(poses: np.ndarray) -> list[PoseFactor]:
@@ -128,16 +133,24 @@ def refine_mode(
     return RefinedMode(mode.mode_id, mode.storey, mode.probability, i0, batch, associations, done)
 
 
-def _track_backwards(
-    anchor: np.ndarray, increments: np.ndarray, measure_fns: Sequence[PoseFactorFn | None], storey: int
+def _track(
+    anchor: np.ndarray,
+    increments: np.ndarray,
+    measure_fns: Sequence[PoseFactorFn | None],
+    storey: int,
+    backwards: bool,
 ) -> np.ndarray:
-    """(n, 3) poses of the n keyframes before an anchor pose, from the last to the first: each predicted from its
-    successor by the inverse increment, then replaced by its scan's match from that prediction when one is
-    accepted (`measure_fns[t]`; None or a rejection keeps the prediction)."""
-    poses = np.empty((len(increments), 3))
-    after = np.asarray(anchor, np.float64)
-    for t in range(len(increments) - 1, -1, -1):
-        predicted = se2_compose(after, se2_inverse(increments[t]))
+    """(n, 3) poses of the n keyframes before (after) an anchor pose, each predicted from its neighbour nearer the
+    anchor by the odometry increment between them (inverted going backwards), then replaced by its scan's match
+    from that prediction when one is accepted (`measure_fns[t]`; None or a rejection keeps the prediction).
+    `increments[t]` leads from keyframe t to t + 1 of the (n + 1) keyframes counted from the first one before
+    (from the anchor, after)."""
+    n = len(measure_fns)
+    poses = np.empty((n, 3))
+    near = np.asarray(anchor, np.float64)
+    for t in range(n - 1, -1, -1) if backwards else range(n):
+        step = se2_inverse(increments[t]) if backwards else increments[t]
+        predicted = se2_compose(near, step)
         measured = None if measure_fns[t] is None else measure_fns[t](predicted, storey)
-        poses[t] = after = predicted if measured is None else np.asarray(measured[0], np.float64)
+        poses[t] = near = predicted if measured is None else np.asarray(measured[0], np.float64)
     return poses

@@ -154,7 +154,8 @@ def write_refined(
 ) -> list[Path]:
     """Write a refinement run as one folder, atomically: estimate.txt (refined, TUM), forward.txt (the forward
     pass, TUM), steps.csv (refined pose and covariance per step), modes.json and modes/mode_<id>.txt (every refined
-    mode), metrics.json (with ground truth: the refined metrics and the forward pass's), config.yaml, trajectory.png.
+    mode, best fit first, with its fit and forward probability: at the end, or when pruned), metrics.json (with
+    ground truth: the refined metrics and the forward pass's), config.yaml, trajectory.png.
     """
     out_dir = Path(out_dir)
     ensure_run_destination(out_dir)
@@ -167,10 +168,13 @@ def write_refined(
              len(best.associations[i]) if best else "", *map(_num, run.poses[i]),
              *_gt_cells(run.gt_poses, run.gt_rooms, i)]
         )  # fmt: skip
+    alive = {m.mode_id for m in run.final_modes}
     modes = [
         {
             "mode_id": m.mode_id,
             "storey": m.storey,
+            "measurement_fit": fit,
+            "alive_at_end": m.mode_id in alive,
             "probability": m.probability,
             "first_step": m.first_index,
             "error_before": m.batch.error_before,
@@ -180,7 +184,7 @@ def write_refined(
             "matches": sum(len(a) for a in m.associations),
             "trajectory": f"modes/mode_{m.mode_id}.txt",
         }
-        for m in refined.modes
+        for m, fit in zip(refined.modes, refined.fits, strict=True)
     ]
     with atomic_dir(out_dir) as tmp:
         (tmp / "config.yaml").write_text(config_yaml)

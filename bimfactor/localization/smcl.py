@@ -139,6 +139,22 @@ def weighted_pose_stats(poses: np.ndarray, weights: np.ndarray) -> tuple[np.ndar
     return mean, covariance
 
 
+def mixture_pose_covariance(
+    about: np.ndarray, means: np.ndarray, covariances: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
+    """(3, 3) second moment about the (3,) pose `about` of a mixture of K Gaussians: (K, 3) means, (K, 3, 3)
+    covariances, (K,) weights (normalised here); Σ_k w_k (Σ_k + δ_k δ_kᵀ) with δ_k = μ_k − about, yaw wrapped.
+
+    The uncertainty of reporting one component's pose when the belief holds the others too (law of total
+    covariance, taken about the reported pose instead of the mixture's mean)."""
+    w = np.asarray(weights, np.float64)
+    w = w / w.sum()
+    delta = np.asarray(means, np.float64).reshape(-1, 3) - np.asarray(about, np.float64)
+    delta[:, 2] = wrap_angle(delta[:, 2])
+    spread = np.einsum("k,ki,kj->ij", w, delta, delta)
+    return np.einsum("k,kij->ij", w, np.asarray(covariances, np.float64).reshape(-1, 3, 3)) + spread
+
+
 # ------------------------------------------------------------------------------------------ the filter
 
 

@@ -28,11 +28,12 @@ def _rms_m(poses: np.ndarray, truth: np.ndarray) -> float:
     return float(np.sqrt(((poses[:, :2] - truth[:, :2]) ** 2).sum(axis=1).mean()))
 
 
-def _late_mode(sc: LoopScenario, cfg, associations=None) -> ModeHistory:
-    """A mode born at keyframe BORN_AT (off the truth) and run online to the end of the loop."""
+def _late_mode(sc: LoopScenario, cfg, associations=None, until: int | None = None) -> ModeHistory:
+    """A mode born at keyframe BORN_AT (off the truth) and run online to the end of the loop (or pruned at
+    keyframe `until`)."""
     associations = sc.associations if associations is None else associations
     graph = ModeGraph(3, BORN_AT, sc.true_poses[BORN_AT] + BIRTH_OFFSET, BIRTH_COV, sc.landmark_xy, cfg)
-    for t in range(BORN_AT, len(sc.true_poses)):
+    for t in range(BORN_AT, len(sc.true_poses) if until is None else until):
         graph.add_keyframe(t, sc.observations[t], associations[t], None if t == BORN_AT else sc.increments[t - 1])
     return graph.history(probability=0.8)
 
@@ -107,10 +108,10 @@ def test_hindsight_reassociation_replaces_a_wrong_match():
     assert _rms_m(fixed.poses, sc.true_poses) < 0.05 < _rms_m(dragged.poses, sc.true_poses)
 
 
-def test_a_mode_that_does_not_end_the_sequence_is_refused():
+def test_a_mode_longer_than_the_sequence_is_refused():
     sc = loop_scenario(np.random.default_rng(0), PRECISE)
     mode = _late_mode(sc, PRECISE)
-    with pytest.raises(ValueError, match="do not end"):
+    with pytest.raises(ValueError, match="do not lie in"):
         refine_mode(mode, sc.increments[:-1], sc.observations[:-1], _associators(sc)[:-1], sc.landmark_xy, PRECISE)
 
 
@@ -169,3 +170,34 @@ def test_keyframes_before_the_birth_are_tracked_backwards_through_their_scans():
         mode, drifting, sc.observations, unmatched, sc.landmark_xy, PRECISE, [matcher(t) for t in range(20)]
     )
     assert _rms_m(refined.poses[:BORN_AT], sc.true_poses[:BORN_AT]) < 0.05
+
+
+def test_a_mode_pruned_early_is_tracked_forwards_to_the_end_through_its_scans():
+    """A mode pruned at keyframe 14 is a refine candidate too: the keyframes after it are predicted by odometry that
+    turns 4° too far per keyframe and corrected by their scans' matches, then the whole sequence is smoothed."""
+    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    pruned_at = 14
+    mode = _late_mode(sc, PRECISE, until=pruned_at)
+    assert mode.first_index + len(mode.poses) == pruned_at
+    T = len(sc.true_poses)
+    drifting = sc.increments.copy()
+    drifting[:, 2] += np.deg2rad(4.0)
+    information = np.diag([1 / 0.005**2, 1 / 0.005**2, 1 / np.deg2rad(0.1) ** 2])
+
+    def matcher(t: int):
+        def measure(pose, storey):
+            off = pose - sc.true_poses[t]
+            if np.hypot(*off[:2]) > 0.5 or abs(wrap_angle(off[2])) > np.deg2rad(18.0):
+                return None
+            return sc.true_poses[t], information
+
+        return measure
+
+    assert _rms_m(dead_reckoning(mode.poses[-1], pruned_at - 1, drifting)[pruned_at:], sc.true_poses[pruned_at:]) > 0.5
+    unmatched = [lambda pose, storey: [] for _ in range(T)]
+    refined = refine_mode(
+        mode, drifting, sc.observations, unmatched, sc.landmark_xy, PRECISE, [matcher(t) for t in range(T)]
+    )
+    assert refined.poses.shape == (T, 3)
+    assert _rms_m(refined.poses[pruned_at:], sc.true_poses[pruned_at:]) < 0.05
+    assert _rms_m(refined.poses, sc.true_poses) < 0.05

@@ -15,6 +15,7 @@ from bimfactor.localization.smcl import (
     circular_mean,
     effective_sample_size,
     kld_particle_count,
+    mixture_pose_covariance,
     systematic_resample,
     weighted_pose_stats,
 )
@@ -46,6 +47,19 @@ def test_pose_covariance_wraps_yaw_residuals():
     assert abs(wrap_angle(mean[2] - np.pi)) < 1e-9
     assert cov[0, 0] == pytest.approx(1.0) and cov[1, 1] == pytest.approx(0.0)
     assert np.sqrt(cov[2, 2]) == pytest.approx(np.deg2rad(1.0), rel=1e-6)
+
+
+def test_mixture_covariance_about_a_component_adds_the_rivals_offsets_with_wrapped_yaw():
+    about = np.array([0.0, 0.0, np.deg2rad(179.0)])
+    means = np.array([about, [10.0, 0.0, np.deg2rad(-179.0)]])
+    covariances = np.array([np.diag([0.01, 0.04, 0.001]), np.diag([0.09, 0.16, 0.002])])
+    cov = mixture_pose_covariance(about, means, covariances, np.array([3.0, 1.0]))  # weights normalised: ¾, ¼
+    assert cov[0, 0] == pytest.approx(0.75 * 0.01 + 0.25 * (0.09 + 100.0))
+    assert cov[1, 1] == pytest.approx(0.75 * 0.04 + 0.25 * 0.16)
+    assert cov[2, 2] == pytest.approx(0.75 * 0.001 + 0.25 * (0.002 + np.deg2rad(2.0) ** 2))  # 2°, not 358°
+    assert cov[0, 2] == pytest.approx(0.25 * 10.0 * np.deg2rad(2.0))
+    # One component: its own covariance.
+    np.testing.assert_allclose(mixture_pose_covariance(about, means[:1], covariances[:1], np.ones(1)), covariances[0])
 
 
 def test_effective_sample_size():
