@@ -282,17 +282,17 @@ class Localizer:
         """A mode's estimate as the step's output pose, storey and room; its covariance is the whole belief's about
         that pose (`belief_covariance`)."""
         out.pose, out.storey = mode.pose, mode.storey
-        out.covariance = belief_covariance(mode, out)
+        out.covariance = belief_covariance(out)
         out.room_id = int(self.prior.room_at(mode.pose[None, :2], mode.storey)[0])
 
 
-def belief_covariance(best: ModeEstimate, out: LocalizerStep) -> np.ndarray:
-    """(3, 3) uncertainty of reporting `best`'s pose: the second moment about it of the mixture of every mode (its
-    graph's Gaussian, weighted by its probability × the particle weight the modes hold) and the filter's belief
+def belief_covariance(out: LocalizerStep) -> np.ndarray:
+    """(3, 3) uncertainty of reporting the best mode's pose: the second moment about it of the mixture of every mode
+    (its graph's Gaussian, weighted by its probability × the particle weight the modes hold) and the filter's belief
     (weighted by the particle weight no mode holds). Converged, it is the best mode's graph covariance; while
     other places keep weight, their distance enters, so the 95 % ellipse reaches the rival modes."""
     assert out.graph is not None
-    modes = [best if m.mode_id == best.mode_id else m for m in out.graph.modes]
+    best, modes = out.graph.best, out.graph.modes
     clustered = min(sum(m.particle_weight for m in modes), 1.0)
     means = [m.pose for m in modes] + [out.filtered.pose]
     covariances = [m.covariance for m in modes] + [out.filtered.covariance]
@@ -428,15 +428,16 @@ def refine_run(
     likelihood = SemanticLikelihood(prior, visibility_of(prior, cfg), cfg.smcl)
     associate_fns = [semantic_associator(likelihood, obs) for obs in run.observations]
     landmarks = Landmarks.from_prior(prior)
+    has_scans = any(scan is not None for scan in run.scans)
     measure_fns = None
-    if cfg.backend.scan_factor and run.scans:
+    if cfg.backend.scan_factor and has_scans:
         matcher = matcher or CorrelativeMatcher(prior, cfg.backend)
         measure_fns = [None if scan is None else matcher.factor_fn(scan) for scan in run.scans]
     refined = [
         refine_mode(mode, run.odom_increments, run.observations, associate_fns, landmarks, cfg.backend, measure_fns)
         for mode in [*run.final_modes, *run.retired_modes]
     ]
-    scan_likelihood = ScanLikelihood(prior, cfg.smcl) if run.scans else None
+    scan_likelihood = ScanLikelihood(prior, cfg.smcl) if has_scans else None
     fits = [_measurement_fit(m.poses, m.storey, run, likelihood, scan_likelihood) for m in refined]
     order = sorted(range(len(refined)), key=lambda k: -fits[k])
     refined, fits = [refined[k] for k in order], [fits[k] for k in order]
@@ -468,7 +469,6 @@ def _measurement_fit(
     for t, pose in enumerate(poses):
         if len(run.observations[t]):
             total += float(likelihood.log_likelihood(pose[None], storeys, run.observations[t])[0])
-        scan = run.scans[t] if run.scans else None
-        if scan_likelihood is not None and scan is not None and len(scan):
-            total += float(scan_likelihood.log_likelihood(pose[None], storeys, scan)[0])
+        if scan_likelihood is not None and run.scans[t] is not None and len(run.scans[t]):
+            total += float(scan_likelihood.log_likelihood(pose[None], storeys, run.scans[t])[0])
     return total

@@ -104,8 +104,10 @@ def refine_mode(
         measured = [(t, fn(poses[t], mode.storey)) for t, fn in enumerate(measure_fns) if fn is not None]
         return [(t, *m) for t, m in measured if m is not None]
 
-    def optimise(start: np.ndarray, matches: list[list[tuple[int, int]]]) -> BatchResult:
-        return batch_refine(
+    def optimise(start: np.ndarray, matches: list[list[tuple[int, int]]]) -> tuple[BatchResult, bool]:
+        """The batch result, and whether scan factors entered it."""
+        scanned = scan_factors(start)
+        batch = batch_refine(
             mode.prior_pose,
             mode.prior_covariance,
             odom_increments,
@@ -114,19 +116,20 @@ def refine_mode(
             landmarks,
             cfg,
             initial_poses=start,
-            pose_factors=list(mode.pose_factors) + scan_factors(start),
+            pose_factors=[*mode.pose_factors, *scanned],
             prior_index=i0,
         )
+        return batch, bool(scanned)
 
-    batch = optimise(initial, associations)
+    batch, scanned = optimise(initial, associations)
     done = 0
     for _ in range(cfg.refine_rounds):
         again = [list(associate_fns[t](batch.poses[t], mode.storey)) for t in range(T)]
         if measure_fns is None and [set(a) for a in again] == [set(a) for a in associations]:
             break  # with scans, the round still re-matches them from the refined poses
         associations, done = again, done + 1
-        batch = optimise(batch.poses, associations)
-    if measure_fns is not None or mode.scan_factors:
+        batch, scanned = optimise(batch.poses, associations)
+    if scanned:
         map_error = np.diag([cfg.scan_min_sigma_m**2, cfg.scan_min_sigma_m**2, 0.0])
         batch = dataclasses.replace(batch, covariances=batch.covariances + map_error)
     log.debug(

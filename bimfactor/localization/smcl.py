@@ -133,10 +133,14 @@ def weighted_pose_stats(poses: np.ndarray, weights: np.ndarray) -> tuple[np.ndar
     mean = np.empty(3)
     mean[:2] = w @ poses[:, :2]
     mean[2] = circular_mean(poses[:, 2], w)
-    residuals = poses - mean
-    residuals[:, 2] = wrap_angle(residuals[:, 2])
-    covariance = (residuals * w[:, None]).T @ residuals
-    return mean, covariance
+    return mean, _second_moment(poses, mean, w)
+
+
+def _second_moment(poses: np.ndarray, about: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(3, 3) Σ_k w_k δ_k δ_kᵀ of (K, 3) poses with (K,) normalised weights, δ_k = pose_k − about, yaw wrapped."""
+    delta = np.asarray(poses, np.float64).reshape(-1, 3) - np.asarray(about, np.float64)
+    delta[:, 2] = wrap_angle(delta[:, 2])
+    return (delta * weights[:, None]).T @ delta
 
 
 def mixture_pose_covariance(
@@ -149,10 +153,8 @@ def mixture_pose_covariance(
     covariance, taken about the reported pose instead of the mixture's mean)."""
     w = np.asarray(weights, np.float64)
     w = w / w.sum()
-    delta = np.asarray(means, np.float64).reshape(-1, 3) - np.asarray(about, np.float64)
-    delta[:, 2] = wrap_angle(delta[:, 2])
-    spread = np.einsum("k,ki,kj->ij", w, delta, delta)
-    return np.einsum("k,kij->ij", w, np.asarray(covariances, np.float64).reshape(-1, 3, 3)) + spread
+    within = np.einsum("k,kij->ij", w, np.asarray(covariances, np.float64).reshape(-1, 3, 3))
+    return within + _second_moment(means, about, w)
 
 
 # ------------------------------------------------------------------------------------------ the filter
