@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 
 from bimfactor.backend.factors import Landmarks
-from bimfactor.backend.modes import extract_modes
 from bimfactor.backend.posegraph import (
     BackendStep,
     ModeEstimate,
@@ -43,6 +42,7 @@ from bimfactor.config import Config
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
 from bimfactor.localization.field import ScanLikelihood, frame_endpoints
 from bimfactor.localization.likelihood import SemanticLikelihood
+from bimfactor.localization.modes import extract_modes
 from bimfactor.localization.motion import odometry_increment
 from bimfactor.localization.smcl import SemanticMCL, StepResult, mixture_pose_covariance
 from bimfactor.perception.pipeline import make_perception

@@ -26,11 +26,11 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from bimfactor.backend.factors import from_pose2, odometry_factor, pose_prior_factor
-from bimfactor.backend.modes import Mode
 from bimfactor.backend.posegraph import MultiHypothesisBackend
 from bimfactor.backend.synthetic import LoopScenario, loop_scenario, nearest_landmark_associator
 from bimfactor.config import BackendConfig, load_config
 from bimfactor.localization.likelihood import polar_coordinates
+from bimfactor.localization.modes import Mode
 from bimfactor.types import se2_compose, wrap_angle
 
 CLUSTER_COV = np.diag([0.2, 0.2, np.deg2rad(5.0)]) ** 2

@@ -1,6 +1,5 @@
-"""Back end: particle-filter modes, one GTSAM pose graph per mode with semantic-landmark factors to BIM objects."""
+"""Back end: one GTSAM pose graph per particle-filter mode, with semantic-landmark factors to BIM objects."""
 
-from bimfactor.backend.modes import Mode, ModeTracker, TrackedMode, extract_modes
 from bimfactor.backend.posegraph import (
     BackendStep,
     BatchResult,
@@ -15,14 +14,10 @@ from bimfactor.backend.posegraph import (
 __all__ = [
     "BackendStep",
     "BatchResult",
-    "Mode",
     "ModeEstimate",
     "ModeGraph",
-    "ModeTracker",
     "MultiHypothesisBackend",
-    "TrackedMode",
     "batch_refine",
     "benchmark_backend",
-    "extract_modes",
     "semantic_associator",
 ]

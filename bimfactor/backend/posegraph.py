@@ -46,9 +46,9 @@ from bimfactor.backend.factors import (
     odometry_factor,
     pose_prior_factor,
 )
-from bimfactor.backend.modes import Mode, ModeTracker, TrackedMode
 from bimfactor.config import BackendConfig
 from bimfactor.localization.likelihood import SemanticLikelihood, polar_coordinates
+from bimfactor.localization.modes import Mode, ModeTracker, TrackedMode
 from bimfactor.types import Observations, se2_compose, se2_inverse, wrap_angle
 
 log = logging.getLogger(__name__)

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from bimfactor.backend.modes import Mode
 from bimfactor.backend.posegraph import MultiHypothesisBackend, semantic_associator
 from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, loop_scenario, nearest_landmark_associator
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import load_config
 from bimfactor.localization.likelihood import SemanticLikelihood
+from bimfactor.localization.modes import Mode
 from bimfactor.types import Observations, wrap_angle
 from tests.localization.handmade import embedding, make_prior, object_id
 

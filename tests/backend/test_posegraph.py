@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from bimfactor.backend.factors import Landmarks, covariance_body_to_world, covariance_world_to_body
-from bimfactor.backend.modes import Mode
 from bimfactor.backend.posegraph import ModeGraph, MultiHypothesisBackend, batch_refine
 from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, LoopScenario, loop_scenario
 from bimfactor.config import load_config
 from bimfactor.localization.likelihood import polar_coordinates
+from bimfactor.localization.modes import Mode
 from bimfactor.types import Observations, se2_compose, wrap_angle
 
 BASE = load_config().backend

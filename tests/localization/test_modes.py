@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from bimfactor.backend.modes import Mode, ModeTracker, extract_modes
 from bimfactor.config import load_config
+from bimfactor.localization.modes import Mode, ModeTracker, extract_modes
 from bimfactor.types import wrap_angle
 
 CFG = load_config().backend
