@@ -1,10 +1,21 @@
 """Per-mode pose graphs on a synthetic loop: ISAM2 and batch LM accuracy, robust kernels, covariance honesty."""
 
+import gtsam
 import numpy as np
 import pytest
+from gtsam.symbol_shorthand import L, X
 
-from bimfactor.backend.factors import Landmarks, covariance_body_to_world, covariance_world_to_body
-from bimfactor.backend.posegraph import ModeGraph, MultiHypothesisBackend, batch_refine
+from bimfactor.backend.factors import (
+    Landmarks,
+    bearing_range_noise,
+    covariance_body_to_world,
+    covariance_world_to_body,
+    landmark_factors,
+    landmark_prior_factor,
+    odometry_factor,
+    pose_prior_factor,
+)
+from bimfactor.backend.posegraph import ModeGraph, MultiHypothesisBackend, _without_degenerate_bearings, batch_refine
 from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, LoopScenario, loop_scenario
 from bimfactor.config import load_config
 from bimfactor.localization.likelihood import polar_coordinates
@@ -186,6 +197,33 @@ def test_batch_covariances_fall_back_to_the_motion_graph_when_the_marginals_fail
     )
     assert wider[1:].all()  # the landmarks tighten every pose but the prior's
     assert "pose marginals failed" in caplog.text
+
+
+def test_marginals_leave_out_a_bearing_whose_landmark_sits_on_the_pose():
+    """A landmark parked on its pose (range 10 µm) makes the bearing's Jacobian explode and GTSAM's marginals
+    indeterminate; without that one factor they exist, and the pose keeps a real (not collapsed) uncertainty."""
+    cfg = BASE
+    sc = loop_scenario(np.random.default_rng(0), cfg)
+    landmarks = Landmarks.of(sc.landmark_xy)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    graph.add(pose_prior_factor(0, sc.true_poses[0], FIRST_COV))
+    for t, pose in enumerate(sc.true_poses):
+        values.insert(X(t), gtsam.Pose2(*pose))
+        if t:
+            graph.add(odometry_factor(t, sc.increments[t - 1], cfg))
+        for factor in landmark_factors(t, sc.observations[t], sc.associations[t], bearing_range_noise(cfg)):
+            graph.add(factor)
+    for j, xy in enumerate(sc.landmark_xy):
+        graph.add(landmark_prior_factor(j, landmarks, cfg))
+        values.insert(L(j), xy.copy())
+    _, parked = sc.associations[5][0]
+    values.update(L(parked), sc.true_poses[5, :2] + 1e-5)
+    with pytest.raises(RuntimeError, match="Indetermina"):
+        gtsam.Marginals(graph, values).marginalCovariance(X(5))
+    kept = _without_degenerate_bearings(graph, values)
+    assert kept.size() == graph.size() - 1
+    covariance = gtsam.Marginals(kept, values).marginalCovariance(X(5))
+    assert np.all(np.isfinite(covariance)) and np.linalg.eigvalsh(covariance)[0] > 1e-4
 
 
 def test_a_scan_measurement_enters_the_mode_graph_with_its_keyframe_and_is_kept_apart():
