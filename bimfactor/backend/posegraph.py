@@ -8,7 +8,8 @@ Per mode k (a `ModeGraph`), keyed by keyframe index i and BIM object id j:
 4. optionally PriorFactorPose2s: the keyframe's scan matched against the BIM's walls from the mode's predicted pose
    (`MultiHypothesisBackend.step`'s `pose_factor_fn`, kept apart as `scan_factors`) and a fine registrar's result
    (`add_pose_factor`).
-Online, ISAM2 takes one update per keyframe (one more only when re-association changes the matches).
+Online, ISAM2 takes one update per keyframe (one more only when re-association changes the matches); a mode
+whose update GTSAM finds indeterminate restarts its graph from its particle cluster at that keyframe.
 
 Mode probability (`MultiHypothesisBackend.step`): with w_k the mode's particle-weight share and, over the K
 observations of the step, C_k = Σ_j min(χ²_kj, c_out) where χ²_kj = (Δbearing/σ_b)² + (Δrange/σ_r)² of a matched
@@ -16,7 +17,8 @@ observation at the updated estimate and an unmatched observation costs c_out = `
 
     p_k = w_k · exp(−C_k / (2τ)) / Σ_m w_m · exp(−C_m / (2τ)),   ν_k = C_k / (2K)  (normalised residual, ≈ 1 when
                                                                                     the matches fit their noise).
-Offline, `batch_refine` builds the same factors for a whole trajectory and optimises with Levenberg–Marquardt.
+Offline, `batch_refine` builds the same factors for a whole trajectory and optimises with Levenberg–Marquardt; its
+marginals leave out the bearings of landmarks the optimum puts on their pose (`DEGENERATE_RANGE_M`).
 """
 
 from __future__ import annotations
@@ -390,19 +392,21 @@ class MultiHypothesisBackend:
         costs: dict[int, float] = {}
         reassociated: list[int] = []
         for mode in self.tracker.modes:
-            graph = self.graphs.get(mode.id)
-            if graph is None:
-                graph = ModeGraph(mode.id, i, mode.mean, mode.covariance, self.landmarks, self.cfg, mode.storey)
-                self.graphs[mode.id] = graph
-                predicted, increment = graph.pose.copy(), None
-            else:
-                predicted, increment = graph.predict(odom_increment), odom_increment
-            association = list(associate_fn(predicted, mode.storey))
-            measured = None if pose_factor_fn is None else pose_factor_fn(predicted, mode.storey)
-            if measured is not None:
-                graph.add_pose_factor(i, *measured, scan=True)
-            graph.add_keyframe(i, observations, association, increment, odom_covariance)
-            if graph.reassociate(observations, associate_fn, predicted):
+            update = (mode, i, odom_increment, observations, associate_fn, odom_covariance, pose_factor_fn)
+            try:
+                graph, moved = self._update_graph(*update)
+            except RuntimeError as error:
+                # GTSAM found the mode's system indeterminate: the run goes on with the mode's graph restarted
+                # from its particle cluster at this keyframe, rather than stop.
+                log.warning(
+                    "mode %d: its pose graph failed at keyframe %d (%s); restarted from its particle cluster",
+                    mode.id,
+                    i,
+                    str(error).strip().split("\n")[0],
+                )
+                self.graphs.pop(mode.id, None)
+                graph, moved = self._update_graph(*update)
+            if moved:
                 reassociated.append(mode.id)
             costs[mode.id] = graph.cost(observations, graph.associations[i])
             mode.mean, mode.covariance = graph.pose.copy(), graph.covariance.copy()
@@ -430,6 +434,33 @@ class MultiHypothesisBackend:
         return BackendStep(
             i, estimates[0], estimates, events.spawned, events.merged + merged, pruned, reassociated, timings
         )
+
+    def _update_graph(
+        self,
+        mode: TrackedMode,
+        i: int,
+        odom_increment: np.ndarray | None,
+        observations: Observations,
+        associate_fn: AssociateFn,
+        odom_covariance: np.ndarray | None,
+        pose_factor_fn: PoseFactorFn | None,
+    ) -> tuple[ModeGraph, bool]:
+        """Keyframe i into a mode's graph (a new mode's graph starts here from its cluster): predicted pose → scan
+        measurement → landmark associations → ISAM2 update → re-association. Returns the graph and whether it
+        re-associated."""
+        graph = self.graphs.get(mode.id)
+        if graph is None:
+            graph = ModeGraph(mode.id, i, mode.mean, mode.covariance, self.landmarks, self.cfg, mode.storey)
+            self.graphs[mode.id] = graph
+            predicted, increment = graph.pose.copy(), None
+        else:
+            predicted, increment = graph.predict(odom_increment), odom_increment
+        association = list(associate_fn(predicted, mode.storey))
+        measured = None if pose_factor_fn is None else pose_factor_fn(predicted, mode.storey)
+        if measured is not None:
+            graph.add_pose_factor(i, *measured, scan=True)
+        graph.add_keyframe(i, observations, association, increment, odom_covariance)
+        return graph, graph.reassociate(observations, associate_fn, predicted)
 
     def add_pose_factor(
         self, mode_id: int, i: int, pose: np.ndarray, information: np.ndarray

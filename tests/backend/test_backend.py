@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bimfactor.backend.posegraph import MultiHypothesisBackend, semantic_associator
+from bimfactor.backend.posegraph import ModeGraph, MultiHypothesisBackend, semantic_associator
 from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, loop_scenario, nearest_landmark_associator
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import load_config
@@ -94,3 +94,28 @@ def test_semantic_associator_reuses_the_smcl_score():
     associate = semantic_associator(likelihood, observations)
     # The table is in the other room, behind the wall: only the chair is matched.
     assert associate(pose, 0) == [(0, object_id(prior, "chair"))]
+
+
+def test_a_mode_whose_graph_fails_restarts_from_its_cluster_and_the_run_goes_on(monkeypatch, caplog):
+    """GTSAM raising inside one mode's update (an indeterminate system) restarts that mode's graph from its particle
+    cluster at the keyframe, with a warning; the mode keeps its id and the estimate stays on the truth."""
+    sc = loop_scenario(np.random.default_rng(0), CFG)
+    backend = MultiHypothesisBackend(sc.landmark_xy, CFG)
+    real_add_keyframe, failing_step = ModeGraph.add_keyframe, 8
+
+    def add_keyframe(self, i, *args, **kwargs):
+        if i == failing_step and self.first_index < failing_step:
+            raise RuntimeError("\nIndeterminant linear system detected while working near variable x8.")
+        return real_add_keyframe(self, i, *args, **kwargs)
+
+    monkeypatch.setattr(ModeGraph, "add_keyframe", add_keyframe)
+    with caplog.at_level("WARNING", logger="bimfactor.backend.posegraph"):
+        for t in range(len(sc.true_poses)):
+            increment = None if t == 0 else sc.increments[t - 1]
+            associate = _nearest_landmark_associator(sc.landmark_xy, sc.observations[t])
+            step = backend.step([Mode(sc.true_poses[t], CLUSTER_COV, 1.0)], increment, sc.observations[t], associate)
+            assert step.best.mode_id == 0
+            assert np.linalg.norm(step.pose[:2] - sc.true_poses[t, :2]) < 0.3
+    assert "mode 0: its pose graph failed at keyframe 8 (Indeterminant" in caplog.text
+    assert backend.graphs[0].first_index == failing_step
+    assert sorted(backend.graphs[0].poses) == list(range(failing_step, len(sc.true_poses)))
