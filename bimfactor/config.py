@@ -471,9 +471,17 @@ BenchVariant = Literal[LocalizerVariant, "refine"]
 
 class LocalizationConfig(_Strict):
     variant: LocalizerVariant = Field(
-        description="smcl: the paper's filter; smcl+graph: its modes each seed a pose graph (backend), the best "
-        "mode's pose and marginal covariance are the output; full: smcl+graph with the fine stage (registration) "
+        description="smcl: the paper's filter; smcl+graph: its modes each seed a pose graph (backend), a mode's "
+        "graph pose is the output (`output`); full: smcl+graph with the fine stage (registration) "
         "registering each keyframe's scan from the best mode's pose and feeding accepted fits into its graph."
+    )
+    output: Literal["best_mode", "belief_median"] = Field(
+        description="Graph variants' output: the most probable mode's pose, or the mode at the particles' "
+        "geometric median (the position minimising the expected position error), the median itself when no mode "
+        "is within `output_mode_radius_m` of it."
+    )
+    output_mode_radius_m: float = Field(
+        gt=0.0, description="belief_median: a mode this near the median reports its graph pose."
     )
     fine_covariance_scale: float = Field(
         ge=1.0,

@@ -4,12 +4,13 @@
 pose, take the odometry increment since the last frame, predict, weigh the particles by the semantic and
 spatial match of the nodes in view against the BIM, resample when the ESS is low, estimate. With the
 `smcl+graph` variant (`localization.variant`) the filter's modes then each update their own pose graph, and the
-most probable mode's pose and marginal covariance are the output. The `full` variant adds the coarse-to-fine loop:
-the keyframe's depth scan is registered against the BIM walls from the most probable mode's pose
-(`registration.fine`), and an accepted fit enters that mode's graph as a pose factor; the mode's updated pose and
-marginal covariance are the output. Only the best mode is registered: a registration with its ambiguity probes
-costs several ICP runs, the output is the best mode's, and a wrong mode seldom passes the gate anyway (fitness,
-probes), so registering every mode would multiply the step time by the number of modes for estimates nobody reads.
+output is a mode's graph pose (`localization.output`: the most probable mode near the particles' geometric median,
+or the most probable mode) with the whole belief's covariance about it. The `full` variant adds the coarse-to-fine
+loop: the keyframe's depth scan is registered against the BIM walls from the most probable mode's pose
+(`registration.fine`), and an accepted fit enters that mode's graph as a pose factor, before the output is chosen.
+Only the best mode is registered: a registration with its ambiguity probes costs several ICP runs, the output is
+mostly the best mode's, and a wrong mode seldom passes the gate anyway (fitness, probes), so registering every
+mode would multiply the step time by the number of modes for estimates nobody reads.
 
 `refine_run` is the offline pass over a localized sequence: every surviving mode's trajectory smoothed as a whole.
 """
@@ -44,7 +45,7 @@ from bimfactor.localization.field import ScanLikelihood, frame_endpoints
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.modes import extract_modes
 from bimfactor.localization.motion import odometry_increment
-from bimfactor.localization.smcl import SemanticMCL, StepResult, mixture_pose_covariance
+from bimfactor.localization.smcl import SemanticMCL, StepResult, mixture_pose_covariance, weighted_geometric_median
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
 from bimfactor.registration.correlative import CorrelativeMatcher
@@ -245,6 +246,8 @@ class Localizer:
             self._graph_step(out)
         if self.fine is not None and out.graph is not None:
             self._fine_step(frame, out)
+        if self.backend is not None:
+            self._report(out)
         self._recent.append(frame)
         return out
 
@@ -257,12 +260,10 @@ class Localizer:
         scan_match = None if self.matcher is None or out.scan is None else self.matcher.factor_fn(out.scan)
         out.graph = self.backend.step(modes, out.odom_increment, out.observations, associate, None, scan_match)
         out.graph_ms = (time.perf_counter() - started) * 1000
-        if out.graph is not None:
-            self._output_mode(out, out.graph.best)
 
     def _fine_step(self, frame: Frame, out: LocalizerStep) -> None:
         """Register the keyframe's scan from the best mode's pose; an accepted fit enters that mode's graph, and the
-        mode's updated estimate becomes the step's output (and the best of its back-end step)."""
+        mode's updated estimate replaces it in the back-end step."""
         assert self.fine is not None and self.backend is not None and out.graph is not None
         started = time.perf_counter()
         best = out.graph.best
@@ -275,29 +276,45 @@ class Localizer:
             )
             updated = dataclasses.replace(best, pose=pose, covariance=covariance)
             out.graph.best = out.graph.modes[0] = updated
-            self._output_mode(out, updated)
         out.fine_ms = (time.perf_counter() - started) * 1000
 
-    def _output_mode(self, out: LocalizerStep, mode: ModeEstimate) -> None:
-        """A mode's estimate as the step's output pose, storey and room; its covariance is the whole belief's about
-        that pose (`belief_covariance`)."""
-        out.pose, out.storey = mode.pose, mode.storey
+    def _report(self, out: LocalizerStep) -> None:
+        """The graph variants' output pose, storey and room (`localization.output`); its covariance is the whole
+        belief's about that pose (`belief_covariance`).
+
+        best_mode: the most probable mode's graph pose. belief_median: the particles' weighted geometric median on
+        the estimated storey, the position that minimises the expected position error under the belief, decides:
+        the most probable mode within `output_mode_radius_m` of it reports its graph pose; with none there (the
+        belief spread over places none of which dominates) the median itself with the filter's mean yaw."""
+        cfg = self.cfg.localization
+        modes = out.graph.modes if out.graph is not None else []
+        if out.graph is not None and cfg.output == "best_mode":
+            pose, storey = out.graph.best.pose, out.graph.best.storey
+        elif cfg.output == "best_mode":  # no mode yet: the filter's estimate
+            pose, storey = out.filtered.pose, out.filtered.storey
+        else:
+            storey = out.filtered.storey
+            on_storey = self.filter.storeys == storey
+            median = weighted_geometric_median(self.filter.particles[on_storey, :2], self.filter.weights[on_storey])
+            gaps = {id(m): np.hypot(*(m.pose[:2] - median)) for m in modes if m.storey == storey}
+            near = [m for m in modes if gaps.get(id(m), np.inf) <= cfg.output_mode_radius_m]
+            pose = max(near, key=lambda m: m.probability).pose if near else np.array([*median, out.filtered.pose[2]])
+        out.pose, out.storey = pose, storey
         out.covariance = belief_covariance(out)
-        out.room_id = int(self.prior.room_at(mode.pose[None, :2], mode.storey)[0])
+        out.room_id = int(self.prior.room_at(pose[None, :2], storey)[0])
 
 
 def belief_covariance(out: LocalizerStep) -> np.ndarray:
-    """(3, 3) uncertainty of reporting the best mode's pose: the second moment about it of the mixture of every mode
-    (its graph's Gaussian, weighted by its probability × the particle weight the modes hold) and the filter's belief
-    (weighted by the particle weight no mode holds). Converged, it is the best mode's graph covariance; while
-    other places keep weight, their distance enters, so the 95 % ellipse reaches the rival modes."""
-    assert out.graph is not None
-    best, modes = out.graph.best, out.graph.modes
+    """(3, 3) uncertainty of reporting the step's output pose: the second moment about it of the mixture of every
+    mode (its graph's Gaussian, weighted by its probability × the particle weight the modes hold) and the filter's
+    belief (weighted by the particle weight no mode holds). Converged, it is the reported mode's graph covariance;
+    while other places keep weight, their distance enters, so the 95 % ellipse reaches the rival modes."""
+    modes = out.graph.modes if out.graph is not None else []
     clustered = min(sum(m.particle_weight for m in modes), 1.0)
     means = [m.pose for m in modes] + [out.filtered.pose]
     covariances = [m.covariance for m in modes] + [out.filtered.covariance]
     weights = [clustered * m.probability for m in modes] + [1.0 - clustered]
-    return mixture_pose_covariance(best.pose, np.array(means), np.array(covariances), np.array(weights))
+    return mixture_pose_covariance(out.pose, np.array(means), np.array(covariances), np.array(weights))
 
 
 def localize_sequence(

@@ -69,27 +69,57 @@ def test_the_graph_variant_leaves_the_filter_as_it_is(runs: dict[str, Localizati
     assert np.all(graph.graph.step_ms >= graph.filter.step_ms)
 
 
-def test_the_graph_output_is_the_most_probable_mode(runs: dict[str, LocalizationRun]) -> None:
+def _check_reported_covariance(run: LocalizationRun, i: int, mode) -> None:
+    """The reported covariance is the whole belief's about the reported pose: the reported mode's share of it,
+    plus the rivals'."""
+    modes = run.modes[i]
+    clustered = min(sum(m.particle_weight for m in modes), 1.0)
+    own = clustered * mode.probability * mode.covariance
+    assert np.all(np.linalg.eigvalsh(run.covariances[i] - own) > -1e-12)
+    if clustered > 0.999 and mode.probability > 0.999:
+        np.testing.assert_allclose(run.covariances[i], mode.covariance, rtol=0.01, atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(run.covariances[i]) > 0)
+
+
+def test_the_graph_output_is_the_mode_at_the_belief_median(runs: dict[str, LocalizationRun]) -> None:
+    """Default `localization.output: belief_median`: each step reports a mode's graph pose, or, with no mode near
+    the particles' median, a position of its own with the filter's yaw; once converged, the most probable mode."""
     run = runs["smcl+graph"]
     assert run.graph is not None
     with_modes = [i for i, modes in enumerate(run.modes) if modes]
     assert len(with_modes) > len(run.modes) // 2
+    reported_modes = 0
+    for i, modes in enumerate(run.modes):
+        probabilities = [m.probability for m in modes]
+        assert probabilities == sorted(probabilities, reverse=True)
+        assert not modes or sum(probabilities) == pytest.approx(1.0)
+        reported = [m for m in modes if np.array_equal(m.pose, run.poses[i])]
+        if reported:
+            reported_modes += 1
+            _check_reported_covariance(run, i, reported[0])
+        else:  # the median itself, with the filter's mean yaw
+            assert run.poses[i][2] == run.filter.poses[i][2]
+            assert np.all(np.linalg.eigvalsh(run.covariances[i]) > 0)
+        if run.converged[i] and modes and modes[0].probability > 0.99:
+            np.testing.assert_array_equal(run.poses[i], modes[0].pose)
+    assert reported_modes >= len(with_modes) // 2
+    assert run.final_modes and run.final_modes[0].mode_id == run.modes[-1][0].mode_id
+
+
+def test_with_best_mode_output_the_graph_output_is_the_most_probable_mode(
+    paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str]
+) -> None:
+    cfg = load_config(None, [*config_overrides, "localization.variant=smcl+graph", "localization.output=best_mode"])
+    run = localize_sequence(
+        paper_floor.prior, drive.meta, drive.frames[:20], cfg, SEED, text_embedder=text_embedder, show_progress=False
+    )
+    assert any(run.modes)
     for i, modes in enumerate(run.modes):
         if not modes:  # no cluster heavy enough yet: the filter's estimate stands
             np.testing.assert_array_equal(run.poses[i], run.filter.poses[i])
             continue
-        probabilities = [m.probability for m in modes]
-        assert probabilities == sorted(probabilities, reverse=True)
-        assert sum(probabilities) == pytest.approx(1.0)
         np.testing.assert_array_equal(run.poses[i], modes[0].pose)
-        # The reported covariance is the whole belief's about that pose: the best mode's share of it, plus rivals.
-        clustered = min(sum(m.particle_weight for m in modes), 1.0)
-        own = clustered * modes[0].probability * modes[0].covariance
-        assert np.all(np.linalg.eigvalsh(run.covariances[i] - own) > -1e-12)
-        if clustered > 0.999 and modes[0].probability > 0.999:
-            np.testing.assert_allclose(run.covariances[i], modes[0].covariance, rtol=0.01, atol=1e-9)
-        assert np.all(np.linalg.eigvalsh(run.covariances[i]) > 0)
-    assert run.final_modes and run.final_modes[0].mode_id == run.modes[-1][0].mode_id
+        _check_reported_covariance(run, i, modes[0])
 
 
 def _refined(paper_floor: Building, run: LocalizationRun, config_overrides: list[str]) -> tuple[RefinedRun, Config]:

@@ -17,6 +17,7 @@ from bimfactor.localization.smcl import (
     kld_particle_count,
     mixture_pose_covariance,
     systematic_resample,
+    weighted_geometric_median,
     weighted_pose_stats,
 )
 from bimfactor.types import Observations, wrap_angle
@@ -60,6 +61,24 @@ def test_mixture_covariance_about_a_component_adds_the_rivals_offsets_with_wrapp
     assert cov[0, 2] == pytest.approx(0.25 * 10.0 * np.deg2rad(2.0))
     # One component: its own covariance.
     np.testing.assert_allclose(mixture_pose_covariance(about, means[:1], covariances[:1], np.ones(1)), covariances[0])
+
+
+def test_geometric_median_minimises_the_weighted_distance_sum():
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.normal([0.0, 0.0], 0.3, (40, 2)), rng.normal([10.0, 4.0], 0.3, (25, 2))])
+    weights = rng.random(len(points))
+    median = weighted_geometric_median(points, weights, tol_m=1e-6, max_iterations=500)
+
+    def cost(x: np.ndarray) -> float:
+        return float(weights @ np.hypot(*(points - x).T))
+
+    grid = np.stack(np.meshgrid(np.linspace(-1, 11, 121), np.linspace(-1, 5, 61)), axis=-1).reshape(-1, 2)
+    assert cost(median) <= min(cost(x) for x in grid) + 1e-6
+    mean = weights @ points / weights.sum()
+    assert cost(median) < cost(mean)
+    # A point holding more than half the weight is the median: the minority cannot pull it away.
+    heavy = np.array([[0.0, 0.0], [30.0, 0.0], [0.0, 30.0]])
+    np.testing.assert_allclose(weighted_geometric_median(heavy, np.array([0.6, 0.2, 0.2])), [0.0, 0.0], atol=0.01)
 
 
 def test_effective_sample_size():
