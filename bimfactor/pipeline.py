@@ -287,17 +287,18 @@ class Localizer:
         the most probable mode within `output_mode_radius_m` of it reports its graph pose; with none there (the
         belief spread over places none of which dominates) the median itself with the filter's mean yaw."""
         cfg = self.cfg.localization
-        modes = out.graph.modes if out.graph is not None else []
-        if out.graph is not None and cfg.output == "best_mode":
-            pose, storey = out.graph.best.pose, out.graph.best.storey
-        elif cfg.output == "best_mode":  # no mode yet: the filter's estimate
-            pose, storey = out.filtered.pose, out.filtered.storey
+        if cfg.output == "best_mode":  # before a first mode: the filter's estimate
+            source = out.graph.best if out.graph is not None else out.filtered
+            pose, storey = source.pose, source.storey
         else:
             storey = out.filtered.storey
             on_storey = self.filter.storeys == storey
             median = weighted_geometric_median(self.filter.particles[on_storey, :2], self.filter.weights[on_storey])
-            gaps = {id(m): np.hypot(*(m.pose[:2] - median)) for m in modes if m.storey == storey}
-            near = [m for m in modes if gaps.get(id(m), np.inf) <= cfg.output_mode_radius_m]
+            near = [
+                m
+                for m in (out.graph.modes if out.graph is not None else [])
+                if m.storey == storey and np.hypot(*(m.pose[:2] - median)) <= cfg.output_mode_radius_m
+            ]
             pose = max(near, key=lambda m: m.probability).pose if near else np.array([*median, out.filtered.pose[2]])
         out.pose, out.storey = pose, storey
         out.covariance = belief_covariance(out)
