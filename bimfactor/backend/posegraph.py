@@ -470,9 +470,22 @@ class MultiHypothesisBackend:
         Returns the mode's updated (3,) pose and (3, 3) world-frame covariance at its latest keyframe (the tracked
         mode follows them, as after a step).
         """
-        graph = self.graphs[mode_id]
-        graph.add_pose_factor(i, pose, information)
-        mode = self.tracker.get(mode_id)
+        graph, mode = self.graphs[mode_id], self.tracker.get(mode_id)
+        try:
+            graph.add_pose_factor(i, pose, information)
+        except RuntimeError as error:
+            # As in a step: an indeterminate system restarts the mode's graph from its estimate at keyframe i
+            # (without that keyframe's landmark factors), and the fit enters the new graph with it.
+            log.warning(
+                "mode %d: its pose graph failed on a fine registration at keyframe %d (%s); restarted at it",
+                mode_id,
+                i,
+                str(error).strip().split("\n")[0],
+            )
+            graph = ModeGraph(mode_id, i, mode.mean, mode.covariance, self.landmarks, self.cfg, mode.storey)
+            self.graphs[mode_id] = graph
+            graph.add_pose_factor(i, pose, information)  # pending: applied with the keyframe
+            graph.add_keyframe(i, Observations(np.zeros((0, 0)), np.zeros(0), np.zeros(0)), [])
         mode.mean, mode.covariance = graph.pose.copy(), graph.covariance.copy()
         return graph.pose.copy(), graph.covariance.copy()
 

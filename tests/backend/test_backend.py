@@ -119,3 +119,33 @@ def test_a_mode_whose_graph_fails_restarts_from_its_cluster_and_the_run_goes_on(
     assert "mode 0: its pose graph failed at keyframe 8 (Indeterminant" in caplog.text
     assert backend.graphs[0].first_index == failing_step
     assert sorted(backend.graphs[0].poses) == list(range(failing_step, len(sc.true_poses)))
+
+
+def test_a_fine_registration_that_breaks_a_graph_restarts_it_with_the_fit(monkeypatch, caplog):
+    """GTSAM raising on an ICP pose factor restarts that mode's graph at the keyframe, with the fit in it."""
+    sc = loop_scenario(np.random.default_rng(0), CFG)
+    backend = MultiHypothesisBackend(sc.landmark_xy, CFG)
+    for t in range(6):
+        increment = None if t == 0 else sc.increments[t - 1]
+        associate = _nearest_landmark_associator(sc.landmark_xy, sc.observations[t])
+        backend.step([Mode(sc.true_poses[t], CLUSTER_COV, 1.0)], increment, sc.observations[t], associate)
+    real_add_pose_factor, broken = ModeGraph.add_pose_factor, backend.graphs[0]
+
+    def add_pose_factor(self, *args, **kwargs):
+        if self is broken:
+            raise RuntimeError("\nIndeterminant linear system detected while working near variable x5.")
+        return real_add_pose_factor(self, *args, **kwargs)
+
+    monkeypatch.setattr(ModeGraph, "add_pose_factor", add_pose_factor)
+    fit = sc.true_poses[5] + np.array([0.05, -0.03, 0.01])
+    with caplog.at_level("WARNING", logger="bimfactor.backend.posegraph"):
+        pose, covariance = backend.add_pose_factor(0, 5, fit, np.diag([1e4, 1e4, 1e4]))
+    assert "mode 0: its pose graph failed on a fine registration at keyframe 5 (Indeterminant" in caplog.text
+    graph = backend.graphs[0]
+    assert graph is not broken and graph.first_index == 5 and graph.pose_factors[0][0] == 5
+    np.testing.assert_allclose(pose, fit, atol=0.02)  # the tight fit holds the restarted graph
+    assert np.all(np.linalg.eigvalsh(covariance) > 0)
+    # The run goes on from the restarted graph.
+    associate = _nearest_landmark_associator(sc.landmark_xy, sc.observations[6])
+    step = backend.step([Mode(sc.true_poses[6], CLUSTER_COV, 1.0)], sc.increments[5], sc.observations[6], associate)
+    assert step.best.mode_id == 0 and np.linalg.norm(step.pose[:2] - sc.true_poses[6, :2]) < 0.3
