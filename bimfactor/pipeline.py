@@ -45,7 +45,13 @@ from bimfactor.localization.field import ScanLikelihood, frame_endpoints
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.modes import extract_modes
 from bimfactor.localization.motion import odometry_increment
-from bimfactor.localization.smcl import SemanticMCL, StepResult, mixture_pose_covariance, weighted_geometric_median
+from bimfactor.localization.smcl import (
+    SemanticMCL,
+    StepResult,
+    local_mean_yaw,
+    mixture_pose_covariance,
+    weighted_geometric_median,
+)
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
 from bimfactor.registration.correlative import CorrelativeMatcher
@@ -255,7 +261,8 @@ class Localizer:
         """The filter's modes update their pose graphs; the most probable mode becomes the step's output."""
         assert self.backend is not None
         started = time.perf_counter()
-        modes = extract_modes(self.filter.particles, self.filter.weights, self.cfg.backend, self.filter.storeys)
+        weights = self.filter.estimation_weights()
+        modes = extract_modes(self.filter.particles, weights, self.cfg.backend, self.filter.storeys)
         associate = semantic_associator(self.filter.likelihood, out.observations)
         scan_match = None if self.matcher is None or out.scan is None else self.matcher.factor_fn(out.scan)
         out.graph = self.backend.step(modes, out.odom_increment, out.observations, associate, None, scan_match)
@@ -285,7 +292,8 @@ class Localizer:
         best_mode: the most probable mode's graph pose. belief_median: the particles' weighted geometric median on
         the estimated storey, the position that minimises the expected position error under the belief, decides:
         the most probable mode within `output_mode_radius_m` of it reports its graph pose; with none there (the
-        belief spread over places none of which dominates) the median itself with the filter's mean yaw."""
+        belief spread over places none of which dominates) the median itself, with the particles' mean yaw within
+        `output_mode_radius_m` of it."""
         cfg = self.cfg.localization
         if cfg.output == "best_mode":  # before a first mode: the filter's estimate
             source = out.graph.best if out.graph is not None else out.filtered
@@ -293,13 +301,18 @@ class Localizer:
         else:
             storey = out.filtered.storey
             on_storey = self.filter.storeys == storey
-            median = weighted_geometric_median(self.filter.particles[on_storey, :2], self.filter.weights[on_storey])
+            weights = self.filter.estimation_weights()[on_storey]
+            median = weighted_geometric_median(self.filter.particles[on_storey, :2], weights)
             near = [
                 m
                 for m in (out.graph.modes if out.graph is not None else [])
                 if m.storey == storey and np.hypot(*(m.pose[:2] - median)) <= cfg.output_mode_radius_m
             ]
-            pose = max(near, key=lambda m: m.probability).pose if near else np.array([*median, out.filtered.pose[2]])
+            if near:
+                pose = max(near, key=lambda m: m.probability).pose
+            else:
+                yaw = local_mean_yaw(self.filter.particles[on_storey], weights, median, cfg.output_mode_radius_m)
+                pose = np.array([*median, out.filtered.pose[2] if yaw is None else yaw])
         out.pose, out.storey = pose, storey
         out.covariance = belief_covariance(out)
         out.room_id = int(self.prior.room_at(pose[None, :2], storey)[0])

@@ -14,8 +14,10 @@ from bimfactor.backend.refine import refine_mode
 from bimfactor.config import Config, load_config
 from bimfactor.evaluation.metrics import translation_errors_m
 from bimfactor.localization.likelihood import SemanticLikelihood
+from bimfactor.localization.smcl import local_mean_yaw, weighted_geometric_median
 from bimfactor.pipeline import (
     LocalizationRun,
+    Localizer,
     RefinedRun,
     localize_sequence,
     refine_run,
@@ -83,7 +85,7 @@ def _check_reported_covariance(run: LocalizationRun, i: int, mode) -> None:
 
 def test_the_graph_output_is_the_mode_at_the_belief_median(runs: dict[str, LocalizationRun]) -> None:
     """Default `localization.output: belief_median`: each step reports a mode's graph pose, or, with no mode near
-    the particles' median, a position of its own with the filter's yaw; once converged, the most probable mode."""
+    the particles' median, a position of its own; once converged, the most probable mode."""
     run = runs["smcl+graph"]
     assert run.graph is not None
     with_modes = [i for i, modes in enumerate(run.modes) if modes]
@@ -97,13 +99,39 @@ def test_the_graph_output_is_the_mode_at_the_belief_median(runs: dict[str, Local
         if reported:
             reported_modes += 1
             _check_reported_covariance(run, i, reported[0])
-        else:  # the median itself, with the filter's mean yaw
-            assert run.poses[i][2] == run.filter.poses[i][2]
+        else:  # the median itself (`test_the_median_output_is_the_belief_median_with_its_local_heading`)
             assert np.all(np.linalg.eigvalsh(run.covariances[i]) > 0)
         if run.converged[i] and modes and modes[0].probability > 0.99:
             np.testing.assert_array_equal(run.poses[i], modes[0].pose)
     assert reported_modes >= len(with_modes) // 2
     assert run.final_modes and run.final_modes[0].mode_id == run.modes[-1][0].mode_id
+
+
+def test_the_median_output_is_the_belief_median_with_its_local_heading(
+    paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str]
+) -> None:
+    """Where no mode is near the belief's median, the output is the median of the weights an estimate may use,
+    with the mean heading of the particles around it."""
+    # A 5 cm radius (2 m by default) leaves the modes' graph poses outside it on most steps.
+    overrides = [*config_overrides, "localization.variant=smcl+graph", "localization.output_mode_radius_m=0.05"]
+    cfg = load_config(None, overrides)
+    localizer = Localizer(paper_floor.prior, drive.meta, cfg, SEED, text_embedder=text_embedder)
+    radius = cfg.localization.output_mode_radius_m
+    medians = local = 0
+    for frame in drive.frames[:12]:
+        out = localizer.step(frame)
+        if out.graph is not None and any(np.array_equal(m.pose, out.pose) for m in out.graph.modes):
+            continue
+        medians += 1
+        mcl = localizer.filter
+        on = mcl.storeys == out.storey
+        weights = mcl.estimation_weights()[on]
+        median = weighted_geometric_median(mcl.particles[on, :2], weights)
+        np.testing.assert_allclose(out.pose[:2], median)
+        yaw = local_mean_yaw(mcl.particles[on], weights, median, radius)
+        assert out.pose[2] == (out.filtered.pose[2] if yaw is None else yaw)
+        local += yaw is not None
+    assert medians >= 6 and local >= 6
 
 
 def test_with_best_mode_output_the_graph_output_is_the_most_probable_mode(

@@ -157,6 +157,17 @@ def weighted_geometric_median(
     return x
 
 
+def local_mean_yaw(poses: np.ndarray, weights: np.ndarray, center_xy: np.ndarray, radius_m: float) -> float | None:
+    """Weighted circular mean yaw of the (N, 3) poses within `radius_m` of `center_xy`; None when none holds weight.
+
+    A position reported between or inside clusters takes the heading of the particles there, not the belief's
+    global mean heading, which rival places facing elsewhere pull away."""
+    poses = np.asarray(poses, np.float64).reshape(-1, 3)
+    near = np.hypot(*(poses[:, :2] - np.asarray(center_xy, np.float64)).T) <= radius_m
+    w = np.where(near, np.asarray(weights, np.float64), 0.0)
+    return circular_mean(poses[:, 2], w) if w.sum() > 0 else None
+
+
 def _second_moment(poses: np.ndarray, about: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(3, 3) Σ_k w_k δ_k δ_kᵀ of (K, 3) poses with (K,) normalised weights, δ_k = pose_k − about, yaw wrapped."""
     delta = np.asarray(poses, np.float64).reshape(-1, 3) - np.asarray(about, np.float64)
@@ -353,6 +364,11 @@ class SemanticMCL:
     def effective_sample_size(self) -> float:
         return effective_sample_size(self.weights)
 
+    def estimation_weights(self) -> np.ndarray:
+        """The weights a pose estimate may use: those of the particles injected at the last resampling (`fresh`)
+        are 0 until a measurement has weighed them (all of them stand when every particle is fresh)."""
+        return np.where(self.fresh, 0.0, self.weights) if not self.fresh.all() else self.weights
+
     def injection_probability(self) -> float:
         """Augmented MCL: max(0, 1 − w_fast / w_slow); 0 for the paper's filter."""
         if not self.cfg.augmented or not self.w_slow or self.w_fast is None:
@@ -415,7 +431,7 @@ class SemanticMCL:
 
         Particles injected at the last resampling (`fresh`) are left out until a measurement has weighed them."""
         self._require_initialized()
-        weights = np.where(self.fresh, 0.0, self.weights) if not self.fresh.all() else self.weights
+        weights = self.estimation_weights()
         storey_weight = np.bincount(self.storeys, weights=weights, minlength=len(self.prior.storeys))
         storey = int(np.argmax(storey_weight))
         on_storey = (self.storeys == storey) & (weights > 0)

@@ -127,6 +127,9 @@ def test_injected_particles_stay_out_of_the_estimate_until_weighed(
     assert resampled and 50 < injected < 150 and mcl.fresh.sum() == injected
     assert np.abs(mcl.particles[mcl.fresh] - [3.0, 3.0, 0.5]).max() > 1.0  # spread over the box
     np.testing.assert_allclose(mcl.estimate().pose, [3.0, 3.0, 0.5], atol=1e-9)
+    # One source for every estimate (the filter's, the modes, the belief median): the injected weigh nothing.
+    weights = mcl.estimation_weights()
+    assert np.all(weights[mcl.fresh] == 0) and np.array_equal(weights[~mcl.fresh], mcl.weights[~mcl.fresh])
     mcl.update(None, _divider_scan())  # a measurement weighs them: they count again
-    assert not mcl.fresh.any()
+    assert not mcl.fresh.any() and np.array_equal(mcl.estimation_weights(), mcl.weights)
     assert np.abs(mcl.estimate().pose - [3.0, 3.0, 0.5]).max() > 1e-6

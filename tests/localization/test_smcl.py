@@ -15,6 +15,7 @@ from bimfactor.localization.smcl import (
     circular_mean,
     effective_sample_size,
     kld_particle_count,
+    local_mean_yaw,
     mixture_pose_covariance,
     systematic_resample,
     weighted_geometric_median,
@@ -79,6 +80,18 @@ def test_geometric_median_minimises_the_weighted_distance_sum():
     # A point holding more than half the weight is the median: the minority cannot pull it away.
     heavy = np.array([[0.0, 0.0], [30.0, 0.0], [0.0, 30.0]])
     np.testing.assert_allclose(weighted_geometric_median(heavy, np.array([0.6, 0.2, 0.2])), [0.0, 0.0], atol=0.01)
+
+
+def test_local_mean_yaw_takes_the_heading_of_the_particles_near_the_point():
+    # 60 % of the weight at the origin facing ±π (across the seam), 40 % 10 m away facing +y.
+    poses = np.array([[0.0, 0.0, np.deg2rad(178.0)], [0.3, 0.0, np.deg2rad(-176.0)], [10.0, 0.0, np.pi / 2]])
+    weights = np.array([0.3, 0.3, 0.4])
+    local = local_mean_yaw(poses, weights, np.array([0.1, 0.0]), radius_m=2.0)
+    assert local is not None and abs(wrap_angle(local - np.deg2rad(-179.0))) < 1e-9
+    # The global circular mean is pulled far off by the rival place: the reason for a local heading.
+    assert abs(wrap_angle(circular_mean(poses[:, 2], weights) - local)) > np.deg2rad(30.0)
+    assert local_mean_yaw(poses, weights, np.array([5.0, 5.0]), radius_m=2.0) is None  # nothing near
+    assert local_mean_yaw(poses, np.array([0.0, 0.0, 1.0]), np.array([0.1, 0.0]), radius_m=2.0) is None  # no weight
 
 
 def test_effective_sample_size():
