@@ -850,6 +850,8 @@ def bench_paper(
         report = run_paper_bench(prior_dir, cfg, output, workers=workers)
         typer.echo(format_tables(report))
         typer.echo(f"results: {output / 'results.json'}")
+        if (output / "error_by_step.png").is_file():
+            typer.echo(f"figure: {output / 'error_by_step.png'}")
 
 
 @bench_app.command("graph", short_help="Online scene graph quality (precision, recall, segmentation) and speed.")

@@ -498,7 +498,11 @@ def test_bench_paper_scores_every_variant(tmp_path: Path, cli_config_args: list[
         assert list(report[variant]["per_trajectory"]) == ["0"]
         assert report[variant]["average"]["runs"] == 1
         assert 0.0 <= report[variant]["average"]["ellipse_coverage"] <= 1.0
+        by_step = report[variant]["average"]["trans_err_by_step_m"]
+        assert len(by_step) == 5 and np.mean(by_step) == pytest.approx(report[variant]["average"]["trans_err_m"])
+        assert len(report[variant]["average"]["room_acc_by_step"]) == 5
         assert result.stdout.count(f"\n{variant}\n") + result.stdout.startswith(f"{variant}\n") == 1
+    assert (out / "error_by_step.png").stat().st_size > 0 and f"figure: {out / 'error_by_step.png'}" in result.stdout
     assert_one_line_error(invoke("bench", "paper", "-o", out, "--variant", "icp"), contains="evaluation.variants")
     full = invoke("bench", "paper", "-o", tmp_path / "full", "--workers", "1", "--variant", "smcl+graph", "--variant",
                   "full", *[a for t in tiny for a in ("--set", t)], *cli_config_args)  # fmt: skip

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from bimfactor.config import Config
+from bimfactor.evaluation.plots import save_error_by_step_plot
 from bimfactor.io.atomic import write_text_atomic
 from bimfactor.progress import progress
 
@@ -147,6 +148,18 @@ def _pooled(runs: list[RunResult]) -> dict:
         "orient_err_conv_deg": float(np.mean(conv_orient)) if conv_orient else None,
         "ellipse_coverage": float(np.concatenate([r.inside_ellipse95 for r in runs]).mean()),
         **icp,
+        **_by_step(runs),
+    }
+
+
+def _by_step(runs: list[RunResult]) -> dict:
+    """Mean over the runs at each step (runs of one length): where in a run the average's error comes from."""
+    if not runs or len({len(r.trans_err_m) for r in runs}) != 1:
+        return {}
+    return {
+        "trans_err_by_step_m": np.mean([r.trans_err_m for r in runs], axis=0).tolist(),
+        "orient_err_by_step_deg": np.mean([r.orient_err_deg for r in runs], axis=0).tolist(),
+        "room_acc_by_step": np.mean([r.room_hit for r in runs], axis=0).tolist(),
     }
 
 
@@ -178,6 +191,7 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
     out = Path(out_dir)
     write_text_atomic(out / "config.yaml", cfg.dump_yaml())
     write_text_atomic(out / "results.json", json.dumps(report, indent=2))
+    save_error_by_step_plot(report, out / "error_by_step.png")
     return report
 
 

@@ -214,3 +214,27 @@ def save_estimate_plot(
     else:
         ax_err.axis("off")
     return save_figure(fig, path, dpi=110)
+
+
+def save_error_by_step_plot(report: dict, path: str | Path) -> Path | None:
+    """Translation and orientation error per step, mean over every run, one line per variant (log scale)."""
+    curves = {v: report[v]["average"] for v in report["variants"] if "trans_err_by_step_m" in report[v]["average"]}
+    if not curves:
+        return None
+    fig, (ax_t, ax_o) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+    for variant, cell in curves.items():
+        steps = np.arange(1, len(cell["trans_err_by_step_m"]) + 1)
+        label = f"{variant} (avg {cell['trans_err_m']:.2f} m, {cell['orient_err_deg']:.1f}°)"
+        ax_t.plot(steps, cell["trans_err_by_step_m"], ".-", lw=1, ms=3, label=label)
+        ax_o.plot(steps, cell["orient_err_by_step_deg"], ".-", lw=1, ms=3, label=variant)
+    ax_t.set_yscale("log")
+    ax_o.set_yscale("log")
+    ax_t.set_ylabel("translation error [m]")
+    ax_o.set_ylabel("orientation error [°]")
+    ax_o.set_xlabel("step")
+    runs = next(iter(curves.values()))["runs"]
+    ax_t.set_title(f"Error per step, mean over {runs} runs")
+    ax_t.legend(fontsize=8)
+    for ax in (ax_t, ax_o):
+        ax.grid(True, which="both", alpha=0.3)
+    return save_figure(fig, path)
