@@ -76,6 +76,11 @@ DebugOption = Annotated[
     bool,
     typer.Option("--debug", envvar="BIMFACTOR_DEBUG", help="Show the traceback of an error (or BIMFACTOR_DEBUG=1)."),
 ]
+# The simulation benchmarks' building: a prior folder, or the paper-floor preset built into OUT (`_bench_world`).
+BenchPriorOption = Annotated[
+    Path | None,
+    typer.Option("--prior", metavar="PRIOR_DIR", help="A prior folder (default: the paper-floor preset)."),
+]
 SeedOption = Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")]
 
 
@@ -912,10 +917,7 @@ def _echo_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) ->
 
 @bench_app.command("registration", short_help="Time of one fine registration at the default voxel, and the fine stage.")
 def bench_registration(
-    prior_dir: Annotated[
-        Path | None,
-        typer.Option("--prior", metavar="PRIOR_DIR", help="A prior folder (default: the paper-floor preset)."),
-    ] = None,
+    prior_dir: BenchPriorOption = None,
     output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
         "runs/bench-registration"
     ),
@@ -949,10 +951,7 @@ def bench_registration(
 
 @bench_app.command("scanmatch", short_help="Scan matching against the BIM: accuracy, covariance honesty, time.")
 def bench_scanmatch(
-    prior_dir: Annotated[
-        Path | None,
-        typer.Option("--prior", metavar="PRIOR_DIR", help="A prior folder (default: the paper-floor preset)."),
-    ] = None,
+    prior_dir: BenchPriorOption = None,
     output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
         "runs/bench-scanmatch"
     ),

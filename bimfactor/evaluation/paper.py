@@ -27,7 +27,6 @@ from pathlib import Path
 import numpy as np
 
 from bimfactor.config import Config
-from bimfactor.evaluation.plots import save_error_by_step_plot
 from bimfactor.io.atomic import write_text_atomic
 from bimfactor.progress import progress
 
@@ -164,7 +163,10 @@ def _by_step(runs: list[RunResult]) -> dict:
 
 
 def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, workers: int | None = None) -> dict:
-    """Run the protocol on a prior's building; writes OUT/results.json and OUT/config.yaml; returns the report."""
+    """Run the protocol on a prior's building; writes OUT/results.json, OUT/config.yaml and OUT/error_by_step.png;
+    returns the report."""
+    from bimfactor.evaluation.plots import save_error_by_step_plot  # matplotlib: not in the workers' start-up
+
     ev = cfg.evaluation
     jobs = [(k, r) for k in range(ev.num_trajectories) for r in range(ev.repeats)]
     workers = workers or min(len(jobs), os.cpu_count() or 1)
