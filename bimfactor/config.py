@@ -215,6 +215,15 @@ class SmclConfig(_Strict):
         description="Pairs whose φ_sem is below this score 0 (depends on `semantic` and the embeddings).",
     )
     temperature: float = Field(gt=0.0, description="T in P(z|x) = exp(score / T); the paper gives no value.")
+    confidence_zero: float = Field(
+        ge=0.0,
+        le=1.0,
+        description="An observation counts in the score with weight clip((c − c0) / (c1 − c0), 0, 1) of its "
+        "node's highest detector confidence c: c0 (this) counts nothing (0 and c1 0: every observation counts 1).",
+    )
+    confidence_full: float = Field(
+        ge=0.0, le=1.0, description="c1: observations of nodes detected with this confidence or more count fully."
+    )
     off_map_weight: float = Field(
         ge=0.0, le=1.0, description="Weight factor for a particle outside navigable space after a prediction."
     )

@@ -132,7 +132,8 @@ class Observations:
     `embeddings` (K, D) float32 unit rows (visual or fused embedding, same space as the BIM text embeddings);
     `range_m` (K,) and `bearing_rad` (K,) place each node in the robot base frame (bearing counter-clockwise
     from the robot's forward x axis); `labels` are the open-vocabulary label texts; `node_ids` (K,) the online
-    scene-graph node ids (or detection ids).
+    scene-graph node ids (or detection ids); `confidence` (K,) each node's highest detector box score (None:
+    unknown, every observation taken as certain).
     """
 
     embeddings: np.ndarray
@@ -140,6 +141,7 @@ class Observations:
     bearing_rad: np.ndarray
     labels: list[str] = field(default_factory=list)
     node_ids: np.ndarray | None = None
+    confidence: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.range_m)

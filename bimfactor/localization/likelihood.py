@@ -14,7 +14,9 @@ one end is not penalised for being a metre from the table's centre. A one-to-one
 observations to candidates maximises the summed φ (Hungarian); the particle's score is that sum divided by the
 number of observations K, so an observation without a partner counts 0 (a particle that explains fewer of the
 observations scores lower; clutter that no particle explains lowers every particle alike). The likelihood is
-P(z|x) = exp(score / T).
+P(z|x) = exp(score / T). With `confidence_full` > 0 (beyond the paper; off by default) each observation's φ is
+scaled by a ramp of its node's best detector confidence, so a node only ever detected just above the detector's
+threshold (where most false positives score) moves the particles less.
 
 Everything but the assignment is computed for all particles at once on the sparse set of pairs that pass the
 FOV and semantic screens, then laid out as a padded (M, K, C) array. The assignment is exact for every particle
@@ -252,8 +254,10 @@ class SemanticLikelihood:
             d_exp, a_exp = self.footprint_polar(particles[owner[e_idx]], ids[e_idx], d_obs, a_obs)
         else:
             d_exp, a_exp = d[e_idx], alpha[e_idx]
-        phi = sem[k_idx, e_idx] * np.exp(
-            -np.abs(d_obs - d_exp) / self.cfg.sigma_d_m + self.cfg.kappa_alpha * (np.cos(a_obs - a_exp) - 1.0)
+        phi = (
+            self.observation_weights(observations)[k_idx]
+            * sem[k_idx, e_idx]
+            * np.exp(-np.abs(d_obs - d_exp) / self.cfg.sigma_d_m + self.cfg.kappa_alpha * (np.cos(a_obs - a_exp) - 1.0))
         )
         # Columns: the candidates that take part in a pair, numbered per particle.
         used = np.flatnonzero(np.bincount(e_idx, minlength=len(ids)))  # sorted, like np.unique but cheaper
@@ -267,6 +271,16 @@ class SemanticLikelihood:
         ids_pad[used_owner, col_of_used] = ids[used]
         self.last_stats = stats
         return phi_pad, ids_pad
+
+    def observation_weights(self, observations: Observations) -> np.ndarray:
+        """(K,) weight of each observation in the score, from its node's detector confidence (see the config)."""
+        c0, c1 = self.cfg.confidence_zero, self.cfg.confidence_full
+        if observations.confidence is None or c1 <= 0.0:
+            return np.ones(len(observations))
+        c = np.asarray(observations.confidence, np.float64)
+        if c1 <= c0:
+            return (c >= c1).astype(np.float64)
+        return np.clip((c - c0) / (c1 - c0), 0.0, 1.0)
 
     def footprint_polar(
         self, poses: np.ndarray, ids: np.ndarray, range_m: np.ndarray, bearing_rad: np.ndarray

@@ -89,7 +89,8 @@ class CameraView:
 
 @dataclass
 class SceneNode:
-    """An object node: voxel set, running-mean embedding with its count, label votes, when it was seen."""
+    """An object node: voxel set, running-mean embedding with its count, label votes, when it was seen, and the
+    highest detector confidence among its detections."""
 
     id: int
     keys: np.ndarray
@@ -99,6 +100,7 @@ class SceneNode:
     first_frame: int
     last_frame: int
     voxel_size_m: float
+    score: float = 1.0
     _points: np.ndarray | None = field(default=None, init=False, repr=False)
     _bounds: np.ndarray | None = field(default=None, init=False, repr=False)
 
@@ -144,6 +146,7 @@ class SceneNode:
         self.embedding_mean = (n * self.embedding_mean + np.asarray(instance.embedding, np.float64)) / (n + 1)
         self.n_observations = n + 1
         self.label_votes[instance.label] += 1
+        self.score = max(self.score, instance.score)
         self.last_frame = frame_index
         self._changed()
 
@@ -154,6 +157,7 @@ class SceneNode:
         self.embedding_mean = (n * self.embedding_mean + m * other.embedding_mean) / (n + m)
         self.n_observations = n + m
         self.label_votes.update(other.label_votes)
+        self.score = max(self.score, other.score)
         self.first_frame = min(self.first_frame, other.first_frame)
         self.last_frame = max(self.last_frame, other.last_frame)
         self._changed()
@@ -331,6 +335,7 @@ class OnlineSceneGraph:
             frame_index,
             frame_index,
             self.cfg.voxel_size_m,
+            instance.score,
         )
         return node_id
 
@@ -409,7 +414,9 @@ class OnlineSceneGraph:
         dim = next(iter(self.nodes.values())).embedding_mean.shape[0] if self.nodes else self.embedding_dim
         node_ids = list(self.nodes)
         if not node_ids:
-            return Observations(np.zeros((0, dim), np.float32), np.zeros(0), np.zeros(0), [], np.zeros(0, np.int64))
+            return Observations(
+                np.zeros((0, dim), np.float32), np.zeros(0), np.zeros(0), [], np.zeros(0, np.int64), np.zeros(0)
+            )
         centroids = np.stack([self.nodes[k].centroid_m for k in node_ids])
         in_base = transform_points(np.linalg.inv(se2_to_matrix(T_odom_base)), centroids)
         ranges = np.hypot(in_base[:, 0], in_base[:, 1])
@@ -428,4 +435,5 @@ class OnlineSceneGraph:
             bearings[idx],
             [self.nodes[node_ids[i]].label for i in idx],
             np.asarray([node_ids[i] for i in idx], np.int64),
+            np.asarray([self.nodes[node_ids[i]].score for i in idx], float),
         )

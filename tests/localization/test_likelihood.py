@@ -82,6 +82,23 @@ def test_an_unmatched_observation_counts_zero_in_the_mean(box_prior, box_visibil
     assert scorer.scores(particle, np.array([0]), with_unexplained)[0] == pytest.approx(0.5)
 
 
+def test_a_low_confidence_observation_counts_by_its_confidence_ramp(box_prior, box_visibility, smcl_cfg):
+    ramp = smcl_cfg.model_copy(update={"confidence_zero": 0.2, "confidence_full": 0.4})
+    particle = np.array([[4.0, 3.0, np.pi]])
+    obs = observe(("chair", 1.0, 0.0), ("table", 2.0, 0.0))  # the chair scores 1, the table (behind a wall) 0
+    obs.confidence = np.array([0.3, 0.9])
+    scorer = SemanticLikelihood(box_prior, box_visibility, ramp)
+    np.testing.assert_allclose(scorer.observation_weights(obs), [0.5, 1.0])
+    assert scorer.scores(particle, np.array([0]), obs)[0] == pytest.approx(0.5 / 2)  # still the mean over K = 2
+    np.testing.assert_allclose(
+        scorer.observation_weights(Observations(obs.embeddings, obs.range_m, obs.bearing_rad, confidence=None)), 1.0
+    )
+    off = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)  # the defaults: every observation counts 1
+    assert off.scores(particle, np.array([0]), obs)[0] == pytest.approx(1.0 / 2)
+    step = SemanticLikelihood(box_prior, box_visibility, ramp.model_copy(update={"confidence_zero": 0.4}))
+    np.testing.assert_allclose(step.observation_weights(obs), [0.0, 1.0])  # c0 = c1: a threshold
+
+
 def test_candidates_outside_the_field_of_view_do_not_score(box_prior, box_visibility, smcl_cfg):
     scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
     facing_east = np.array([[4.0, 3.0, 0.0]])  # the chair is behind the robot

@@ -46,12 +46,14 @@ def graph(config_overrides: list[str], *overrides: str) -> OnlineSceneGraph:
 def test_two_sightings_of_one_box_merge_and_the_embedding_is_the_running_mean(config_overrides) -> None:
     g = graph(config_overrides)
     f1, f2, f3 = unit(1.0, 0.1, 0.2), unit(1.0, -0.1, 0.1), unit(1.0, 0.05, -0.1)
-    first = g.integrate([Instance3D(keys_box(0, 10, 0, 10, 0, 10), f1, "chair")], frame_index=0)
-    second = g.integrate([Instance3D(keys_box(0, 10, 0, 10, 0, 10), f2, "armchair")], frame_index=1)
+    first = g.integrate([Instance3D(keys_box(0, 10, 0, 10, 0, 10), f1, "chair", 0.4)], frame_index=0)
+    assert g.nodes[0].score == 0.4
+    second = g.integrate([Instance3D(keys_box(0, 10, 0, 10, 0, 10), f2, "armchair", 0.7)], frame_index=1)
     assert first.new_node_ids == [0] and second.merged_node_ids == [0] and len(g.nodes) == 1
     node = g.nodes[0]
     np.testing.assert_array_equal(node.embedding_mean, (f1.astype(np.float64) + f2) / 2)
-    g.integrate([Instance3D(keys_box(0, 10, 0, 10, 0, 10), f3, "chair")], frame_index=2)
+    g.integrate([Instance3D(keys_box(0, 10, 0, 10, 0, 10), f3, "chair", 0.5)], frame_index=2)
+    assert node.score == 0.7  # the node's confidence: its best detection's box score
     mean2 = (f1.astype(np.float64) + f2) / 2
     np.testing.assert_array_equal(node.embedding_mean, (2 * mean2 + f3) / 3)
     assert node.n_observations == 3 and node.label == "chair" and (node.first_frame, node.last_frame) == (0, 2)
@@ -162,13 +164,14 @@ def test_observations_are_the_nodes_in_view_with_range_and_bearing_in_the_base_f
     g = graph(config_overrides)
     voxels = {"ahead": (60, 0), "left": (60, 30), "wide left": (60, 60), "behind": (-60, 0), "far": (300, 0)}
     for i, (x, y) in enumerate(voxels.values()):
-        g.integrate([Instance3D(keys_box(x, x + 1, y, y + 1), unit(1.0, i), f"label{i}")], i)
+        g.integrate([Instance3D(keys_box(x, x + 1, y, y + 1), unit(1.0, i), f"label{i}", 0.3 + 0.1 * i)], i)
     robot = np.array([1.0, 0.0, 0.0])  # at x = 1 m looking along +x; nodes 2.025 m ahead, 0.025 / 1.525 m left
     obs = g.observations(robot, fov_rad=np.deg2rad(90.0), max_range_m=6.0)
     assert obs.labels == ["label0", "label1"] and obs.node_ids.tolist() == [0, 1]
     np.testing.assert_allclose(obs.range_m, [np.hypot(2.025, 0.025), np.hypot(2.025, 1.525)])
     np.testing.assert_allclose(obs.bearing_rad, [np.arctan2(0.025, 2.025), np.arctan2(1.525, 2.025)])
     assert obs.bearing_rad[1] > 0  # left of the robot is counter-clockwise
+    np.testing.assert_allclose(obs.confidence, [0.3, 0.4])  # each node's detector confidence
     np.testing.assert_array_equal(obs.embeddings, np.stack([g.nodes[0].embedding, g.nodes[1].embedding]))
     wide = g.observations(robot, fov_rad=np.deg2rad(120.0), max_range_m=6.0)
     assert wide.node_ids.tolist() == [0, 1, 2]  # 56° to the left is in a 120° view; behind and 14 m off never
@@ -199,7 +202,7 @@ def test_update_lifts_masks_and_fuses_two_views_of_a_wall_patch(config_overrides
 
 def test_empty_graph_observations_have_the_right_shapes(config_overrides) -> None:
     obs = OnlineSceneGraph(perception_config(config_overrides), K, MOUNT).observations(np.zeros(3))
-    assert len(obs) == 0 and obs.embeddings.shape[0] == 0 and obs.node_ids.shape == (0,)
+    assert len(obs) == 0 and obs.embeddings.shape[0] == 0 and obs.node_ids.shape == obs.confidence.shape == (0,)
 
 
 def test_perception_config_validates(config_overrides) -> None:
