@@ -398,12 +398,7 @@ class MultiHypothesisBackend:
             except RuntimeError as error:
                 # GTSAM found the mode's system indeterminate: the run goes on with the mode's graph restarted
                 # from its particle cluster at this keyframe, rather than stop.
-                log.warning(
-                    "mode %d: its pose graph failed at keyframe %d (%s); restarted from its particle cluster",
-                    mode.id,
-                    i,
-                    str(error).strip().split("\n")[0],
-                )
+                _log_restart(mode.id, i, error, "from its particle cluster")
                 self.graphs.pop(mode.id, None)
                 graph, moved = self._update_graph(*update)
             if moved:
@@ -476,12 +471,7 @@ class MultiHypothesisBackend:
         except RuntimeError as error:
             # As in a step: an indeterminate system restarts the mode's graph from its estimate at keyframe i
             # (without that keyframe's landmark factors), and the fit enters the new graph with it.
-            log.warning(
-                "mode %d: its pose graph failed on a fine registration at keyframe %d (%s); restarted at it",
-                mode_id,
-                i,
-                str(error).strip().split("\n")[0],
-            )
+            _log_restart(mode_id, i, error, "at it, on a fine registration")
             graph = ModeGraph(mode_id, i, mode.mean, mode.covariance, self.landmarks, self.cfg, mode.storey)
             self.graphs[mode_id] = graph
             graph.add_pose_factor(i, pose, information)  # pending: applied with the keyframe
@@ -698,3 +688,9 @@ def benchmark_backend(
     }
     log.info("back end, %d modes: %.2f ms median per keyframe", n_modes, row["step_ms_median"])
     return row
+
+
+def _log_restart(mode_id: int, keyframe: int, error: RuntimeError, how: str) -> None:
+    """One warning for a mode graph that GTSAM found indeterminate and that was restarted (`how`)."""
+    reason = str(error).strip().split("\n")[0]
+    log.warning("mode %d: its pose graph failed at keyframe %d (%s); restarted %s", mode_id, keyframe, reason, how)

@@ -117,6 +117,7 @@ def test_a_mode_whose_graph_fails_restarts_from_its_cluster_and_the_run_goes_on(
             assert step.best.mode_id == 0
             assert np.linalg.norm(step.pose[:2] - sc.true_poses[t, :2]) < 0.3
     assert "mode 0: its pose graph failed at keyframe 8 (Indeterminant" in caplog.text
+    assert "restarted from its particle cluster" in caplog.text
     assert backend.graphs[0].first_index == failing_step
     assert sorted(backend.graphs[0].poses) == list(range(failing_step, len(sc.true_poses)))
 
@@ -140,7 +141,8 @@ def test_a_fine_registration_that_breaks_a_graph_restarts_it_with_the_fit(monkey
     fit = sc.true_poses[5] + np.array([0.05, -0.03, 0.01])
     with caplog.at_level("WARNING", logger="bimfactor.backend.posegraph"):
         pose, covariance = backend.add_pose_factor(0, 5, fit, np.diag([1e4, 1e4, 1e4]))
-    assert "mode 0: its pose graph failed on a fine registration at keyframe 5 (Indeterminant" in caplog.text
+    assert "mode 0: its pose graph failed at keyframe 5 (Indeterminant" in caplog.text
+    assert "restarted at it, on a fine registration" in caplog.text
     graph = backend.graphs[0]
     assert graph is not broken and graph.first_index == 5 and graph.pose_factors[0][0] == 5
     np.testing.assert_allclose(pose, fit, atol=0.02)  # the tight fit holds the restarted graph
