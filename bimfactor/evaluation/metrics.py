@@ -54,6 +54,26 @@ def ellipse_coverage(
     return float(np.mean(inside_ellipse(estimates, covariances, ground_truth, p)))
 
 
+def run_bootstrap_ci(
+    per_run: list[np.ndarray], level: float = 0.95, resamples: int = 2000, seed: int = 0
+) -> tuple[float, float]:
+    """Percentile bootstrap interval of the mean over all steps of some runs, resampling whole runs.
+
+    A run's steps are not independent (a run that locks onto a wrong place is wrong for many steps), so the
+    runs are the units: each resample draws as many runs as there are, with replacement, and takes the mean of
+    their pooled steps. Deterministic for a given `seed`.
+    """
+    if not per_run:
+        raise ValueError("run_bootstrap_ci needs at least one run")
+    sums = np.array([float(np.sum(v)) for v in per_run])
+    counts = np.array([len(v) for v in per_run], float)
+    draws = np.random.default_rng(seed).integers(0, len(per_run), size=(resamples, len(per_run)))
+    means = sums[draws].sum(axis=1) / np.maximum(counts[draws].sum(axis=1), 1.0)
+    tail = 100 * (1 - level) / 2
+    lo, hi = np.percentile(means, [tail, 100 - tail])
+    return float(lo), float(hi)
+
+
 @dataclass
 class TrajectoryMetrics:
     """Table I's columns for one run plus convergence; errors in metres and degrees, room accuracy 0–1."""

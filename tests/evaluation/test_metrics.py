@@ -9,6 +9,7 @@ from bimfactor.evaluation.metrics import (
     ellipse_coverage,
     inside_ellipse,
     orientation_errors_deg,
+    run_bootstrap_ci,
     steps_to_converge,
     trajectory_metrics,
     translation_errors_m,
@@ -55,3 +56,18 @@ def test_trajectory_metrics_mean_and_std_over_steps() -> None:
     assert m.room_acc == pytest.approx(0.75) and m.room_acc_std == pytest.approx(np.std([0, 1, 1, 1]))
     assert m.steps_to_converge == 1 and m.trans_err_conv_m == pytest.approx(1 / 3)
     assert m.step_ms_median == 1.0
+
+
+def test_run_bootstrap_interval_resamples_whole_runs() -> None:
+    same = [np.full(50, 0.3) for _ in range(6)]
+    assert run_bootstrap_ci(same) == pytest.approx((0.3, 0.3))  # identical runs: no spread of the average
+    # Nine settled runs and one locked onto a wrong place for its 50 steps: the interval is wide and asymmetric
+    # about the pooled mean 1.17 m (a resample holds that run 0, 1, 2... times).
+    runs = [np.full(50, 0.1) for _ in range(9)] + [np.full(50, 10.8)]
+    lo, hi = run_bootstrap_ci(runs)
+    pooled = np.concatenate(runs).mean()
+    assert lo < pooled < hi and lo == pytest.approx(0.1) and hi > 2.0
+    assert run_bootstrap_ci(runs) == (lo, hi)  # deterministic
+    assert run_bootstrap_ci(runs, level=0.5)[1] < hi
+    with pytest.raises(ValueError, match="at least one run"):
+        run_bootstrap_ci([])
