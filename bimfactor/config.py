@@ -224,6 +224,17 @@ class SmclConfig(_Strict):
     confidence_full: float = Field(
         ge=0.0, le=1.0, description="c1: observations of nodes detected with this confidence or more count fully."
     )
+    detection_probability: float = Field(
+        ge=0.0,
+        lt=1.0,
+        description="p_d of the missed-detection term (beyond the paper): each BIM object a particle should see "
+        "(within `detection_range_m`, centre in the FOV) that no observation pairs with costs log(1 − p_d); "
+        "0: off (the paper).",
+    )
+    detection_range_m: float = Field(gt=0.0, description="Objects this near count in the missed-detection term.")
+    detection_ignore_labels: list[str] = Field(
+        description="Labels the missed-detection term never expects detected (doors: open, seen as a gap)."
+    )
     off_map_weight: float = Field(
         ge=0.0, le=1.0, description="Weight factor for a particle outside navigable space after a prediction."
     )

@@ -16,7 +16,9 @@ number of observations K, so an observation without a partner counts 0 (a partic
 observations scores lower; clutter that no particle explains lowers every particle alike). The likelihood is
 P(z|x) = exp(score / T). With `confidence_full` > 0 (beyond the paper; off by default) each observation's φ is
 scaled by a ramp of its node's best detector confidence, so a node only ever detected just above the detector's
-threshold (where most false positives score) moves the particles less.
+threshold (where most false positives score) moves the particles less. With `detection_probability` p_d > 0
+(beyond the paper; off by default) log P(z|x) also gains n_missed · log(1 − p_d) for the objects x should see
+near it that no observation pairs with (`log_likelihood_terms`).
 
 Everything but the assignment is computed for all particles at once on the sparse set of pairs that pass the
 FOV and semantic screens, then laid out as a padded (M, K, C) array. The assignment is exact for every particle
@@ -184,6 +186,7 @@ class SemanticLikelihood:
         labels = [o.label for o in prior.objects]
         vocabulary = sorted(set(labels))
         self.object_label = np.asarray([vocabulary.index(label) for label in labels], np.int64)
+        self.detectable = np.asarray([label not in cfg.detection_ignore_labels for label in labels], bool)
         first = [labels.index(label) for label in vocabulary]
         self.label_embeddings = self.object_embeddings[first] if first else self.object_embeddings[:0]
         self.radius_m = min(cfg.visible_radius_m, visibility.radius_m)
@@ -303,14 +306,53 @@ class SemanticLikelihood:
 
     def scores(self, particles: np.ndarray, storeys: np.ndarray, observations: Observations) -> np.ndarray:
         """(M,) mean matched score in [0, 1] of each particle: the optimal assignment's summed φ over K."""
+        return self._scores_and_matches(particles, storeys, observations)[0]
+
+    def _scores_and_matches(
+        self, particles: np.ndarray, storeys: np.ndarray, observations: Observations
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) mean matched score and (M,) how many observations can pair with a distinct candidate (an upper
+        bound on the assignment's size: min of the observations and the candidates that take part in a pair)."""
         K = len(observations)
+        M = len(np.asarray(particles).reshape(-1, 3))
         if K == 0:
-            return np.zeros(len(np.asarray(particles).reshape(-1, 3)))
+            return np.zeros(M), np.zeros(M, np.int64)
         phi, _ = self.pair_scores(particles, storeys, observations)
         totals, calls = assignment_sums(phi)
         self.last_stats.hungarian_calls = calls
-        return totals / K
+        paired = phi > 0
+        matched = np.minimum(paired.any(axis=2).sum(axis=1), paired.any(axis=1).sum(axis=1))
+        return totals / K, matched
+
+    def expected_detections(self, particles: np.ndarray, storeys: np.ndarray) -> np.ndarray:
+        """(M,) BIM objects each particle should see detected: centre within `detection_range_m` and the FOV,
+        not behind a wall (the visibility table), and not of a label in `detection_ignore_labels`."""
+        particles = np.asarray(particles, np.float64).reshape(-1, 3)
+        offsets, ids = self.visibility.candidates(particles[:, :2], storeys)
+        owner = np.repeat(np.arange(len(particles)), np.diff(offsets))
+        d, alpha = polar_coordinates(particles[owner], self.object_xy[ids])
+        near = (d <= self.cfg.detection_range_m) & (np.abs(alpha) <= self.half_fov_rad) & self.detectable[ids]
+        return np.bincount(owner[near], minlength=len(particles))
+
+    def log_likelihood_terms(
+        self, particles: np.ndarray, storeys: np.ndarray, observations: Observations
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) semantic term score / T and (M,) missed-detection term n_missed · log(1 − p_d).
+
+        The second (beyond the paper; 0 when `detection_probability` is 0) is negative information: a particle
+        that should see n objects near it but whose observations pair with only m of them missed n − m, each a
+        miss with probability 1 − p_d. Without it a pose among many objects explains a lone false positive that a
+        pose in an empty corridor cannot, and nothing charges it for the objects it predicts and nobody saw.
+        """
+        scores, matched = self._scores_and_matches(particles, storeys, observations)
+        semantic = scores / self.cfg.temperature
+        p_d = self.cfg.detection_probability
+        if p_d <= 0.0:
+            return semantic, np.zeros_like(semantic)
+        missed = np.maximum(self.expected_detections(particles, storeys) - matched, 0)
+        return semantic, missed * np.log1p(-p_d)
 
     def log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, observations: Observations) -> np.ndarray:
-        """(M,) log P(z|x) = score / T."""
-        return self.scores(particles, storeys, observations) / self.cfg.temperature
+        """(M,) log P(z|x): score / T, plus the missed-detection term when `detection_probability` > 0."""
+        semantic, missed = self.log_likelihood_terms(particles, storeys, observations)
+        return semantic + missed

@@ -332,26 +332,29 @@ class SemanticMCL:
         """Weight ×= P(z|x) for every particle and normalise; nothing to weigh by leaves the weights as they are.
 
         P(z|x) is the semantic term for the observations and, with `scan_likelihood`, the scan term for the (N, 2)
-        base-frame `scan` endpoints (`field.scan_endpoints`); either may be empty or None.
+        base-frame `scan` endpoints (`field.scan_endpoints`); either may be empty or None. With the missed-detection
+        term (`detection_probability` > 0) an empty `observations` (a frame that detected nothing) still weighs.
         """
         self._require_initialized()
         has_observations = observations is not None and len(observations) > 0
+        # With the missed-detection term a frame that detected nothing still says which places it did not see.
+        weighs_misses = observations is not None and self.cfg.detection_probability > 0.0
         has_scan = self.scan_likelihood is not None and scan is not None and len(scan) > 0
-        if not (has_observations or has_scan):
+        if not (has_observations or has_scan or weighs_misses):
             return
         if not np.all(self.weights >= 0) or self.weights.sum() <= 0:
             self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
         log_likelihood = np.zeros(self.num_particles)
-        if has_observations:
-            semantic = self.likelihood.log_likelihood(self.particles, self.storeys, observations)
-            log_likelihood += semantic
-            if self.cfg.augmented:
-                # Augmented MCL watches the semantic term alone: a wrong place of the same shape fits the scan
-                # as well as the right one. Average likelihood on an absolute scale (a perfect match = 1).
-                w_avg = float(np.dot(self.weights, np.exp(semantic - 1.0 / self.cfg.temperature)))
-                rate_slow, rate_fast = self.cfg.alpha_slow, self.cfg.alpha_fast
-                self.w_slow = w_avg if self.w_slow is None else self.w_slow + rate_slow * (w_avg - self.w_slow)
-                self.w_fast = w_avg if self.w_fast is None else self.w_fast + rate_fast * (w_avg - self.w_fast)
+        if has_observations or weighs_misses:
+            semantic, missed = self.likelihood.log_likelihood_terms(self.particles, self.storeys, observations)
+            log_likelihood += semantic + missed
+        if has_observations and self.cfg.augmented:
+            # Augmented MCL watches the semantic term alone: a wrong place of the same shape fits the scan
+            # as well as the right one. Average likelihood on an absolute scale (a perfect match = 1).
+            w_avg = float(np.dot(self.weights, np.exp(semantic - 1.0 / self.cfg.temperature)))
+            rate_slow, rate_fast = self.cfg.alpha_slow, self.cfg.alpha_fast
+            self.w_slow = w_avg if self.w_slow is None else self.w_slow + rate_slow * (w_avg - self.w_slow)
+            self.w_fast = w_avg if self.w_fast is None else self.w_fast + rate_fast * (w_avg - self.w_fast)
         if has_scan:
             log_likelihood += self.scan_likelihood.log_likelihood(self.particles, self.storeys, scan)
         self.fresh[:] = False

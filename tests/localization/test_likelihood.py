@@ -99,6 +99,30 @@ def test_a_low_confidence_observation_counts_by_its_confidence_ramp(box_prior, b
     np.testing.assert_allclose(step.observation_weights(obs), [0.0, 1.0])  # c0 = c1: a threshold
 
 
+def test_missed_detections_cost_log_one_minus_p_d_each(box_prior, box_visibility, smcl_cfg):
+    cfg = smcl_cfg.model_copy(update={"detection_probability": 0.3, "detection_range_m": 4.0})
+    scorer = SemanticLikelihood(box_prior, box_visibility, cfg)
+    # From (4, 3) facing west: the chair 1 m ahead and the cabinet at (1, 5), 3.6 m and 34° to the right, are
+    # within 4 m and the FOV; the window at (3, 0.1) is 71° to the left, outside it. Facing east: nothing.
+    particles = np.array([[4.0, 3.0, np.pi], [4.0, 3.0, 0.0]])
+    storeys = np.zeros(2, np.int64)
+    np.testing.assert_array_equal(scorer.expected_detections(particles, storeys), [2, 0])
+    chair_seen = observe(("chair", 1.0, 0.0))
+    semantic, missed = scorer.log_likelihood_terms(particles, storeys, chair_seen)
+    np.testing.assert_allclose(semantic, [1.0 / cfg.temperature, 0.0])
+    np.testing.assert_allclose(missed, [np.log(0.7), 0.0])  # the cabinet was missed
+    np.testing.assert_allclose(scorer.log_likelihood(particles, storeys, chair_seen), semantic + missed)
+    nothing = Observations(np.zeros((0, 5), np.float32), np.zeros(0), np.zeros(0))
+    np.testing.assert_allclose(scorer.log_likelihood_terms(particles, storeys, nothing)[1], [2 * np.log(0.7), 0.0])
+    near = SemanticLikelihood(box_prior, box_visibility, cfg.model_copy(update={"detection_range_m": 2.0}))
+    np.testing.assert_array_equal(near.expected_detections(particles, storeys), [1, 0])  # the cabinet is too far
+    no_chairs = cfg.model_copy(update={"detection_ignore_labels": ["chair"]})
+    unexpected = SemanticLikelihood(box_prior, box_visibility, no_chairs)
+    np.testing.assert_array_equal(unexpected.expected_detections(particles, storeys), [1, 0])
+    paper = SemanticLikelihood(box_prior, box_visibility, cfg.model_copy(update={"detection_probability": 0.0}))
+    np.testing.assert_array_equal(paper.log_likelihood_terms(particles, storeys, nothing)[1], [0.0, 0.0])
+
+
 def test_candidates_outside_the_field_of_view_do_not_score(box_prior, box_visibility, smcl_cfg):
     scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
     facing_east = np.array([[4.0, 3.0, 0.0]])  # the chair is behind the robot

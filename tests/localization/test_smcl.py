@@ -138,6 +138,7 @@ def test_particles_leaving_navigable_space_are_down_weighted(box_prior, box_visi
 
 
 def test_update_multiplies_by_the_likelihood_and_normalises(box_prior, box_visibility, smcl_cfg):
+    smcl_cfg = smcl_cfg.model_copy(update={"detection_probability": 0.0})  # the paper's model
     mcl = SemanticMCL(box_prior, box_visibility, smcl_cfg, np.random.default_rng(0), num_particles=2)
     mcl.initialize()
     mcl.particles = np.array([[4.0, 3.0, np.pi], [4.0, 3.0, 0.0]])  # sees the chair / looks away from it
@@ -147,6 +148,23 @@ def test_update_multiplies_by_the_likelihood_and_normalises(box_prior, box_visib
     np.testing.assert_allclose(mcl.weights, [ratio / (1 + ratio), 1 / (1 + ratio)])
     before = mcl.weights.copy()
     mcl.update(Observations(np.zeros((0, 5), np.float32), np.zeros(0), np.zeros(0)))
+    np.testing.assert_array_equal(mcl.weights, before)
+
+
+def test_a_frame_without_detections_weighs_the_objects_each_particle_should_have_seen(
+    box_prior, box_visibility, smcl_cfg
+):
+    cfg = smcl_cfg.model_copy(update={"detection_probability": 0.4, "detection_range_m": 4.0})
+    mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0), num_particles=2)
+    mcl.initialize()
+    # Facing west from (4, 3) the chair (1 m) and the cabinet (3.6 m) are in view; facing east nothing is.
+    mcl.particles = np.array([[4.0, 3.0, np.pi], [4.0, 3.0, 0.0]])
+    mcl.storeys = np.zeros(2, np.int64)
+    mcl.update(Observations(np.zeros((0, 5), np.float32), np.zeros(0), np.zeros(0)))
+    ratio = (1 - 0.4) ** 2
+    np.testing.assert_allclose(mcl.weights, [ratio / (1 + ratio), 1 / (1 + ratio)])
+    before = mcl.weights.copy()
+    mcl.update(None)  # no frame: nothing to weigh by
     np.testing.assert_array_equal(mcl.weights, before)
 
 
