@@ -261,6 +261,14 @@ class SmclConfig(_Strict):
     )
     alpha_slow: float = Field(gt=0.0, le=1.0, description="Augmented MCL long-term likelihood average rate.")
     alpha_fast: float = Field(gt=0.0, le=1.0, description="Augmented MCL short-term likelihood average rate.")
+    injection_reference_score: float = Field(
+        ge=0.0,
+        lt=1.0,
+        description="Augmented MCL: the long-term average is floored at exp((s − 1) / T), the likelihood of a "
+        "step whose mean matched score is s, so a filter that never explained its observations well (locked onto "
+        "a wrong place from the start, where the long-term average began at the uniform cloud's) still injects; "
+        "0: Thrun's rule as is.",
+    )
     converged_pos_std_m: float = Field(gt=0.0, description="Converged when the position std is below this ...")
     converged_yaw_std_deg: float = Field(gt=0.0, description="... and the yaw std below this ...")
     converged_storey_share: float = Field(

@@ -376,7 +376,9 @@ class SemanticMCL:
         """Augmented MCL: max(0, 1 − w_fast / w_slow); 0 for the paper's filter."""
         if not self.cfg.augmented or not self.w_slow or self.w_fast is None:
             return 0.0
-        return max(0.0, 1.0 - self.w_fast / self.w_slow)
+        reference = np.exp((self.cfg.injection_reference_score - 1.0) / self.cfg.temperature)
+        w_slow = max(self.w_slow, reference) if self.cfg.injection_reference_score > 0 else self.w_slow
+        return max(0.0, 1.0 - self.w_fast / w_slow)
 
     def resample_if_needed(self, observations: Observations | None = None) -> tuple[bool, int]:
         """Systematic resampling when ESS < δ_ess·M (or random particles are due); returns (resampled, injected).

@@ -245,6 +245,28 @@ def test_augmented_mcl_injects_random_particles_when_the_short_average_drops(box
     assert paper.injection_probability() == 0.0 and paper.resample_if_needed() == (False, 0)
 
 
+def test_a_reference_score_floors_the_long_term_average(box_prior, box_visibility, smcl_cfg):
+    """A filter whose long-term average began at the uniform cloud's (tiny) likelihood never sees its short average
+    drop below it; the reference floor makes a poorly explaining filter inject all the same, a well explaining
+    one not."""
+    temperature = smcl_cfg.temperature
+    cfg = smcl_cfg.model_copy(update={"augmented": True, "injection_reference_score": 0.5})
+    mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0), num_particles=1000)
+    mcl.initialize()
+    reference = np.exp((0.5 - 1.0) / temperature)
+    mcl.w_slow, mcl.w_fast = 1e-5, 0.25 * reference  # locked where observations score ~0.36: w_fast > w_slow
+    assert mcl.injection_probability() == pytest.approx(0.75)
+    mcl.w_fast = 2.0 * reference  # observations explained better than the reference: nothing to recover from
+    assert mcl.injection_probability() == 0.0
+    mcl.w_slow, mcl.w_fast = 10.0 * reference, 5.0 * reference  # above the floor Thrun's rule is unchanged
+    assert mcl.injection_probability() == pytest.approx(0.5)
+    thrun = smcl_cfg.model_copy(update={"augmented": True, "injection_reference_score": 0.0})
+    plain = SemanticMCL(box_prior, box_visibility, thrun, np.random.default_rng(0), num_particles=1000)
+    plain.initialize()
+    plain.w_slow, plain.w_fast = 1e-5, 0.25 * reference
+    assert plain.injection_probability() == 0.0
+
+
 def test_estimate_is_the_weighted_circular_mean_on_the_heaviest_storey(smcl_cfg: SmclConfig):
     prior = make_prior(n_storeys=2)
     table = VisibilityTable.build(prior, smcl_cfg, progress=False)
