@@ -69,10 +69,16 @@ keyframe's scan matched against the BIM from that pose; `registration.correlativ
 
 
 def floored_covariance(covariance: np.ndarray, cfg: BackendConfig) -> np.ndarray:
-    """(3, 3) covariance with its position and yaw variances raised to at least the configured prior floor."""
+    """(3, 3) covariance with at least the configured prior floor's spread in every direction of (x, y, yaw).
+
+    In units of the floor's σ (`prior_min_sigma_m` for x and y, `prior_min_sigma_deg` for yaw) its eigenvalues are
+    raised to 1, so a diagonal covariance gets its variances raised to the floor, and a cluster whose particles lie
+    on a line in x–yaw (resampled from a few ancestors and turned) gets a usable prior instead of a near-singular one
+    that GTSAM finds indeterminate."""
     cov = 0.5 * (np.asarray(covariance, np.float64) + np.asarray(covariance, np.float64).T)
-    floor = np.array([cfg.prior_min_sigma_m, cfg.prior_min_sigma_m, np.deg2rad(cfg.prior_min_sigma_deg)]) ** 2
-    return cov + np.diag(np.maximum(floor - np.diag(cov), 0.0)) + 1e-12 * np.eye(3)
+    sigma = np.array([cfg.prior_min_sigma_m, cfg.prior_min_sigma_m, np.deg2rad(cfg.prior_min_sigma_deg)])
+    values, vectors = np.linalg.eigh(cov / np.outer(sigma, sigma))
+    return (vectors * np.maximum(values, 1.0)) @ vectors.T * np.outer(sigma, sigma)
 
 
 def observation_cost(

@@ -15,7 +15,13 @@ from bimfactor.backend.factors import (
     odometry_factor,
     pose_prior_factor,
 )
-from bimfactor.backend.posegraph import ModeGraph, MultiHypothesisBackend, _without_degenerate_bearings, batch_refine
+from bimfactor.backend.posegraph import (
+    ModeGraph,
+    MultiHypothesisBackend,
+    _without_degenerate_bearings,
+    batch_refine,
+    floored_covariance,
+)
 from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, LoopScenario, loop_scenario
 from bimfactor.config import load_config
 from bimfactor.localization.likelihood import polar_coordinates
@@ -161,6 +167,25 @@ def test_reassociation_swaps_the_factors_when_the_estimate_moves():
     assert graph.reassociate(sc.observations[1], lambda p, s: sc.associations[1][:2], far)
     assert graph.associations[1] == sc.associations[1][:2]
     assert graph.isam.getFactorsUnsafe().nrFactors() == n_before - (len(sc.associations[1]) - 2)
+
+
+def test_a_cluster_on_a_line_in_x_and_yaw_still_starts_a_graph():
+    """Particles resampled from a few ancestors and turned lie on a line in x–yaw: both variances are above the
+    floor, yet the cluster's covariance is singular. Raising only the diagonal left it so and ISAM2 found the mode's
+    first keyframe indeterminate; the floor holds in every direction."""
+    sigma = np.array([BASE.prior_min_sigma_m, BASE.prior_min_sigma_m, np.deg2rad(BASE.prior_min_sigma_deg)])
+    along = np.array([0.44, 0.07, -0.2])  # x and yaw move together (σ 0.44 m and 11.5°, above the floor)
+    singular = np.outer(along, along)
+    floored = floored_covariance(singular, BASE)
+    assert np.linalg.eigvalsh(floored / np.outer(sigma, sigma)).min() == pytest.approx(1.0)
+    np.testing.assert_allclose(floored @ np.linalg.solve(floored, along), along)  # the cluster's own spread stays
+    assert floored[0, 0] >= singular[0, 0] and floored[2, 2] >= singular[2, 2]
+    diagonal = np.diag([0.5, 0.01, 0.001])
+    np.testing.assert_allclose(floored_covariance(diagonal, BASE), np.diag(np.maximum(np.diag(diagonal), sigma**2)))
+    graph = ModeGraph(0, 0, np.array([1.0, 2.0, 0.3]), singular, np.array([[50.0, 50.0]]), BASE)
+    graph.add_keyframe(0, Observations(np.zeros((0, 4), np.float32), np.zeros(0), np.zeros(0)), [])
+    np.testing.assert_allclose(graph.pose, [1.0, 2.0, 0.3], atol=1e-9)
+    assert np.linalg.eigvalsh(graph.covariance).min() > 0
 
 
 def test_pose_factor_pulls_the_estimate():
