@@ -523,6 +523,12 @@ class EvaluationConfig(_Strict):
     trajectory_length: int = Field(ge=1, description="T, steps per trajectory (paper: 50).")
     repeats: int = Field(ge=1, description="Runs per trajectory with different seeds (paper: 3).")
     variants: list[BenchVariant] = Field(min_length=1, description="What `bench paper` scores, one table each.")
+    score_from: Literal["start", "filter_converged"] = Field(
+        description="Where a run's T scored steps begin: at its first frame (start: from the uniform cloud), or at "
+        "the first step whose filter estimate reports itself converged (filter_converged: no ground truth decides; "
+        "the trajectory is simulated `warmup_max_steps` longer, and a run not converged by then is scored from there)."
+    )
+    warmup_max_steps: int = Field(ge=0, description="filter_converged: the most unscored steps before the T scored.")
 
 
 class Config(_Strict):

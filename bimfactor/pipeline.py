@@ -25,6 +25,7 @@ from collections import Counter, deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 
@@ -66,8 +67,16 @@ FINE_VARIANTS = ("full",)
 """Localizer variants that register each keyframe against the BIM walls and feed the fit back into the graph."""
 
 
+class _PerStep:
+    """A dataclass whose every field holds one entry per step of a sequence."""
+
+    def window(self, steps: slice) -> Self:
+        """The same record over some of its steps."""
+        return type(self)(*(getattr(self, f.name)[steps] for f in dataclasses.fields(self)))
+
+
 @dataclass
-class Track:
+class Track(_PerStep):
     """One estimator's output over a sequence: (T, 3) poses, (T, 3, 3) world-frame covariances, (T,) storeys and
     room ids, (T,) milliseconds per step that the estimator took."""
 
@@ -79,7 +88,7 @@ class Track:
 
 
 @dataclass
-class FineTrack:
+class FineTrack(_PerStep):
     """The fine stage over a run (variant full), one entry per step: (T,) whether it ran (a mode existed) and
     whether the fit was accepted, the gate's reasons when not, and (T,) milliseconds it took."""
 

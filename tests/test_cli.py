@@ -504,12 +504,18 @@ def test_bench_paper_scores_every_variant(tmp_path: Path, cli_config_args: list[
         assert result.stdout.count(f"\n{variant}\n") + result.stdout.startswith(f"{variant}\n") == 1
     assert (out / "error_by_step.png").stat().st_size > 0 and f"figure: {out / 'error_by_step.png'}" in result.stdout
     assert_one_line_error(invoke("bench", "paper", "-o", out, "--variant", "icp"), contains="evaluation.variants")
+    assert report["protocol"]["score_from"] == "start" and report["smcl"]["average"]["scored_from_steps"] == [0]
+    # The full variant, scored from where the filter reports itself converged (at most two steps in).
+    warmup = ["evaluation.score_from=filter_converged", "evaluation.warmup_max_steps=2"]
     full = invoke("bench", "paper", "-o", tmp_path / "full", "--workers", "1", "--variant", "smcl+graph", "--variant",
-                  "full", *[a for t in tiny for a in ("--set", t)], *cli_config_args)  # fmt: skip
+                  "full", *[a for t in tiny + warmup for a in ("--set", t)], *cli_config_args)  # fmt: skip
     assert full.exit_code == 0, full.output
     report = json.loads((tmp_path / "full" / "results.json").read_text())
     assert report["variants"] == ["smcl+graph", "full"]
     assert set(report["full"]["average"]) >= keys | {"icp_accepted_share", "icp_rejections"}
+    assert report["protocol"]["score_from"] == "filter_converged" and report["protocol"]["warmup_max_steps"] == 2
+    (first,) = report["full"]["average"]["scored_from_steps"]
+    assert 0 <= first <= 2 and len(report["full"]["average"]["trans_err_by_step_m"]) == 5
 
 
 def test_compare_registrars_writes_summary_and_figure(

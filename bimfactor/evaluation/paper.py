@@ -51,6 +51,7 @@ class RunResult:
     metrics: dict
     icp_accepted: np.ndarray | None = None
     icp_rejections: dict[str, int] | None = None
+    scored_from: int = 0
 
 
 def forward_variants(variants: list[str]) -> list[str]:
@@ -58,6 +59,17 @@ def forward_variants(variants: list[str]) -> list[str]:
     served_by = {"smcl+graph": {"smcl+graph", "refine"}, "full": {"full"}}
     needed = [online for online, serves in served_by.items() if serves & set(variants)]
     return needed or ["smcl"]
+
+
+def scoring_window(converged: np.ndarray, steps: int, score_from: str, warmup_max_steps: int) -> slice:
+    """The `steps` scored steps of a run whose (N,) `converged` flags are the filter's own: from the first frame
+    (`start`), or from the first step the filter reports converged, at most `warmup_max_steps` in
+    (`filter_converged`; no ground truth decides where scoring begins)."""
+    if score_from == "start":
+        return slice(0, steps)
+    flagged = np.flatnonzero(np.asarray(converged, bool)[: warmup_max_steps + 1])
+    first = int(flagged[0]) if len(flagged) else warmup_max_steps
+    return slice(first, first + steps)
 
 
 def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> list[RunResult]:
@@ -70,9 +82,14 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
     from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
 
     cfg = Config.model_validate_json(cfg_json)
-    variants = cfg.evaluation.variants
+    ev = cfg.evaluation
+    variants = ev.variants
     prior, model = load_world_inputs(prior_dir, cfg)
-    sim = simulate_sequence(prior, model, cfg, trajectory, cfg.seed, progress=False)
+    warmup = ev.warmup_max_steps if ev.score_from == "filter_converged" else 0
+    sim_cfg = cfg.model_copy(
+        update={"evaluation": ev.model_copy(update={"trajectory_length": ev.trajectory_length + warmup})}
+    )
+    sim = simulate_sequence(prior, model, sim_cfg, trajectory, cfg.seed, progress=False)
     online_variants = forward_variants(variants)
     matcher = scan_matcher(prior, cfg) if any(v in GRAPH_VARIANTS for v in online_variants) else None
     forward = {}
@@ -93,25 +110,29 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
     tracks = {"smcl": run.filter, **{online: r.graph for online, r in forward.items() if r.graph is not None}}
     if "refine" in variants:
         tracks["refine"] = refine_run(forward["smcl+graph"], prior, cfg, matcher).estimate
+    # Every variant of the run is scored over the same steps, chosen by the filter's own converged flag at most.
+    scored = scoring_window(run.converged, ev.trajectory_length, ev.score_from, warmup)
+    gt_poses, gt_rooms = run.gt_poses[scored], run.gt_rooms[scored]
     results = []
     for variant in variants:
-        track = tracks[variant]
-        fine = forward[variant].fine if variant in forward else None
-        metrics = track_metrics(track, run.gt_poses, run.gt_rooms)
+        track = tracks[variant].window(scored)
+        fine = forward[variant].fine.window(scored) if variant in forward and forward[variant].fine else None
+        metrics = track_metrics(track, gt_poses, gt_rooms)
         assert metrics is not None
         results.append(
             RunResult(
                 variant,
                 trajectory,
                 repeat,
-                translation_errors_m(track.poses, run.gt_poses),
-                orientation_errors_deg(track.poses, run.gt_poses),
-                (track.rooms == run.gt_rooms).astype(float),
-                inside_ellipse(track.poses, track.covariances, run.gt_poses),
+                translation_errors_m(track.poses, gt_poses),
+                orientation_errors_deg(track.poses, gt_poses),
+                (track.rooms == gt_rooms).astype(float),
+                inside_ellipse(track.poses, track.covariances, gt_poses),
                 track.step_ms,
                 metrics.to_dict(),
                 fine.accepted[fine.ran].astype(float) if fine is not None else None,
                 fine.rejection_counts() if fine is not None else None,
+                scored.start,
             )
         )
     return results
@@ -144,6 +165,7 @@ def _pooled(runs: list[RunResult]) -> dict:
         "room_acc_std": float(room.std()),
         "step_ms_median": float(np.median(np.concatenate([r.step_ms for r in runs]))),
         "steps_to_converge": converged,
+        "scored_from_steps": [r.scored_from for r in runs],
         "converged_runs": sum(c is not None for c in converged),
         "runs": len(runs),
         "trans_err_conv_m": float(np.mean(conv_trans)) if conv_trans else None,
@@ -195,7 +217,13 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
         "benchmark": "paper",
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "prior": str(prior_dir),
-        "protocol": {"trajectories": ev.num_trajectories, "steps": ev.trajectory_length, "repeats": ev.repeats},
+        "protocol": {
+            "trajectories": ev.num_trajectories,
+            "steps": ev.trajectory_length,
+            "repeats": ev.repeats,
+            "score_from": ev.score_from,
+            "warmup_max_steps": ev.warmup_max_steps if ev.score_from == "filter_converged" else 0,
+        },
         "variants": list(ev.variants),
     }
     for variant in ev.variants:
@@ -241,6 +269,12 @@ def format_table_one(report: dict, variant: str) -> str:
         lines.append(
             f"95 % interval of the average (bootstrap over the {average['runs']} runs): "
             f"{t0:.2f}–{t1:.2f} m, {o0:.1f}–{o1:.1f}°, {100 * r0:.1f}–{100 * r1:.1f} %"
+        )
+    starts = average.get("scored_from_steps", [])
+    if any(starts):
+        lines.append(
+            f"scored from the step the filter first reported itself converged: median step {np.median(starts):g} "
+            f"(range {min(starts)}–{max(starts)}) of the {average['runs']} runs"
         )
     return "\n".join(lines)
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bimfactor.evaluation.paper import RunResult, _confidence_intervals, _pooled, format_table_one
+from bimfactor.evaluation.paper import RunResult, _confidence_intervals, _pooled, format_table_one, scoring_window
+from bimfactor.pipeline import FineTrack, Track
 
 
 def _run(trajectory: int, repeat: int, trans: float, room: float) -> RunResult:
@@ -35,3 +36,33 @@ def test_the_average_carries_a_bootstrap_interval_over_runs_and_the_table_prints
     assert _confidence_intervals(runs[:1]) == {}  # one run has no interval, and the table has no such line
     single = {"variants": ["smcl"], "smcl": {"average": _pooled(runs[:1]), "per_trajectory": {}}}
     assert format_table_one(single, "smcl").splitlines()[-1].startswith("Avg.")
+    for run, start in zip(runs, (0, 2, 2, 4, 9, 3, 30), strict=True):
+        run.scored_from = start
+    warmed = {"variants": ["smcl"], "smcl": {"average": _pooled(runs), "per_trajectory": {}}}
+    assert format_table_one(warmed, "smcl").splitlines()[-1] == (
+        "scored from the step the filter first reported itself converged: median step 3 (range 0–30) of the 7 runs"
+    )
+
+
+def test_scoring_starts_at_the_first_frame_or_where_the_filter_first_reports_itself_converged() -> None:
+    flags = np.zeros(40, bool)
+    flags[[7, 8, 20]] = True
+    assert scoring_window(flags, 10, "start", 30) == slice(0, 10)
+    assert scoring_window(flags, 10, "filter_converged", 30) == slice(7, 17)
+    assert scoring_window(flags, 10, "filter_converged", 5) == slice(5, 15)  # not converged in time: from the cap
+    assert scoring_window(np.ones(40, bool), 10, "filter_converged", 30) == slice(0, 10)
+    assert scoring_window(np.zeros(40, bool), 10, "filter_converged", 30) == slice(30, 40)
+
+
+def test_a_window_of_a_track_keeps_those_steps_of_every_field() -> None:
+    steps = 6
+    track = Track(
+        np.arange(steps * 3.0).reshape(steps, 3), np.zeros((steps, 3, 3)), np.zeros(steps, int), np.arange(steps),
+        np.arange(steps, dtype=float),
+    )  # fmt: skip
+    part = track.window(slice(2, 5))
+    assert part.poses.tolist() == track.poses[2:5].tolist() and part.rooms.tolist() == [2, 3, 4]
+    assert part.covariances.shape == (3, 3, 3) and part.step_ms.tolist() == [2.0, 3.0, 4.0]
+    fine = FineTrack(np.ones(steps, bool), np.arange(steps) % 2 == 0, [[f"r{i}"] for i in range(steps)], np.ones(steps))
+    tail = fine.window(slice(4, 6))
+    assert tail.reasons == [["r4"], ["r5"]] and tail.accepted.tolist() == [True, False]
