@@ -2,7 +2,9 @@
 
 Each trajectory is simulated once (its route, sensor and odometry noise fixed by the config seed) and
 localized `repeats` times with different filter and perception seeds, like replaying one recording three
-times. Table I's statistics are mean ± std over the steps of a trajectory's repeats; the average row pools
+times. The scored steps are the first T (`evaluation.score_from: start`) or the T from the step the filter first
+reports itself converged (`filter_converged`, the route simulated longer). Table I's statistics are mean ± std over
+the steps of a trajectory's repeats; the average row pools
 every step of every run, and comes with a 95 % bootstrap interval that resamples whole runs (a run that locks onto
 a wrong place is wrong for many steps at once, so the steps' std says little about how far the average can move
 when the same protocol runs with other seeds). Runs go to parallel processes.
@@ -110,7 +112,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
     tracks = {"smcl": run.filter, **{online: r.graph for online, r in forward.items() if r.graph is not None}}
     if "refine" in variants:
         tracks["refine"] = refine_run(forward["smcl+graph"], prior, cfg, matcher).estimate
-    # Every variant of the run is scored over the same steps, chosen by the filter's own converged flag at most.
+    # Every variant of the run is scored over the same steps; where they begin depends on the filter's own flag only.
     scored = scoring_window(run.converged, ev.trajectory_length, ev.score_from, warmup)
     gt_poses, gt_rooms = run.gt_poses[scored], run.gt_rooms[scored]
     results = []

@@ -373,7 +373,8 @@ class SemanticMCL:
         return np.where(self.fresh, 0.0, self.weights) if not self.fresh.all() else self.weights
 
     def injection_probability(self) -> float:
-        """Augmented MCL: max(0, 1 − w_fast / w_slow); 0 for the paper's filter."""
+        """Augmented MCL: max(0, 1 − w_fast / w_slow), w_slow floored at exp((s − 1) / T) when
+        `injection_reference_score` s > 0; 0 for the paper's filter."""
         if not self.cfg.augmented or not self.w_slow or self.w_fast is None:
             return 0.0
         reference = np.exp((self.cfg.injection_reference_score - 1.0) / self.cfg.temperature)
