@@ -306,20 +306,24 @@ class SemanticLikelihood:
 
     def scores(self, particles: np.ndarray, storeys: np.ndarray, observations: Observations) -> np.ndarray:
         """(M,) mean matched score in [0, 1] of each particle: the optimal assignment's summed φ over K."""
-        return self._scores_and_matches(particles, storeys, observations)[0]
+        return self._scores_and_matches(particles, storeys, observations, count_matches=False)[0]
 
     def _scores_and_matches(
-        self, particles: np.ndarray, storeys: np.ndarray, observations: Observations
-    ) -> tuple[np.ndarray, np.ndarray]:
+        self, particles: np.ndarray, storeys: np.ndarray, observations: Observations, count_matches: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """(M,) mean matched score and (M,) how many observations can pair with a distinct candidate (an upper
-        bound on the assignment's size: min of the observations and the candidates that take part in a pair)."""
+        bound on the assignment's size: min of the observations and the candidates that take part in a pair), or
+        None without `count_matches` (two passes over the (M, K, C) pair scores that only the missed-detection
+        term needs)."""
         K = len(observations)
         M = len(np.asarray(particles).reshape(-1, 3))
         if K == 0:
-            return np.zeros(M), np.zeros(M, np.int64)
+            return np.zeros(M), np.zeros(M, np.int64) if count_matches else None
         phi, _ = self.pair_scores(particles, storeys, observations)
         totals, calls = assignment_sums(phi)
         self.last_stats.hungarian_calls = calls
+        if not count_matches:
+            return totals / K, None
         paired = phi > 0
         matched = np.minimum(paired.any(axis=2).sum(axis=1), paired.any(axis=1).sum(axis=1))
         return totals / K, matched
@@ -344,10 +348,10 @@ class SemanticLikelihood:
         miss with probability 1 − p_d. Without it a pose among many objects explains a lone false positive that a
         pose in an empty corridor cannot, and nothing charges it for the objects it predicts and nobody saw.
         """
-        scores, matched = self._scores_and_matches(particles, storeys, observations)
-        semantic = scores / self.cfg.temperature
         p_d = self.cfg.detection_probability
-        if p_d <= 0.0:
+        scores, matched = self._scores_and_matches(particles, storeys, observations, count_matches=p_d > 0.0)
+        semantic = scores / self.cfg.temperature
+        if matched is None:
             return semantic, np.zeros_like(semantic)
         missed = np.maximum(self.expected_detections(particles, storeys) - matched, 0)
         return semantic, missed * np.log1p(-p_d)
