@@ -530,6 +530,11 @@ class EvaluationConfig(_Strict):
     )
     warmup_max_steps: int = Field(ge=0, description="filter_converged: the most unscored steps before the T scored.")
 
+    @property
+    def warmup_steps(self) -> int:
+        """Keyframes a route is simulated beyond T: `warmup_max_steps` with filter_converged, none from the start."""
+        return self.warmup_max_steps if self.score_from == "filter_converged" else 0
+
 
 class Config(_Strict):
     seed: int = Field(description="Seed of every random generator in a run.")

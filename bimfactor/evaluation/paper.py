@@ -87,9 +87,8 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
     ev = cfg.evaluation
     variants = ev.variants
     prior, model = load_world_inputs(prior_dir, cfg)
-    warmup = ev.warmup_max_steps if ev.score_from == "filter_converged" else 0
     sim_cfg = cfg.model_copy(
-        update={"evaluation": ev.model_copy(update={"trajectory_length": ev.trajectory_length + warmup})}
+        update={"evaluation": ev.model_copy(update={"trajectory_length": ev.trajectory_length + ev.warmup_steps})}
     )
     sim = simulate_sequence(prior, model, sim_cfg, trajectory, cfg.seed, progress=False)
     online_variants = forward_variants(variants)
@@ -113,7 +112,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
     if "refine" in variants:
         tracks["refine"] = refine_run(forward["smcl+graph"], prior, cfg, matcher).estimate
     # Every variant of the run is scored over the same steps; where they begin depends on the filter's own flag only.
-    scored = scoring_window(run.converged, ev.trajectory_length, ev.score_from, warmup)
+    scored = scoring_window(run.converged, ev.trajectory_length, ev.score_from, ev.warmup_steps)
     gt_poses, gt_rooms = run.gt_poses[scored], run.gt_rooms[scored]
     results = []
     for variant in variants:
@@ -224,7 +223,7 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
             "steps": ev.trajectory_length,
             "repeats": ev.repeats,
             "score_from": ev.score_from,
-            "warmup_max_steps": ev.warmup_max_steps if ev.score_from == "filter_converged" else 0,
+            "warmup_max_steps": ev.warmup_steps,
         },
         "variants": list(ev.variants),
     }

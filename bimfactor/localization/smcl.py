@@ -377,8 +377,9 @@ class SemanticMCL:
         `injection_reference_score` s > 0; 0 for the paper's filter."""
         if not self.cfg.augmented or not self.w_slow or self.w_fast is None:
             return 0.0
-        reference = np.exp((self.cfg.injection_reference_score - 1.0) / self.cfg.temperature)
-        w_slow = max(self.w_slow, reference) if self.cfg.injection_reference_score > 0 else self.w_slow
+        w_slow = self.w_slow
+        if self.cfg.injection_reference_score > 0:
+            w_slow = max(w_slow, np.exp((self.cfg.injection_reference_score - 1.0) / self.cfg.temperature))
         return max(0.0, 1.0 - self.w_fast / w_slow)
 
     def resample_if_needed(self, observations: Observations | None = None) -> tuple[bool, int]:
