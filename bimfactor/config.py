@@ -214,7 +214,12 @@ class SmclConfig(_Strict):
         le=1.0,
         description="Pairs whose φ_sem is below this score 0 (depends on `semantic` and the embeddings).",
     )
-    temperature: float = Field(gt=0.0, description="T in P(z|x) = exp(score / T); the paper gives no value.")
+    temperature: float = Field(gt=0.0, description="T in P(z|x) = exp(K^(1−γ) · score / T); the paper gives no value.")
+    score_count_exponent: float = Field(
+        ge=0.0,
+        le=1.0,
+        description="γ: the matched φ summed over K observations is divided by K^γ (1: the paper's mean; 0: the sum).",
+    )
     confidence_zero: float = Field(
         ge=0.0,
         le=1.0,

@@ -14,9 +14,12 @@ one end is not penalised for being a metre from the table's centre. A one-to-one
 observations to candidates maximises the summed φ (Hungarian); the particle's score is that sum divided by the
 number of observations K, so an observation without a partner counts 0 (a particle that explains fewer of the
 observations scores lower; clutter that no particle explains lowers every particle alike). The likelihood is
-P(z|x) = exp(score / T). With `confidence_full` > 0 (beyond the paper; off by default) each observation's φ is
-scaled by a ramp of its node's best detector confidence, so a node only ever detected just above the detector's
-threshold (where most false positives score) moves the particles less. With `detection_probability` p_d > 0
+P(z|x) = exp(K^(1−γ) · score / T) (`score_count_exponent` γ): γ = 1 is the paper's exp(score / T), where a frame
+of six matched objects weighs as much as a frame of one; γ = 0 (beyond the paper, the default) is exp(Σφ / T),
+each observation its own factor, as independent measurements multiply. With `confidence_full` > 0 (beyond the
+paper; off by default) each observation's φ is scaled by a ramp of its node's best detector confidence, so a node
+only ever detected just above the detector's threshold (where most false positives score) moves the particles
+less. With `detection_probability` p_d > 0
 (beyond the paper; off by default) log P(z|x) also gains n_missed · log(1 − p_d) for the objects x should see
 near it that no observation pairs with (`log_likelihood_terms`).
 
@@ -338,10 +341,16 @@ class SemanticLikelihood:
         near = (d <= self.cfg.detection_range_m) & (np.abs(alpha) <= self.half_fov_rad) & self.detectable[ids]
         return np.bincount(owner[near], minlength=len(particles))
 
+    def count_scale(self, n_observations: int) -> float:
+        """K^(1−γ): what the mean matched score of K observations is multiplied by in the log-likelihood (1 for the
+        paper's mean, γ = 1; K for the sum, γ = 0)."""
+        return float(n_observations) ** (1.0 - self.cfg.score_count_exponent)
+
     def log_likelihood_terms(
         self, particles: np.ndarray, storeys: np.ndarray, observations: Observations
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(M,) semantic term score / T and (M,) missed-detection term n_missed · log(1 − p_d).
+        """(M,) semantic term K^(1−γ) · score / T (`count_scale`) and (M,) missed-detection term
+        n_missed · log(1 − p_d).
 
         The second (beyond the paper; 0 when `detection_probability` is 0) is negative information: a particle
         that should see n objects near it but whose observations pair with only m of them missed n − m, each a
@@ -350,7 +359,7 @@ class SemanticLikelihood:
         """
         p_d = self.cfg.detection_probability
         scores, matched = self._scores_and_matches(particles, storeys, observations, count_matches=p_d > 0.0)
-        semantic = scores / self.cfg.temperature
+        semantic = scores * (self.count_scale(len(observations)) / self.cfg.temperature)
         if matched is None:
             return semantic, np.zeros_like(semantic)
         missed = np.maximum(self.expected_detections(particles, storeys) - matched, 0)

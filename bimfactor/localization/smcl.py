@@ -350,8 +350,10 @@ class SemanticMCL:
             log_likelihood += semantic + missed
         if has_observations and self.cfg.augmented:
             # Augmented MCL watches the semantic term alone: a wrong place of the same shape fits the scan
-            # as well as the right one. Average likelihood on an absolute scale (a perfect match = 1).
-            w_avg = float(np.dot(self.weights, np.exp(semantic - 1.0 / self.cfg.temperature)))
+            # as well as the right one. Average likelihood on an absolute scale (a perfect match = 1) of the
+            # mean matched score, whatever the number of observations (`count_scale`).
+            mean_term = semantic / self.likelihood.count_scale(len(observations))
+            w_avg = float(np.dot(self.weights, np.exp(mean_term - 1.0 / self.cfg.temperature)))
             rate_slow, rate_fast = self.cfg.alpha_slow, self.cfg.alpha_fast
             self.w_slow = w_avg if self.w_slow is None else self.w_slow + rate_slow * (w_avg - self.w_slow)
             self.w_fast = w_avg if self.w_fast is None else self.w_fast + rate_fast * (w_avg - self.w_fast)

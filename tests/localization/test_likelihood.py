@@ -82,6 +82,21 @@ def test_an_unmatched_observation_counts_zero_in_the_mean(box_prior, box_visibil
     assert scorer.scores(particle, np.array([0]), with_unexplained)[0] == pytest.approx(0.5)
 
 
+def test_the_count_exponent_scales_the_mean_score_from_the_papers_mean_to_the_sum(box_prior, box_visibility, smcl_cfg):
+    particle, storey = np.array([[4.0, 3.0, np.pi]]), np.array([0])
+    # Facing west from (4, 3): the chair 1 m ahead, the cabinet at (1, 5) √13 m away and 33.7° to the right.
+    both = observe(("chair", 1.0, 0.0), ("cabinet", np.sqrt(13.0), np.arctan2(2.0, -3.0) - np.pi))
+    half = observe(("chair", 1.0, 0.0), ("table", 2.0, 0.0))  # the table is behind the wall: scores 0
+    for gamma, scale in ((1.0, 1.0), (0.5, np.sqrt(2.0)), (0.0, 2.0)):
+        cfg = smcl_cfg.model_copy(update={"score_count_exponent": gamma, "detection_probability": 0.0})
+        scorer = SemanticLikelihood(box_prior, box_visibility, cfg)
+        assert scorer.scores(particle, storey, both)[0] == pytest.approx(1.0, abs=1e-3)  # the mean, whatever γ
+        assert scorer.count_scale(2) == pytest.approx(scale)
+        np.testing.assert_allclose(scorer.log_likelihood(particle, storey, both), scale / cfg.temperature, rtol=1e-3)
+        np.testing.assert_allclose(scorer.log_likelihood(particle, storey, half), scale * 0.5 / cfg.temperature)
+        assert scorer.count_scale(1) == 1.0  # one observation weighs the same either way
+
+
 def test_a_low_confidence_observation_counts_by_its_confidence_ramp(box_prior, box_visibility, smcl_cfg):
     ramp = smcl_cfg.model_copy(update={"confidence_zero": 0.2, "confidence_full": 0.4})
     particle = np.array([[4.0, 3.0, np.pi]])

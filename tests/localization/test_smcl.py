@@ -245,6 +245,24 @@ def test_augmented_mcl_injects_random_particles_when_the_short_average_drops(box
     assert paper.injection_probability() == 0.0 and paper.resample_if_needed() == (False, 0)
 
 
+def test_the_recovery_averages_watch_the_mean_score_whatever_the_count_exponent(box_prior, box_visibility, smcl_cfg):
+    both = observe(("chair", 1.0, 0.0), ("table", 2.0, 0.0))  # from the first particle: the chair scores 1, the table 0
+    averages = []
+    for gamma in (1.0, 0.0):
+        cfg = smcl_cfg.model_copy(update={"augmented": True, "score_count_exponent": gamma, "scan_likelihood": False})
+        mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0), num_particles=2)
+        mcl.initialize()
+        mcl.particles = np.array([[4.0, 3.0, np.pi], [4.0, 3.0, 0.0]])
+        mcl.storeys = np.zeros(2, np.int64)
+        mcl.update(both)
+        averages.append(mcl.w_fast)
+        ratio = np.exp(cfg.temperature**-1 * (0.5 if gamma == 1.0 else 1.0))  # exp(K^(1-γ) · mean / T), mean 0.5
+        np.testing.assert_allclose(mcl.weights[0] / mcl.weights[1], ratio, rtol=1e-6)
+    # Both started from equal weights: the average of the likelihoods of mean scores 0.5 and 0, on the mean's scale.
+    expected = 0.5 * (np.exp(-0.5 / smcl_cfg.temperature) + np.exp(-1.0 / smcl_cfg.temperature))
+    np.testing.assert_allclose(averages, expected)
+
+
 def test_a_reference_score_floors_the_long_term_average(box_prior, box_visibility, smcl_cfg):
     """A filter whose long-term average began at the uniform cloud's (tiny) likelihood never sees its short average
     drop below it; the reference floor makes a poorly explaining filter inject all the same, a well explaining
