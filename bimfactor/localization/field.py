@@ -93,23 +93,33 @@ class LikelihoodField:
         self._walls = np.append(np.stack([layers.structure for layers in prior.storeys]).ravel(), False)
 
     def _index(self, storeys: np.ndarray | int, row: np.ndarray, col: np.ndarray) -> np.ndarray:
-        """Flat field indices of integer (row, col) cells on their storeys; the last index for cells off the grid."""
+        """Flat field indices of int64 (row, col) cells on their storeys; the last index for cells off the grid."""
         grid = self.grid
-        inside = (row >= 0) & (row < grid.rows) & (col >= 0) & (col < grid.cols)
-        flat = (storeys * grid.rows + row) * grid.cols + col
+        # Viewed as unsigned, a negative index is huge: one comparison per axis tests both bounds.
+        inside = (row.view(np.uint64) < grid.rows) & (col.view(np.uint64) < grid.cols)
+        flat = storeys * grid.rows + row
+        flat *= grid.cols
+        flat += col
         return np.where(inside, flat, len(self._field) - 1)
 
     def _flat(self, poses: np.ndarray, storeys: np.ndarray | int, points: np.ndarray) -> np.ndarray:
         """(M, N) flat field indices of (N, 2) base-frame points placed by (M, 3) poses."""
         grid = self.grid
-        c = np.cos(poses[:, 2])[:, None] / grid.resolution_m
-        s = np.sin(poses[:, 2])[:, None] / grid.resolution_m
-        x0 = ((poses[:, 0] - grid.origin_x) / grid.resolution_m)[:, None]
-        y0 = ((poses[:, 1] - grid.origin_y) / grid.resolution_m)[:, None]
-        col = np.floor(x0 + c * points[None, :, 0] - s * points[None, :, 1]).astype(np.int64)
-        row = np.floor(y0 + s * points[None, :, 0] + c * points[None, :, 1]).astype(np.int64)
-        storeys = np.broadcast_to(np.asarray(storeys, np.int64).reshape(-1), (len(poses),))
-        return self._index(storeys[:, None], row, col)
+        res = grid.resolution_m
+        c, s = np.cos(poses[:, 2]) / res, np.sin(poses[:, 2]) / res
+        # The grid columns (first M rows) and rows (last M) of every point from every pose as one product
+        # (2M, 3) @ (3, N) of the poses' affine maps and the homogeneous points: a tenth of the elementwise cost.
+        affine = np.concatenate(
+            [
+                np.column_stack([(poses[:, 0] - grid.origin_x) / res, c, -s]),
+                np.column_stack([(poses[:, 1] - grid.origin_y) / res, s, c]),
+            ]
+        )
+        homogeneous = np.vstack([np.ones(len(points)), points[:, 0], points[:, 1]])
+        cells = np.floor(affine @ homogeneous).astype(np.int64)
+        M = len(poses)
+        storeys = np.broadcast_to(np.asarray(storeys, np.int64).reshape(-1), (M,))
+        return self._index(storeys[:, None], cells[M:], cells[:M])
 
     def _grid_flat(
         self, pose: np.ndarray, dxy: np.ndarray, dyaw: np.ndarray, storey: int, points: np.ndarray

@@ -93,6 +93,37 @@ def test_scan_score_peaks_at_the_pose_that_put_the_walls_where_they_are(box_prio
     )
 
 
+def test_field_lookups_are_those_of_each_endpoint_placed_one_at_a_time(smcl_cfg: SmclConfig):
+    """The batched lookup (one matrix product for all poses) against placing every endpoint by hand, on two storeys
+    and with endpoints off the grid on every side (they score 0)."""
+    from bimfactor.localization.field import LikelihoodField
+    from tests.localization.handmade import make_prior
+
+    prior = make_prior(n_storeys=2)
+    field = LikelihoodField(prior, smcl_cfg.scan_sigma_m)
+    grid = prior.grid
+    rng = np.random.default_rng(3)
+    poses = np.column_stack([rng.uniform(-2.0, 14.0, 40), rng.uniform(-2.0, 9.0, 40), rng.uniform(-np.pi, np.pi, 40)])
+    storeys = rng.integers(0, 2, 40)
+    endpoints = rng.uniform(-8.0, 8.0, (25, 2))
+    values = field.values(poses, storeys, endpoints)
+    expected = np.zeros_like(values)
+    distance = np.stack([layers.clearance_m for layers in prior.storeys])
+    for m, ((x, y, yaw), storey) in enumerate(zip(poses, storeys, strict=True)):
+        for n, (px, py) in enumerate(endpoints):
+            wx, wy = x + np.cos(yaw) * px - np.sin(yaw) * py, y + np.sin(yaw) * px + np.cos(yaw) * py
+            col, row = (
+                int(np.floor((wx - grid.origin_x) / grid.resolution_m)),
+                int(np.floor((wy - grid.origin_y) / grid.resolution_m)),
+            )
+            if 0 <= row < grid.rows and 0 <= col < grid.cols:
+                expected[m, n] = np.rint(
+                    255.0 * np.exp(-0.5 * (distance[storey, row, col] / smcl_cfg.scan_sigma_m) ** 2)
+                )
+    assert (expected == 0).any() and (expected > 0).any()
+    np.testing.assert_array_equal(values, expected)
+
+
 def _two_particles(prior: BimPrior, visibility: VisibilityTable, cfg: SmclConfig) -> SemanticMCL:
     mcl = SemanticMCL(prior, visibility, cfg, np.random.default_rng(0), num_particles=2)
     mcl.initialize()
