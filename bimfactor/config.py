@@ -456,6 +456,10 @@ class BackendConfig(_Strict):
     reassociate_distance_m: float = Field(ge=0.0, description="Re-associate when the estimate moves this far ...")
     reassociate_yaw_deg: float = Field(ge=0.0, description="... or turns this much from the pose that associated.")
     relinearize_threshold: float = Field(gt=0.0, description="ISAM2 relinearization threshold.")
+    relinearize_skip: int = Field(
+        ge=1,
+        description="ISAM2 considers relinearizing every this many updates (1: every keyframe; GTSAM's default 10).",
+    )
     lm_max_iterations: int = Field(ge=1, description="Levenberg–Marquardt iterations of the offline batch refine.")
     refine_rounds: int = Field(
         ge=0, description="Offline refine: rounds of re-association at the refined poses (0: the forward matches)."

@@ -142,7 +142,7 @@ class ModeGraph:
         self.landmarks = Landmarks.of(landmarks)
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(cfg.relinearize_threshold)
-        params.relinearizeSkip = 1
+        params.relinearizeSkip = cfg.relinearize_skip
         self.isam = gtsam.ISAM2(params)
         self.noise = bearing_range_noise(cfg)
         self.first_index = first_index

@@ -84,9 +84,12 @@ def test_covariance_frame_round_trip():
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_isam2_converges_to_the_true_loop(seed):
-    sc = loop_scenario(np.random.default_rng(seed), PRECISE)
-    graph = _run_isam(sc, PRECISE)
+@pytest.mark.parametrize("relinearize_skip", [1, 10])
+def test_isam2_converges_to_the_true_loop(seed, relinearize_skip):
+    cfg = PRECISE.model_copy(update={"relinearize_skip": relinearize_skip})
+    sc = loop_scenario(np.random.default_rng(seed), cfg)
+    graph = _run_isam(sc, cfg)
+    assert graph.isam.params().relinearizeSkip == relinearize_skip
     trans_rms_m, yaw_rms_deg = _errors(graph.trajectory(), sc.true_poses)
     assert trans_rms_m < 0.05
     assert yaw_rms_deg < 1.0
