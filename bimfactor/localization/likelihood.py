@@ -19,9 +19,9 @@ of six matched objects weighs as much as a frame of one; γ = 0 (beyond the pape
 each observation its own factor, as independent measurements multiply. With `confidence_full` > 0 (beyond the
 paper; off by default) each observation's φ is scaled by a ramp of its node's best detector confidence, so a node
 only ever detected just above the detector's threshold (where most false positives score) moves the particles
-less. With `detection_probability` p_d > 0
-(beyond the paper; off by default) log P(z|x) also gains n_missed · log(1 − p_d) for the objects x should see
-near it that no observation pairs with (`log_likelihood_terms`).
+less. With `detection_probability` p_d > 0 (beyond the paper; off by default) log P(z|x) also gains
+n_missed · log(1 − p_d) for the objects x should see near it that no observation pairs with
+(`log_likelihood_terms`).
 
 Everything but the assignment is computed for all particles at once on the sparse set of pairs that pass the
 FOV and semantic screens, then laid out as a padded (M, K, C) array. The assignment is exact for every particle
