@@ -27,6 +27,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +35,10 @@ from bimfactor.config import Config
 from bimfactor.evaluation.metrics import run_bootstrap_ci
 from bimfactor.io.atomic import write_text_atomic
 from bimfactor.progress import progress
+
+if TYPE_CHECKING:
+    from bimfactor.bim.prior import BimPrior
+    from bimfactor.sim.simulate import SimResult
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +79,24 @@ def scoring_window(converged: np.ndarray, steps: int, score_from: str, warmup_ma
     return slice(first, first + steps)
 
 
+def simulate_route(prior_dir: str | Path, cfg: Config, trajectory: int) -> tuple[SimResult, BimPrior]:
+    """Trajectory `trajectory` of the config seed on the prior's building, as the protocol simulates it (with
+    `filter_converged`, `warmup_max_steps` keyframes longer); returns it with the loaded prior."""
+    from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
+
+    ev = cfg.evaluation
+    prior, model = load_world_inputs(prior_dir, cfg)
+    sim_cfg = cfg.model_copy(
+        update={"evaluation": ev.model_copy(update={"trajectory_length": ev.trajectory_length + ev.warmup_steps})}
+    )
+    return simulate_sequence(prior, model, sim_cfg, trajectory, cfg.seed, progress=False), prior
+
+
+def run_seed(seed: int, trajectory: int, repeat: int) -> int:
+    """The filter and perception seed of one run: repeat `repeat` of trajectory `trajectory` under config `seed`."""
+    return seed * 1000 + 17 * trajectory + repeat
+
+
 def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> list[RunResult]:
     """Simulate trajectory k (config seed), localize it with seed (config seed, repeat), score every variant; in a
     worker process."""
@@ -81,16 +104,11 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
     from bimfactor.evaluation.metrics import inside_ellipse, orientation_errors_deg, translation_errors_m
     from bimfactor.evaluation.report import track_metrics
     from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run, scan_matcher
-    from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
 
     cfg = Config.model_validate_json(cfg_json)
     ev = cfg.evaluation
     variants = ev.variants
-    prior, model = load_world_inputs(prior_dir, cfg)
-    sim_cfg = cfg.model_copy(
-        update={"evaluation": ev.model_copy(update={"trajectory_length": ev.trajectory_length + ev.warmup_steps})}
-    )
-    sim = simulate_sequence(prior, model, sim_cfg, trajectory, cfg.seed, progress=False)
+    sim, prior = simulate_route(prior_dir, cfg, trajectory)
     online_variants = forward_variants(variants)
     matcher = scan_matcher(prior, cfg) if any(v in GRAPH_VARIANTS for v in online_variants) else None
     forward = {}
@@ -101,7 +119,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
             sim.meta,
             sim.frames,
             online_cfg,
-            seed=cfg.seed * 1000 + 17 * trajectory + repeat,
+            seed=run_seed(cfg.seed, trajectory, repeat),
             show_progress=False,
             prior_dir=prior_dir,
             matcher=matcher,
