@@ -6,7 +6,6 @@ import importlib.util
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 TOOLS = Path(__file__).resolve().parent.parent / "tools"
@@ -43,21 +42,3 @@ def test_belief_at_truth_summary_splits_the_error_into_first_keyframes_and_late_
     assert s["share_of_error_of_those_after_step_10"] == pytest.approx(10.0 / total)
     assert s["mean_weight_at_truth_by_step"][0] == pytest.approx(0.4 / 3)
     assert s["trans_err_by_step_m"][-1] == pytest.approx((0.1 + 0.2 + 5.0) / 3)
-
-
-def test_building_symmetry_finds_the_half_turn_between_twin_flats_and_none_in_an_irregular_layout() -> None:
-    tool = _load("building_symmetry")
-    flat = np.array([[1.0, 1.0], [3.0, 1.5], [2.0, 4.0], [0.5, 3.0], [3.5, 3.5]])
-    labels = ["bed", "table", "sofa", "chair", "chair"]
-    centre = np.array([6.0, 2.0])
-    twin = 2 * centre - flat  # the second flat: the first turned by 180° about `centre`
-    points = np.vstack([flat, twin, [[12.0, 9.0]]])  # and one object only one flat has
-    best = tool.symmetries(points, labels + labels + ["plant"])[0]
-    assert abs(abs(best.theta_rad) - np.pi) < np.deg2rad(1.0)
-    fixed = np.linalg.solve(np.eye(2) - tool._rotation(best.theta_rad), best.translation)
-    assert np.allclose(fixed, centre, atol=0.05)
-    assert best.matched == 10 and best.total == 11
-    assert "rotation by 180° about (6.00, 2.00) m: 10 of 11 objects" in best.describe()
-
-    irregular = tool.symmetries(flat, labels)
-    assert all(motion.matched <= 2 for motion in irregular)  # at most the two chairs swap

@@ -7,10 +7,14 @@ as mean ± std over its steps, as Table I does.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from bimfactor.types import wrap_angle
+
+if TYPE_CHECKING:
+    from bimfactor.bim.symmetry import Motion
 
 CONVERGED_TRANS_M = 1.0
 CONVERGED_ORIENT_DEG = 15.0
@@ -24,6 +28,27 @@ def translation_errors_m(estimates: np.ndarray, ground_truth: np.ndarray) -> np.
 def orientation_errors_deg(estimates: np.ndarray, ground_truth: np.ndarray) -> np.ndarray:
     """(T,) |yaw − ŷaw| per step in degrees, wrapped."""
     return np.rad2deg(np.abs(wrap_angle(np.asarray(estimates)[:, 2] - np.asarray(ground_truth)[:, 2])))
+
+
+def errors_up_to_twin(
+    estimates: np.ndarray, ground_truth: np.ndarray, storeys: np.ndarray, twins: dict[int, Motion]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per step, the translation (m) and orientation (°) errors against the true pose or its twin (the true storey's
+    twin motion applied, `bim.symmetry.twin_motions`), whichever is nearer in position: a twin building's error
+    apart from the choice between twins that nothing observed can make."""
+    trans = translation_errors_m(estimates, ground_truth)
+    orient = orientation_errors_deg(estimates, ground_truth)
+    storeys = np.asarray(storeys)
+    for storey, motion in twins.items():
+        on = storeys == storey
+        if not on.any():
+            continue
+        twin = motion.apply(ground_truth[on])
+        twin_trans = translation_errors_m(estimates[on], twin)
+        nearer = twin_trans < trans[on]
+        orient[on] = np.where(nearer, orientation_errors_deg(estimates[on], twin), orient[on])
+        trans[on] = np.minimum(twin_trans, trans[on])
+    return trans, orient
 
 
 def steps_to_converge(trans_err_m: np.ndarray, orient_err_deg: np.ndarray) -> int | None:

@@ -59,6 +59,8 @@ class RunResult:
     icp_accepted: np.ndarray | None = None
     icp_rejections: dict[str, int] | None = None
     scored_from: int = 0
+    trans_err_twin_m: np.ndarray | None = None  # up to the building's twin motion (`errors_up_to_twin`), if any
+    orient_err_twin_deg: np.ndarray | None = None
 
 
 def forward_variants(variants: list[str]) -> list[str]:
@@ -100,8 +102,14 @@ def run_seed(seed: int, trajectory: int, repeat: int) -> int:
 def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> list[RunResult]:
     """Simulate trajectory k (config seed), localize it with seed (config seed, repeat), score every variant; in a
     worker process."""
+    from bimfactor.bim.symmetry import twin_motions
     from bimfactor.config import Config
-    from bimfactor.evaluation.metrics import inside_ellipse, orientation_errors_deg, translation_errors_m
+    from bimfactor.evaluation.metrics import (
+        errors_up_to_twin,
+        inside_ellipse,
+        orientation_errors_deg,
+        translation_errors_m,
+    )
     from bimfactor.evaluation.report import track_metrics
     from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run, scan_matcher
 
@@ -132,9 +140,12 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
     # Every variant of the run is scored over the same steps; where they begin depends on the filter's own flag only.
     scored = scoring_window(run.converged, ev.trajectory_length, ev.score_from, ev.warmup_steps)
     gt_poses, gt_rooms = run.gt_poses[scored], run.gt_rooms[scored]
+    gt_storeys = np.asarray([f.gt_storey or 0 for f in sim.frames])[scored]
+    twins = twin_motions(prior)
     results = []
     for variant in variants:
         track = tracks[variant].window(scored)
+        twin_errors = errors_up_to_twin(track.poses, gt_poses, gt_storeys, twins) if twins else (None, None)
         fine = forward[variant].fine.window(scored) if variant in forward and forward[variant].fine else None
         metrics = track_metrics(track, gt_poses, gt_rooms)
         assert metrics is not None
@@ -152,6 +163,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
                 fine.accepted[fine.ran].astype(float) if fine is not None else None,
                 fine.rejection_counts() if fine is not None else None,
                 scored.start,
+                *twin_errors,
             )
         )
     return results
@@ -175,6 +187,12 @@ def _pooled(runs: list[RunResult]) -> dict:
             "icp_accepted_share": float(registered.mean()) if len(registered) else None,
             "icp_rejections": dict(rejections.most_common()),
         }
+    twin: dict = {}
+    if runs and all(r.trans_err_twin_m is not None for r in runs):
+        twin = {
+            "trans_err_up_to_twin_m": float(np.concatenate([r.trans_err_twin_m for r in runs]).mean()),
+            "orient_err_up_to_twin_deg": float(np.concatenate([r.orient_err_twin_deg for r in runs]).mean()),
+        }
     return {
         "trans_err_m": float(trans.mean()),
         "trans_err_std_m": float(trans.std()),
@@ -191,6 +209,7 @@ def _pooled(runs: list[RunResult]) -> dict:
         "orient_err_conv_deg": float(np.mean(conv_orient)) if conv_orient else None,
         "ellipse_coverage": float(np.concatenate([r.inside_ellipse95 for r in runs]).mean()),
         **icp,
+        **twin,
         **_by_step(runs),
     }
 
@@ -220,6 +239,8 @@ def _by_step(runs: list[RunResult]) -> dict:
 def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, workers: int | None = None) -> dict:
     """Run the protocol on a prior's building; writes OUT/results.json, OUT/config.yaml and OUT/error_by_step.png;
     returns the report."""
+    from bimfactor.bim.prior import BimPrior
+    from bimfactor.bim.symmetry import twin_motions
     from bimfactor.evaluation.plots import save_error_by_step_plot  # matplotlib: not in the workers' start-up
 
     ev = cfg.evaluation
@@ -244,6 +265,7 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
             "warmup_max_steps": ev.warmup_steps,
         },
         "variants": list(ev.variants),
+        "twins": {storey: motion.describe() for storey, motion in twin_motions(BimPrior.load(prior_dir)).items()},
     }
     for variant in ev.variants:
         runs = [r for r in results if r.variant == variant]
@@ -288,6 +310,12 @@ def format_table_one(report: dict, variant: str) -> str:
         lines.append(
             f"95 % interval of the average (bootstrap over the {average['runs']} runs): "
             f"{t0:.2f}–{t1:.2f} m, {o0:.1f}–{o1:.1f}°, {100 * r0:.1f}–{100 * r1:.1f} %"
+        )
+    if "trans_err_up_to_twin_m" in average:
+        storeys = ", ".join(str(k) for k in report.get("twins", {}))
+        lines.append(
+            f"up to the building's twin places (storeys {storeys}; the motions are results.json's twins): "
+            f"{average['trans_err_up_to_twin_m']:.2f} m, {average['orient_err_up_to_twin_deg']:.1f}°"
         )
     starts = average.get("scored_from_steps", [])
     if any(starts):

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bimfactor.bim.symmetry import Motion
 from bimfactor.evaluation.metrics import (
     ellipse_coverage,
+    errors_up_to_twin,
     inside_ellipse,
     orientation_errors_deg,
     run_bootstrap_ci,
@@ -71,3 +73,21 @@ def test_run_bootstrap_interval_resamples_whole_runs() -> None:
     assert run_bootstrap_ci(runs, level=0.5)[1] < hi
     with pytest.raises(ValueError, match="at least one run"):
         run_bootstrap_ci([])
+
+
+def test_errors_up_to_twin_score_the_nearer_of_the_truth_and_its_twin_on_twin_storeys_only() -> None:
+    half_turn = Motion(np.pi, np.array([12.0, 4.0]), 10, 10)  # about (6, 2)
+    truth = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [2.0, 2.0, 0.5], [1.0, 1.0, 0.0]])
+    estimates = np.array(
+        [
+            [1.1, 1.0, 0.1],  # near the truth
+            [11.0, 3.2, np.pi],  # on the twin: 0.2 m, facing as the twin does
+            [9.0, 2.0, 0.5],  # between the two, nearer the twin (1.0 m off it, turned by π against it)
+            [11.0, 3.0, np.pi],  # the twin's pose, but on a storey without a twin
+        ]
+    )
+    storeys = np.array([1, 1, 1, 0])
+    trans, orient = errors_up_to_twin(estimates, truth, storeys, {1: half_turn})
+    assert trans == pytest.approx([0.1, 0.2, 1.0, np.hypot(10.0, 2.0)])
+    assert orient == pytest.approx([np.rad2deg(0.1), 0.0, 180.0, 180.0])
+    assert np.all(trans <= translation_errors_m(estimates, truth))

@@ -44,6 +44,21 @@ def test_the_average_carries_a_bootstrap_interval_over_runs_and_the_table_prints
     )
 
 
+def test_the_average_up_to_the_twin_places_is_reported_only_when_every_run_has_it() -> None:
+    runs = [_run(k, 0, 3.0, 0.5) for k in range(3)]
+    assert "trans_err_up_to_twin_m" not in _pooled(runs)
+    for run, up_to_twin in zip(runs, (0.1, 0.2, 0.3), strict=True):
+        run.trans_err_twin_m = np.full(10, up_to_twin)
+        run.orient_err_twin_deg = np.full(10, 10 * up_to_twin)
+    average = _pooled(runs)
+    assert average["trans_err_up_to_twin_m"] == pytest.approx(0.2)
+    assert average["orient_err_up_to_twin_deg"] == pytest.approx(2.0)
+    report = {"variants": ["smcl"], "smcl": {"average": average, "per_trajectory": {}}, "twins": {"1": "a half-turn"}}
+    assert format_table_one(report, "smcl").endswith(
+        "up to the building's twin places (storeys 1; the motions are results.json's twins): 0.20 m, 2.0°"
+    )
+
+
 def test_scoring_starts_at_the_first_frame_or_where_the_filter_first_reports_itself_converged() -> None:
     flags = np.zeros(40, bool)
     flags[[7, 8, 20]] = True

@@ -1,0 +1,147 @@
+"""Twin places: rigid motions of a storey that carry its labelled objects onto other objects of the same label.
+
+A semantic localizer cannot tell two places apart when a rotation or translation of the storey carries every
+object onto one of the same label and the walls onto walls (twin flats, a repeated office bay): what the robot
+observes, ranges and bearings included, is the same from both. `symmetries` finds such motions from pairs of
+objects (an object and its nearest neighbours against every pair of the same labels at the same distance);
+`twin_motions` keeps, per storey, the best one that carries nearly everything. The evaluation scores a twin
+building also up to that motion (`evaluation/paper.py`); `tools/building_symmetry.py` lists them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from bimfactor.bim.prior import BimPrior
+
+
+@dataclass
+class Motion:
+    """A planar rigid motion x ↦ R(θ) x + t and how many objects it maps onto another object of their label."""
+
+    theta_rad: float
+    translation: np.ndarray
+    matched: int
+    total: int
+
+    @property
+    def share(self) -> float:
+        return self.matched / self.total
+
+    def apply(self, poses: np.ndarray) -> np.ndarray:
+        """(N, 3) poses (x, y, yaw) carried by the motion: where each pose's twin stands and faces."""
+        poses = np.asarray(poses, float)
+        out = np.empty_like(poses)
+        out[:, :2] = poses[:, :2] @ _rotation(self.theta_rad).T + self.translation
+        out[:, 2] = np.arctan2(np.sin(poses[:, 2] + self.theta_rad), np.cos(poses[:, 2] + self.theta_rad))
+        return out
+
+    def describe(self) -> str:
+        deg = float(np.rad2deg(self.theta_rad))
+        deg = 180.0 if deg <= -179.5 else deg
+        if abs(deg) < 1.0:
+            where = f"translation by ({self.translation[0]:.2f}, {self.translation[1]:.2f}) m"
+        else:
+            # the fixed point c of R c + t = c
+            c = np.linalg.solve(np.eye(2) - _rotation(self.theta_rad), self.translation)
+            where = f"rotation by {deg:.0f}° about ({c[0]:.2f}, {c[1]:.2f}) m"
+        return f"{where}: {self.matched} of {self.total} objects ({100 * self.share:.0f} %)"
+
+
+def _rotation(theta: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def _matched(points: np.ndarray, same_label: np.ndarray, theta: float, t: np.ndarray, tolerance: float) -> int:
+    """Objects the motion carries within `tolerance` of another object of their label (onto itself does not count:
+    a motion near the identity is no twin)."""
+    moved = points @ _rotation(theta).T + t
+    d = np.hypot(*(moved[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+    np.fill_diagonal(d, np.inf)
+    return int((np.where(same_label, d, np.inf).min(axis=1) < tolerance).sum())
+
+
+def symmetries(
+    points: np.ndarray, labels: list[str], tolerance: float = 0.3, neighbours: int = 2, keep: int = 3
+) -> list[Motion]:
+    """The `keep` best non-identity rigid motions of (N, 2) labelled points, best first; a motion that moves the
+    points to where a better one does (`_alike`) is left out."""
+    points = np.asarray(points, float)
+    n = len(points)
+    if n < 2:
+        return []
+    labels_arr = np.asarray(labels)
+    same_label = labels_arr[:, None] == labels_arr[None, :]
+    dist = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+    seen: set[tuple[int, int, int]] = set()
+    scored: list[Motion] = []
+    for i in range(n):
+        for j in np.argsort(dist[i])[1 : neighbours + 1]:
+            for k in np.flatnonzero(same_label[i]):
+                for m in np.flatnonzero(same_label[j] & (np.abs(dist[k] - dist[i, j]) < tolerance)):
+                    if m == k or (k == i and m == j):
+                        continue
+                    a, b = points[j] - points[i], points[m] - points[k]
+                    theta = float(np.arctan2(b[1], b[0]) - np.arctan2(a[1], a[0]))
+                    theta = float(np.arctan2(np.sin(theta), np.cos(theta)))
+                    t = points[k] - _rotation(theta) @ points[i]
+                    if abs(theta) < np.deg2rad(1.0) and np.hypot(*t) < tolerance:
+                        continue  # the identity
+                    key = (round(np.rad2deg(theta) / 5) % 72, round(t[0] / 0.5), round(t[1] / 0.5))
+                    if key not in seen:
+                        seen.add(key)
+                        scored.append(Motion(theta, t, _matched(points, same_label, theta, t, tolerance), n))
+    distinct: list[Motion] = []
+    for motion in sorted(scored, key=lambda m: -m.matched):
+        if not any(_alike(motion, kept, points, tolerance) for kept in distinct):
+            distinct.append(motion)
+    return distinct[:keep]
+
+
+def _alike(a: Motion, b: Motion, points: np.ndarray, tolerance: float) -> bool:
+    """The same motion, as far as the objects tell: it puts them, on the median, within 2 × `tolerance` of where
+    the other does."""
+    moved_a = points @ _rotation(a.theta_rad).T + a.translation
+    moved_b = points @ _rotation(b.theta_rad).T + b.translation
+    return bool(np.median(np.hypot(*(moved_a - moved_b).T)) < 2 * tolerance)
+
+
+def wall_share(prior: BimPrior, storey_index: int, motion: Motion, tolerance: float = 0.1) -> float:
+    """Share of the storey's structure cells (walls, columns) that `motion` carries within `tolerance` metres of a
+    structure cell: 1.0 when the walls repeat as the objects do."""
+    from scipy.ndimage import binary_dilation
+
+    grid = prior.grid
+    structure = np.asarray(prior.storeys[storey_index].structure, bool)
+    rows, cols = np.nonzero(structure)
+    if len(rows) == 0:
+        return float("nan")
+    xy = np.stack(
+        [grid.origin_x + (cols + 0.5) * grid.resolution_m, grid.origin_y + (rows + 0.5) * grid.resolution_m], 1
+    )
+    rc = grid.world_to_cell(xy @ _rotation(motion.theta_rad).T + motion.translation)
+    inside = grid.contains(rc)
+    near = binary_dilation(structure, iterations=max(1, round(tolerance / grid.resolution_m)))
+    hit = np.zeros(len(rc), bool)
+    hit[inside] = near[rc[inside, 0], rc[inside, 1]]
+    return float(hit.mean())
+
+
+def twin_motions(prior: BimPrior, min_object_share: float = 0.9, min_wall_share: float = 0.9) -> dict[int, Motion]:
+    """Per storey, the best non-identity motion that carries at least `min_object_share` of its objects (at least
+    four) onto other objects of their label and `min_wall_share` of its wall cells onto walls; storeys without one
+    are left out."""
+    twins = {}
+    for index in range(len(prior.storeys)):
+        objects = [o for o in prior.objects if o.storey_index == index]
+        if len(objects) < 4:
+            continue
+        motions = symmetries(np.array([o.position_m[:2] for o in objects]), [o.label for o in objects], keep=1)
+        if motions and motions[0].share >= min_object_share and wall_share(prior, index, motions[0]) >= min_wall_share:
+            twins[index] = motions[0]
+    return twins
