@@ -20,6 +20,14 @@ def test_building_symmetry_finds_the_half_turn_between_twin_flats_and_none_in_an
     assert best.matched == 10 and best.total == 11
     assert "rotation by 180° about (6.00, 2.00) m: 10 of 11 objects" in best.describe()
 
+    # The twin flat built 5 cm off here and there: the two-object hypotheses' angles are off by degrees, the
+    # refit to every matched pair is not.
+    rng = np.random.default_rng(0)
+    noisy = np.vstack([flat, twin + rng.uniform(-0.05, 0.05, twin.shape), [[12.0, 9.0]]])
+    refit = symmetries(noisy, labels + labels + ["plant"])[0]
+    assert abs(abs(refit.theta_rad) - np.pi) < np.deg2rad(0.15)  # the best pair alone: 0.27°
+    assert refit.matched == 10
+
     irregular = symmetries(flat, labels)
     assert all(motion.matched <= 2 for motion in irregular)  # at most the two chairs swap
 
