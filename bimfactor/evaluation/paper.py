@@ -38,6 +38,7 @@ from bimfactor.progress import progress
 
 if TYPE_CHECKING:
     from bimfactor.bim.prior import BimPrior
+    from bimfactor.bim.symmetry import Motion
     from bimfactor.sim.simulate import SimResult
 
 log = logging.getLogger(__name__)
@@ -99,10 +100,9 @@ def run_seed(seed: int, trajectory: int, repeat: int) -> int:
     return seed * 1000 + 17 * trajectory + repeat
 
 
-def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> list[RunResult]:
-    """Simulate trajectory k (config seed), localize it with seed (config seed, repeat), score every variant; in a
-    worker process."""
-    from bimfactor.bim.symmetry import twin_motions
+def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion]) -> list[RunResult]:
+    """Simulate trajectory k (config seed), localize it with seed (config seed, repeat), score every variant (also
+    up to the building's `twins`, when it has any); in a worker process."""
     from bimfactor.config import Config
     from bimfactor.evaluation.metrics import (
         errors_up_to_twin,
@@ -141,7 +141,6 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int) -> lis
     scored = scoring_window(run.converged, ev.trajectory_length, ev.score_from, ev.warmup_steps)
     gt_poses, gt_rooms = run.gt_poses[scored], run.gt_rooms[scored]
     gt_storeys = np.asarray([f.gt_storey or 0 for f in sim.frames])[scored]
-    twins = twin_motions(prior)
     results = []
     for variant in variants:
         track = tracks[variant].window(scored)
@@ -247,10 +246,11 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
     jobs = [(k, r) for k in range(ev.num_trajectories) for r in range(ev.repeats)]
     workers = workers or min(len(jobs), os.cpu_count() or 1)
     cfg_json = cfg.model_dump_json()
+    twins = twin_motions(BimPrior.load(prior_dir))  # once here, not in every run
     results: list[RunResult] = []
     # spawn, not fork: the parent already runs torch / Open3D threads, and a forked child can deadlock on their locks
     with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(_run_one, str(prior_dir), cfg_json, k, r) for k, r in jobs]
+        futures = [pool.submit(_run_one, str(prior_dir), cfg_json, k, r, twins) for k, r in jobs]
         for future in progress(futures, desc=f"bench paper ({', '.join(ev.variants)})", unit="run"):
             results.extend(future.result())
     report: dict = {
@@ -265,7 +265,7 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
             "warmup_max_steps": ev.warmup_steps,
         },
         "variants": list(ev.variants),
-        "twins": {storey: motion.describe() for storey, motion in twin_motions(BimPrior.load(prior_dir)).items()},
+        "twins": {storey: motion.describe() for storey, motion in twins.items()},
     }
     for variant in ev.variants:
         runs = [r for r in results if r.variant == variant]
