@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.spatial.distance import cdist
 
 if TYPE_CHECKING:
     from bimfactor.bim.prior import BimPrior
@@ -36,9 +37,13 @@ class Motion:
         """(N, 3) poses (x, y, yaw) carried by the motion: where each pose's twin stands and faces."""
         poses = np.asarray(poses, float)
         out = np.empty_like(poses)
-        out[:, :2] = poses[:, :2] @ _rotation(self.theta_rad).T + self.translation
+        out[:, :2] = self.move(poses[:, :2])
         out[:, 2] = np.arctan2(np.sin(poses[:, 2] + self.theta_rad), np.cos(poses[:, 2] + self.theta_rad))
         return out
+
+    def move(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) points carried by the motion."""
+        return _move(xy, self.theta_rad, self.translation)
 
     def describe(self) -> str:
         deg = float(np.rad2deg(self.theta_rad))
@@ -57,13 +62,21 @@ def _rotation(theta: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-def _matched(points: np.ndarray, same_label: np.ndarray, theta: float, t: np.ndarray, tolerance: float) -> int:
-    """Objects the motion carries within `tolerance` of another object of their label (onto itself does not count:
-    a motion near the identity is no twin)."""
-    moved = points @ _rotation(theta).T + t
-    d = np.hypot(*(moved[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+def _move(xy: np.ndarray, theta: float, t: np.ndarray) -> np.ndarray:
+    return np.asarray(xy, float) @ _rotation(theta).T + t
+
+
+def _partner_distances(points: np.ndarray, same_label: np.ndarray, theta: float, t: np.ndarray) -> np.ndarray:
+    """(N, N): from each object carried by the motion to every other object of its label; inf elsewhere (onto
+    itself does not count: a motion near the identity is no twin)."""
+    d = cdist(_move(points, theta, t), points)
     np.fill_diagonal(d, np.inf)
-    return int((np.where(same_label, d, np.inf).min(axis=1) < tolerance).sum())
+    return np.where(same_label, d, np.inf)
+
+
+def _matched(points: np.ndarray, same_label: np.ndarray, theta: float, t: np.ndarray, tolerance: float) -> int:
+    """Objects the motion carries within `tolerance` of another object of their label."""
+    return int((_partner_distances(points, same_label, theta, t).min(axis=1) < tolerance).sum())
 
 
 def symmetries(
@@ -87,7 +100,7 @@ def symmetries(
         return []
     labels_arr = np.asarray(labels)
     same_label = labels_arr[:, None] == labels_arr[None, :]
-    dist = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+    dist = cdist(points, points)
     count = same_label.sum(axis=1)
     rarest = [int(i) for i in np.argsort(count, kind="stable") if count[i] >= 2][:anchors]
     seen: set[tuple[int, int, int]] = set()
@@ -131,10 +144,7 @@ def _refit(motion: Motion, points: np.ndarray, same_label: np.ndarray, tolerance
     better-matching of it and `motion`."""
     best = motion
     for _ in range(rounds):
-        moved = points @ _rotation(best.theta_rad).T + best.translation
-        d = np.hypot(*(moved[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
-        np.fill_diagonal(d, np.inf)
-        d = np.where(same_label, d, np.inf)
+        d = _partner_distances(points, same_label, best.theta_rad, best.translation)
         partner = d.argmin(axis=1)
         pairs = d[np.arange(len(points)), partner] < 2 * tolerance
         if pairs.sum() < 2:
@@ -154,9 +164,7 @@ def _refit(motion: Motion, points: np.ndarray, same_label: np.ndarray, tolerance
 def _alike(a: Motion, b: Motion, points: np.ndarray, tolerance: float) -> bool:
     """The same motion, as far as the objects tell: it puts them, on the median, within 2 × `tolerance` of where
     the other does."""
-    moved_a = points @ _rotation(a.theta_rad).T + a.translation
-    moved_b = points @ _rotation(b.theta_rad).T + b.translation
-    return bool(np.median(np.hypot(*(moved_a - moved_b).T)) < 2 * tolerance)
+    return bool(np.median(np.hypot(*(a.move(points) - b.move(points)).T)) < 2 * tolerance)
 
 
 def wall_share(prior: BimPrior, storey_index: int, motion: Motion, tolerance: float = 0.1) -> float:
@@ -172,7 +180,7 @@ def wall_share(prior: BimPrior, storey_index: int, motion: Motion, tolerance: fl
     xy = np.stack(
         [grid.origin_x + (cols + 0.5) * grid.resolution_m, grid.origin_y + (rows + 0.5) * grid.resolution_m], 1
     )
-    rc = grid.world_to_cell(xy @ _rotation(motion.theta_rad).T + motion.translation)
+    rc = grid.world_to_cell(motion.move(xy))
     inside = grid.contains(rc)
     near = binary_dilation(structure, iterations=max(1, round(tolerance / grid.resolution_m)))
     hit = np.zeros(len(rc), bool)
