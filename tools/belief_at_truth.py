@@ -34,8 +34,8 @@ def replay(bench_dir: str, trajectory: int, repeat: int, radius_m: float, yaw_de
     from bimfactor.config import load_config
     from bimfactor.evaluation.metrics import translation_errors_m
     from bimfactor.evaluation.paper import run_seed, simulate_route
+    from bimfactor.localization.smcl import near_pose
     from bimfactor.pipeline import localize_sequence
-    from bimfactor.types import wrap_angle
 
     cfg = load_config(Path(bench_dir) / "config.yaml")
     cfg = cfg.model_copy(update={"localization": cfg.localization.model_copy(update={"variant": "smcl"})})
@@ -49,9 +49,8 @@ def replay(bench_dir: str, trajectory: int, repeat: int, radius_m: float, yaw_de
     near_count, near_weight = [], []
     for step, truth in zip(steps, run.gt_poses, strict=True):
         particles, weights = run.snapshots[step]
-        near = (np.hypot(*(particles[:, :2] - truth[:2]).T) < radius_m) & (
-            np.abs(wrap_angle(particles[:, 2] - truth[2])) < np.deg2rad(yaw_deg)
-        )
+        # Snapshots hold no storeys: every particle is compared as if on the truth's.
+        near = near_pose(particles, np.zeros(len(particles), int), truth, 0, radius_m, np.deg2rad(yaw_deg))
         near_count.append(int(near.sum()))
         near_weight.append(float(weights[near].sum() / weights.sum()))
     return {

@@ -168,6 +168,18 @@ def local_mean_yaw(poses: np.ndarray, weights: np.ndarray, center_xy: np.ndarray
     return circular_mean(poses[:, 2], w) if w.sum() > 0 else None
 
 
+def near_pose(
+    poses: np.ndarray, storeys: np.ndarray, pose: np.ndarray, storey: int, radius_m: float, yaw_rad: float
+) -> np.ndarray:
+    """(M,) bool: which of the (M, 3) poses on their (M,) storeys lie within `radius_m` and `yaw_rad` of a (3,) pose
+    on `storey`."""
+    return (
+        (np.asarray(storeys) == storey)
+        & (np.hypot(poses[:, 0] - pose[0], poses[:, 1] - pose[1]) <= radius_m)
+        & (np.abs(wrap_angle(poses[:, 2] - pose[2])) <= yaw_rad)
+    )
+
+
 def _second_moment(poses: np.ndarray, about: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(3, 3) Σ_k w_k δ_k δ_kᵀ of (K, 3) poses with (K,) normalised weights, δ_k = pose_k − about, yaw wrapped."""
     delta = np.asarray(poses, np.float64).reshape(-1, 3) - np.asarray(about, np.float64)

@@ -17,6 +17,7 @@ from bimfactor.localization.smcl import (
     kld_particle_count,
     local_mean_yaw,
     mixture_pose_covariance,
+    near_pose,
     systematic_resample,
     weighted_geometric_median,
     weighted_pose_stats,
@@ -92,6 +93,23 @@ def test_local_mean_yaw_takes_the_heading_of_the_particles_near_the_point():
     assert abs(wrap_angle(circular_mean(poses[:, 2], weights) - local)) > np.deg2rad(30.0)
     assert local_mean_yaw(poses, weights, np.array([5.0, 5.0]), radius_m=2.0) is None  # nothing near
     assert local_mean_yaw(poses, np.array([0.0, 0.0, 1.0]), np.array([0.1, 0.0]), radius_m=2.0) is None  # no weight
+
+
+def test_near_pose_takes_radius_heading_across_the_seam_and_storey():
+    pose = np.array([1.0, 2.0, np.deg2rad(175.0)])
+    poses = np.array(
+        [
+            [1.5, 2.0, np.deg2rad(-170.0)],  # 0.5 m off, 15° across ±π: near
+            [1.0, 3.9, np.deg2rad(175.0)],  # 1.9 m off: near
+            [1.0, 4.1, np.deg2rad(175.0)],  # 2.1 m off: too far
+            [1.0, 2.0, np.deg2rad(120.0)],  # 55° off: turned away
+            [1.0, 2.0, np.deg2rad(175.0)],  # the same pose on another storey
+        ]
+    )
+    storeys = np.array([0, 0, 0, 0, 1])
+    near = near_pose(poses, storeys, pose, 0, radius_m=2.0, yaw_rad=np.deg2rad(45.0))
+    assert near.tolist() == [True, True, False, False, False]
+    assert near_pose(poses, storeys, pose, 1, radius_m=2.0, yaw_rad=np.deg2rad(45.0)).tolist() == [0, 0, 0, 0, 1]
 
 
 def test_effective_sample_size():
