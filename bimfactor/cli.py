@@ -652,7 +652,8 @@ def localize(
     most probable mode and feeds accepted fits into its graph.
 
     Writes RUN_DIR/estimate.txt (TUM), steps.csv (pose, storey, room, covariance, converged flag, number of modes
-    per step, full: whether ICP was accepted), modes.csv (graph variants: every mode per step), metrics.json (with
+    per step, full: whether ICP was accepted; on a building with twin storeys the estimate's twin pose and the
+    belief's weight there), modes.csv (graph variants: every mode per step), metrics.json (with
     ground truth: the paper's translation / orientation error, room accuracy and the 95 % ellipse coverage; full:
     ICP acceptance and rejection reasons), snapshots.npz, config.yaml, trajectory.png and particles.png. RUN_DIR
     must be new, empty or an earlier run.
@@ -667,7 +668,7 @@ def localize(
     with _cli_errors(debug):
         cfg = _start(config, [*(overrides or []), *_variant_overrides("localization.variant", variant)], verbose)
         from bimfactor.bim.prior import BimPrior
-        from bimfactor.evaluation.report import ensure_run_destination, run_metrics, write_run
+        from bimfactor.evaluation.report import ensure_run_destination, run_metrics, twin_summary, write_run
         from bimfactor.io.sequence import read_sequence
         from bimfactor.pipeline import localize_sequence
 
@@ -690,6 +691,9 @@ def localize(
         metrics = run_metrics(run)
         if metrics is not None:
             typer.echo(_metrics_line(metrics))
+        twins = twin_summary(run)
+        if twins is not None:
+            typer.echo(twins)
 
 
 @app.command(short_help="Localize with pose graphs, then smooth each surviving mode's whole trajectory (offline).")

@@ -39,6 +39,7 @@ from bimfactor.backend.posegraph import (
 )
 from bimfactor.backend.refine import RefinedMode, refine_mode
 from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.symmetry import Motion, twin_motions
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
@@ -51,6 +52,7 @@ from bimfactor.localization.smcl import (
     StepResult,
     local_mean_yaw,
     mixture_pose_covariance,
+    near_pose,
     weighted_geometric_median,
 )
 from bimfactor.perception.pipeline import make_perception
@@ -65,6 +67,8 @@ GRAPH_VARIANTS = ("smcl+graph", "full")
 """Localizer variants that run the pose-graph back end (and so can be refined offline)."""
 FINE_VARIANTS = ("full",)
 """Localizer variants that register each keyframe against the BIM walls and feed the fit back into the graph."""
+TWIN_YAW_DEG = 45.0
+"""A particle is at the output pose's twin within `localization.output_mode_radius_m` of it and this of its heading."""
 
 
 class _PerStep:
@@ -134,6 +138,8 @@ class LocalizerStep:
     graph_ms: float = 0.0
     fine: FineResult | None = None
     fine_ms: float = 0.0
+    twin_pose: np.ndarray | None = None
+    twin_share: float = float("nan")
 
 
 @dataclass
@@ -146,7 +152,10 @@ class LocalizationRun:
     `retired_modes` the graphs of modes pruned after `backend.refine_retired_min_keyframes` keyframes,
     `odom_increments` (T−1, 3), `observations` and `scans` (the (N, 2) base-frame scan endpoints per step, None
     where no scan was taken) what the refinement re-uses; `fine` the fine stage per step (variant full);
-    `snapshots` maps step → (particles, weights).
+    `snapshots` maps step → (particles, weights). On a building with twin storeys (`bim.symmetry.twin_motions`;
+    otherwise None), `twin_poses` (T, 3) is where each step's twin motion carries the output pose and `twin_share`
+    (T,) the belief's weight there (`TWIN_YAW_DEG`, `localization.output_mode_radius_m`); NaN on storeys without a
+    twin.
     """
 
     variant: str
@@ -168,6 +177,8 @@ class LocalizationRun:
     gt_poses: np.ndarray | None = None
     gt_rooms: np.ndarray | None = None
     snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    twin_poses: np.ndarray | None = None
+    twin_share: np.ndarray | None = None
 
     @property
     def output(self) -> Track:
@@ -207,7 +218,8 @@ class Localizer:
 
     The full variant reads the IFC file the prior was built from (its surface models, built once per building);
     `prior_dir` helps find a relative `source_file`. Graph variants use `matcher` for the scan factors, or build
-    their own (`scan_matcher`).
+    their own (`scan_matcher`). `twins` are the building's twin motions (`bim.symmetry.twin_motions`, found here
+    when not given): each step reports the belief's weight at the output pose's twin.
     """
 
     def __init__(
@@ -219,8 +231,10 @@ class Localizer:
         text_embedder: TextEmbedder | None = None,
         prior_dir: str | Path | None = None,
         matcher: CorrelativeMatcher | None = None,
+        twins: dict[int, Motion] | None = None,
     ) -> None:
         self.prior = prior
+        self.twins = twin_motions(prior) if twins is None else twins
         self.meta = meta
         self.cfg = cfg
         self.variant = cfg.localization.variant
@@ -263,6 +277,19 @@ class Localizer:
             self._fine_step(frame, out)
         if self.backend is not None:
             self._report(out)
+        twin = self.twins.get(out.storey)
+        if twin is not None:  # nothing observed tells the output pose from this one, but what only one place has
+            out.twin_pose = twin.apply(out.pose[None])[0]
+            weights = self.filter.estimation_weights()
+            near = near_pose(
+                self.filter.particles,
+                self.filter.storeys,
+                out.twin_pose,
+                out.storey,
+                self.cfg.localization.output_mode_radius_m,
+                np.deg2rad(TWIN_YAW_DEG),
+            )
+            out.twin_share = float(weights[near].sum() / weights.sum())
         self._recent.append(frame)
         return out
 
@@ -351,13 +378,15 @@ def localize_sequence(
     show_progress: bool = True,
     prior_dir: str | Path | None = None,
     matcher: CorrelativeMatcher | None = None,
+    twins: dict[int, Motion] | None = None,
 ) -> LocalizationRun:
     """Localize every frame of a sequence; ground truth, when the frames have it, is carried along.
 
     `prior_dir`, the prior's folder, helps the full variant find a relative IFC `source_file`; `matcher` is the
-    graph variants' scan matcher (`scan_matcher`; built when not given).
+    graph variants' scan matcher (`scan_matcher`; built when not given); `twins` the building's twin motions
+    (`bim.symmetry.twin_motions`; found when not given).
     """
-    localizer = Localizer(prior, meta, cfg, seed, text_embedder, prior_dir, matcher)
+    localizer = Localizer(prior, meta, cfg, seed, text_embedder, prior_dir, matcher, twins)
     frames = list(frames)
     snapshot_steps = set(snapshot_steps)
     rows: list[LocalizerStep] = []
@@ -423,6 +452,10 @@ def localize_sequence(
         gt_poses=gt_poses,
         gt_rooms=gt_rooms,
         snapshots=snapshots,
+        twin_poses=np.asarray([np.full(3, np.nan) if r.twin_pose is None else r.twin_pose for r in rows])
+        if localizer.twins
+        else None,
+        twin_share=np.asarray([r.twin_share for r in rows]) if localizer.twins else None,
     )
 
 

@@ -11,11 +11,13 @@ import pytest
 from bimfactor.backend.factors import Landmarks
 from bimfactor.backend.posegraph import semantic_associator
 from bimfactor.backend.refine import refine_mode
+from bimfactor.bim.symmetry import Motion
 from bimfactor.config import Config, load_config
 from bimfactor.evaluation.metrics import translation_errors_m
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.smcl import local_mean_yaw, weighted_geometric_median
 from bimfactor.pipeline import (
+    TWIN_YAW_DEG,
     LocalizationRun,
     Localizer,
     RefinedRun,
@@ -25,6 +27,7 @@ from bimfactor.pipeline import (
     visibility_of,
 )
 from bimfactor.sim.simulate import SimResult, simulate_sequence
+from bimfactor.types import wrap_angle
 from tests.sim import conftest as sim_fixtures
 from tests.sim.conftest import Building
 
@@ -132,6 +135,63 @@ def test_the_median_output_is_the_belief_median_with_its_local_heading(
         assert out.pose[2] == (out.filtered.pose[2] if yaw is None else yaw)
         local += yaw is not None
     assert medians >= 6 and local >= 6
+
+
+def test_on_a_twin_storey_each_step_reports_the_twin_pose_and_the_belief_there(
+    paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str], runs: dict
+) -> None:
+    """The paper floor has no twin storey: nothing is reported. Given one (storey 0 carried 0.5 m along x onto
+    itself, as if the floor were a repeated bay), every step's twin pose is the output pose carried by the motion and
+    its share is the filter's estimation weight within the output radius and TWIN_YAW_DEG of that pose."""
+    assert runs["smcl"].twin_poses is None and runs["smcl"].twin_share is None
+    shift = Motion(0.0, np.array([0.5, 0.0]), 43, 43)
+    cfg = load_config(None, [*config_overrides, "localization.variant=smcl+graph"])
+    localizer = Localizer(paper_floor.prior, drive.meta, cfg, SEED, text_embedder=text_embedder, twins={0: shift})
+    shares = []
+    for frame in drive.frames[:12]:
+        out = localizer.step(frame)
+        assert out.twin_pose is not None
+        np.testing.assert_allclose(out.twin_pose, out.pose + np.array([0.5, 0.0, 0.0]))
+        mcl = localizer.filter
+        weights = mcl.estimation_weights()
+        offset = np.hypot(*(mcl.particles[:, :2] - out.twin_pose[:2]).T)
+        turn = np.abs(wrap_angle(mcl.particles[:, 2] - out.twin_pose[2]))
+        near = (
+            (mcl.storeys == 0) & (offset <= cfg.localization.output_mode_radius_m) & (turn <= np.deg2rad(TWIN_YAW_DEG))
+        )
+        assert out.twin_share == pytest.approx(weights[near].sum() / weights.sum())
+        shares.append(out.twin_share)
+    # Converged, the belief lies around the estimate: within 2 m of a pose 0.5 m away from it.
+    assert all(0.0 <= share <= 1.0 for share in shares) and shares[-1] > 0.5
+
+
+def test_the_run_folder_lists_the_twin_poses_and_says_how_often_the_belief_split(
+    paper_floor: Building, runs: dict[str, LocalizationRun], tmp_path
+) -> None:
+    """steps.csv's twin columns are empty without twins; with them (here given by hand on every other step) they
+    hold the twin pose and share, and the summary line counts the steps with ≥ 20 % at the twin."""
+    import csv
+
+    from bimfactor.evaluation.report import twin_summary, write_run
+
+    run = runs["smcl"]
+    write_run(run, paper_floor.prior, tmp_path / "plain", "", "plain")
+    rows = list(csv.DictReader((tmp_path / "plain" / "steps.csv").read_text().splitlines()))
+    assert all(row["twin_share"] == "" and row["twin_x"] == "" for row in rows) and twin_summary(run) is None
+    n = len(run.poses)
+    share = np.where(np.arange(n) % 2 == 0, np.nan, 0.1)
+    share[1::4] = 0.3  # steps 1, 5, 9, ...: the belief split
+    twin_poses = np.where(np.isnan(share)[:, None], np.nan, run.poses + np.array([1.0, 2.0, 0.0]))
+    twin_run = dataclasses.replace(run, twin_poses=twin_poses, twin_share=share)
+    write_run(twin_run, paper_floor.prior, tmp_path / "twin", "", "twin")
+    rows = list(csv.DictReader((tmp_path / "twin" / "steps.csv").read_text().splitlines()))
+    assert [row["twin_share"] == "" for row in rows] == [i % 2 == 0 for i in range(n)]
+    assert float(rows[1]["twin_share"]) == 0.3 and float(rows[3]["twin_share"]) == 0.1
+    assert float(rows[1]["twin_x"]) == pytest.approx(run.poses[1, 0] + 1.0)
+    assert float(rows[1]["twin_y"]) == pytest.approx(run.poses[1, 1] + 2.0)
+    summary = twin_summary(twin_run)
+    assert summary is not None
+    assert f"at {n // 2} of {n} steps" in summary and f"at {len(range(1, n, 4))} steps" in summary
 
 
 def test_with_best_mode_output_the_graph_output_is_the_most_probable_mode(

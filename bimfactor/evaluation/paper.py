@@ -131,6 +131,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
             show_progress=False,
             prior_dir=prior_dir,
             matcher=matcher,
+            twins=twins,
         )
     run = next(iter(forward.values()))  # every forward pass runs the same filter: its estimate is the smcl one
     assert run.gt_poses is not None and run.gt_rooms is not None
