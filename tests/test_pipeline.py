@@ -3,6 +3,7 @@ refine."""
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 
 import numpy as np
@@ -14,6 +15,7 @@ from bimfactor.backend.refine import refine_mode
 from bimfactor.bim.symmetry import Motion
 from bimfactor.config import Config, load_config
 from bimfactor.evaluation.metrics import translation_errors_m
+from bimfactor.evaluation.report import twin_summary, write_run
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.smcl import local_mean_yaw, weighted_geometric_median
 from bimfactor.pipeline import (
@@ -170,10 +172,6 @@ def test_the_run_folder_lists_the_twin_poses_and_says_how_often_the_belief_split
 ) -> None:
     """steps.csv's twin columns are empty without twins; with them (here given by hand on every other step) they
     hold the twin pose and share, and the summary line counts the steps with ≥ 20 % at the twin."""
-    import csv
-
-    from bimfactor.evaluation.report import twin_summary, write_run
-
     run = runs["smcl"]
     write_run(run, paper_floor.prior, tmp_path / "plain", "", "plain")
     rows = list(csv.DictReader((tmp_path / "plain" / "steps.csv").read_text().splitlines()))
