@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bimfactor.config import BackendConfig
-from bimfactor.localization.smcl import circular_mean, weighted_pose_stats
+from bimfactor.localization.smcl import circular_mean, pose_window, weighted_pose_stats
 from bimfactor.types import se2_compose, wrap_angle
 
 log = logging.getLogger(__name__)
@@ -69,12 +69,6 @@ class TrackEvents:
 # ------------------------------------------------------------------------------------------ clustering
 
 
-def _window(poses: np.ndarray, centre: np.ndarray, radius_m: float, yaw_half_rad: float) -> np.ndarray:
-    """(N,) bool: poses within the flat (position radius, wrapped yaw half-width) window around centre."""
-    near = np.hypot(poses[:, 0] - centre[0], poses[:, 1] - centre[1]) <= radius_m
-    return near & (np.abs(wrap_angle(poses[:, 2] - centre[2])) <= yaw_half_rad)
-
-
 def _weighted_mean(poses: np.ndarray, weights: np.ndarray) -> np.ndarray:
     mean = np.empty(3)
     mean[:2] = weights @ poses[:, :2] / weights.sum()
@@ -109,7 +103,7 @@ def _cluster_storey(
         centre = _weighted_mean(poses[seed], weights[seed])
         members = seed
         for _ in range(_MEAN_SHIFT_ITERATIONS):
-            members = unassigned & _window(poses, centre, radius_m, yaw_half_rad)
+            members = unassigned & pose_window(poses, centre, radius_m, yaw_half_rad)
             if not members.any() or weights[members].sum() <= 0:
                 members = seed
                 break
@@ -118,7 +112,7 @@ def _cluster_storey(
             centre = new_centre
             if moved < _MEAN_SHIFT_TOL_M:
                 break
-        members = unassigned & (_window(poses, centre, radius_m, yaw_half_rad) | seed)
+        members = unassigned & (pose_window(poses, centre, radius_m, yaw_half_rad) | seed)
         clusters.append(np.flatnonzero(members))
         unassigned &= ~members
     return clusters

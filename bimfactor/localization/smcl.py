@@ -168,16 +168,18 @@ def local_mean_yaw(poses: np.ndarray, weights: np.ndarray, center_xy: np.ndarray
     return circular_mean(poses[:, 2], w) if w.sum() > 0 else None
 
 
+def pose_window(poses: np.ndarray, centre: np.ndarray, radius_m: float, yaw_half_rad: float) -> np.ndarray:
+    """(N,) bool: poses within the flat (position radius, wrapped yaw half-width) window around a (3,) centre."""
+    near = np.hypot(poses[:, 0] - centre[0], poses[:, 1] - centre[1]) <= radius_m
+    return near & (np.abs(wrap_angle(poses[:, 2] - centre[2])) <= yaw_half_rad)
+
+
 def near_pose(
     poses: np.ndarray, storeys: np.ndarray, pose: np.ndarray, storey: int, radius_m: float, yaw_rad: float
 ) -> np.ndarray:
-    """(M,) bool: which of the (M, 3) poses on their (M,) storeys lie within `radius_m` and `yaw_rad` of a (3,) pose
-    on `storey`."""
-    return (
-        (np.asarray(storeys) == storey)
-        & (np.hypot(poses[:, 0] - pose[0], poses[:, 1] - pose[1]) <= radius_m)
-        & (np.abs(wrap_angle(poses[:, 2] - pose[2])) <= yaw_rad)
-    )
+    """(M,) bool: which of the (M, 3) poses on their (M,) storeys lie in the `pose_window` of a (3,) pose on
+    `storey`."""
+    return (np.asarray(storeys) == storey) & pose_window(poses, pose, radius_m, yaw_rad)
 
 
 def _second_moment(poses: np.ndarray, about: np.ndarray, weights: np.ndarray) -> np.ndarray:
