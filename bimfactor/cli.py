@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import sys
 import time
 import traceback
@@ -562,21 +563,33 @@ def _simulate_to_disk(prior_dir: Path, output: Path, cfg: Config, trajectory: in
 
 @app.command(short_help="Convert a TUM RGB-D folder or a ROS 2 bag into a bimfactor sequence.")
 def convert(
-    kind: Annotated[str, typer.Argument(metavar="KIND", help="tum or rosbag.")],
-    source: Annotated[Path, typer.Argument(metavar="SOURCE", help="TUM RGB-D folder or ROS 2 bag folder.")],
+    kind: Annotated[str, typer.Argument(metavar="KIND", help="tum, rosbag or sequence.")],
+    source: Annotated[
+        Path, typer.Argument(metavar="SOURCE", help="TUM RGB-D folder, ROS 2 bag folder or bimfactor sequence.")
+    ],
     output: Annotated[Path, typer.Option("--output", "-o", metavar="SEQ_DIR", help="Sequence folder to write.")],
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
+    all_frames: Annotated[
+        bool, typer.Option("--all-frames", help="Keep every synchronised frame, not only the keyframes.")
+    ] = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
     debug: DebugOption = False,
 ) -> None:
-    """Read a recording (topics of a bag from the config's io.rosbag) and write it as a bimfactor sequence.
+    """Read a recording (topics of a bag from the config's io.rosbag; or a bimfactor sequence, to keep its keyframes
+    at another spacing) and write it as a bimfactor sequence.
 
-    \b
-    Examples:
-      bimfactor convert tum rgbd_dataset_freiburg1_room -o runs/fr1-room
-      bimfactor convert rosbag my_bag -o runs/bag --set io.rosbag.odom_topic=/wheel/odom
+        A recording with odometry keeps its keyframes: the first frame, then each frame whose odometry has moved
+        localization.keyframe_distance_m or turned keyframe_angle_deg from the last one kept, the spacing the
+        localizer's per-step motion noise is made for (--all-frames keeps every frame). A recording without odometry
+        (TUM RGB-D) keeps every frame; localize needs odometry and refuses it.
+
+        \b
+        Examples:
+          bimfactor convert tum rgbd_dataset_freiburg1_room -o runs/fr1-room
+          bimfactor convert rosbag my_bag -o runs/bag --set io.rosbag.odom_topic=/wheel/odom
+          bimfactor convert sequence runs/bag-all -o runs/bag-1m --set localization.keyframe_distance_m=1.0
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
@@ -584,16 +597,33 @@ def convert(
         from bimfactor.io.rosbag import read_rosbag
         from bimfactor.io.sequence import read_sequence, write_sequence
         from bimfactor.io.tum import read_tum_rgbd
+        from bimfactor.localization.motion import keyframe_indices
 
         if kind == "tum":
             sequence = read_tum_rgbd(source, max_sync_dt_s=cfg.io.tum_max_sync_dt_s)
         elif kind == "rosbag":
             sequence = read_rosbag(source, cfg.io.rosbag)
+        elif kind == "sequence":
+            if output.resolve() == source.resolve():
+                raise InputError(f"{output}: the output must be another folder than the sequence it is read from")
+            sequence = read_sequence(source)
         else:
-            raise InputError(f"unknown recording kind '{kind}' (expected tum or rosbag)")
+            raise InputError(f"unknown recording kind '{kind}' (expected tum, rosbag or sequence)")
+        recorded, odometry = len(sequence), sequence.odometry()
+        if not all_frames and odometry is not None:
+            steps = cfg.localization
+            sequence = sequence.subset(
+                keyframe_indices(odometry, steps.keyframe_distance_m, math.radians(steps.keyframe_angle_deg))
+            )
+            kept = (
+                f"{len(sequence)} keyframes of {recorded} frames (every {steps.keyframe_distance_m:g} m or "
+                f"{steps.keyframe_angle_deg:g}° of odometry)"
+            )
+        else:
+            kept = f"{recorded} frames" + ("" if odometry is not None else " (no odometry: every frame kept)")
         write_sequence(output, sequence.meta, sequence, overwrite=overwrite)
         preview = write_preview(read_sequence(output), output / "preview.png")
-        typer.echo(f"wrote {output}: {len(sequence)} frames from {kind} {source}; preview {preview}")
+        typer.echo(f"wrote {output}: {kept} from {kind} {source}; preview {preview}")
 
 
 # ------------------------------------------------------------------------------------------ localize

@@ -319,8 +319,6 @@ class RobotConfig(_Strict):
 
 
 class TrajectorySimConfig(_Strict):
-    keyframe_distance_m: float = Field(gt=0.0, description="A step (keyframe) every this much travel ...")
-    keyframe_angle_deg: float = Field(gt=0.0, description="... or this much rotation.")
     min_start_goal_m: float = Field(ge=0.0, description="Start and goal at least this far apart.")
     inflation_m: float = Field(ge=0.0, description="Obstacle inflation for path planning.")
     route: Literal["viewpoints", "rooms"] = Field(
@@ -512,6 +510,12 @@ class LocalizationConfig(_Strict):
         "graph pose is the output (`output`); full: smcl+graph with the fine stage (registration) "
         "registering each keyframe's scan from the best mode's pose and feeding accepted fits into its graph."
     )
+    keyframe_distance_m: float = Field(
+        gt=0.0,
+        description="A localizer step (keyframe) every this much travel ... (the motion noise is per step; the "
+        "simulator records and `convert` keeps frames at this spacing)",
+    )
+    keyframe_angle_deg: float = Field(gt=0.0, description="... or this much rotation.")
     output: Literal["best_mode", "belief_median"] = Field(
         description="Graph variants' output: the most probable mode's pose, or the mode at the particles' "
         "geometric median (the position minimising the expected position error), the median itself when no mode "
@@ -596,21 +600,33 @@ def _apply_override(data: dict[str, Any], assignment: str) -> None:
     node = data
     for key in keys[:-1]:
         if not isinstance(node.get(key), dict):
-            raise ConfigError(f"unknown config key '{dotted}'")
+            raise ConfigError(_unknown_key(dotted))
         node = node[key]
     if keys[-1] not in node:
-        raise ConfigError(f"unknown config key '{dotted}'")
+        raise ConfigError(_unknown_key(dotted))
     try:
         node[keys[-1]] = yaml.safe_load(raw)
     except yaml.YAMLError as exc:
         raise ConfigError(f"override '{assignment}': value is not valid YAML") from exc
 
 
+MOVED_KEYS = {
+    "sim.trajectory.keyframe_distance_m": "localization.keyframe_distance_m",
+    "sim.trajectory.keyframe_angle_deg": "localization.keyframe_angle_deg",
+}
+"""Keys of earlier versions and where they are now: an old config file's error names the new key."""
+
+
+def _unknown_key(dotted: str) -> str:
+    moved = MOVED_KEYS.get(dotted)
+    return f"unknown config key '{dotted}'" + (f": it is now '{moved}'" if moved else "")
+
+
 def _first_error(exc: ValidationError) -> str:
     err = exc.errors()[0]
     where = ".".join(str(p) for p in err["loc"])
     if err["type"] == "extra_forbidden":
-        return f"unknown config key '{where}'"
+        return _unknown_key(where)
     if err["type"] == "missing":
         return f"missing config key '{where}'"
     return f"config key '{where}': {err['msg']}"

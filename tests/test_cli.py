@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from bimfactor.cli import app
 from bimfactor.config import load_config
-from bimfactor.io.sequence import read_sequence
+from bimfactor.io.sequence import read_sequence, write_sequence
 
 runner = CliRunner()
 PRIOR_FILES = ("prior.json", "arrays.npz", "config.yaml", "floorplan_0.png")
@@ -152,6 +152,17 @@ def test_unknown_config_key_in_preset_file(tmp_path: Path) -> None:
     preset.write_text("bim:\n  grid:\n    resolution_m: 0.1\n    nope: 1\n")
     result = invoke("prior", tmp_path / "x.ifc", "-c", preset)
     assert_one_line_error(result, contains="unknown config key 'bim.grid.nope'")
+
+
+def test_a_moved_config_key_names_its_new_place(tmp_path: Path) -> None:
+    preset = tmp_path / "old.yaml"
+    preset.write_text("sim:\n  trajectory:\n    keyframe_angle_deg: 10\n")
+    result = invoke("synth", "-o", tmp_path / "x.ifc", "-c", preset)
+    moved = "'sim.trajectory.keyframe_angle_deg': it is now 'localization.keyframe_angle_deg'"
+    assert_one_line_error(result, contains=moved)
+    result = invoke("synth", "-o", tmp_path / "x.ifc", "--set", "sim.trajectory.keyframe_distance_m=1")
+    assert_one_line_error(result, contains="it is now 'localization.keyframe_distance_m'")
+    assert not (tmp_path / "x.ifc").exists()
 
 
 def test_unknown_preset_name() -> None:
@@ -364,8 +375,29 @@ def test_convert_tum_folder(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     sequence = read_sequence(out)
     assert len(sequence) == 3 and sequence.meta.source == "tum"
+    assert "3 frames (no odometry: every frame kept)" in result.output
     np.testing.assert_allclose(sequence[2].depth_m, 3.0)  # TUM depth: 5000 per metre
     assert_one_line_error(invoke("convert", "kinect", folder, "-o", tmp_path / "x"), contains="unknown recording kind")
+
+
+def test_convert_keeps_a_sequences_keyframes(tmp_path: Path) -> None:
+    from tests.io.synthetic import make_frames, make_meta
+
+    frames = make_frames(6)
+    for k, frame in enumerate(frames):  # 0.2 m a frame, turning 5° a frame from frame 3 on
+        frame.odom_pose = np.array([0.2 * k, 0.0, np.radians(5.0 * max(k - 2, 0))])
+    write_sequence(tmp_path / "all", make_meta(), frames)
+    result = invoke("convert", "sequence", tmp_path / "all", "-o", tmp_path / "kf")
+    assert result.exit_code == 0, result.output
+    assert "2 keyframes of 6 frames (every 0.5 m or 15° of odometry)" in result.output
+    assert [f.index for f in read_sequence(tmp_path / "kf")] == [frames[0].index, frames[3].index]  # 0.6 m
+
+    result = invoke("convert", "sequence", tmp_path / "all", "-o", tmp_path / "turns", "--set",
+                    "localization.keyframe_angle_deg=9")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert [f.index for f in read_sequence(tmp_path / "turns")] == [frames[k].index for k in (0, 3, 5)]  # 0.6 m, 10°
+    same = invoke("convert", "sequence", tmp_path / "all", "-o", tmp_path / "all", "--overwrite")
+    assert_one_line_error(same, contains="another folder")
 
 
 @pytest.fixture(scope="module")

@@ -189,6 +189,23 @@ class Sequence:
             frame_extras=[f.extras for f in frames],
         )
 
+    def subset(self, rows: np.ndarray) -> Sequence:
+        """The frames at increasing `rows` of this sequence (e.g. its keyframes), keeping their frame indices;
+        images are still loaded on access."""
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        if len(rows) and (rows[0] < 0 or rows[-1] >= len(self) or np.any(np.diff(rows) <= 0)):
+            raise ValueError(f"rows must increase within 0 … {len(self) - 1}")
+        return Sequence(
+            self.meta,
+            self._timestamps[rows],
+            lambda i: self._load_images(int(rows[i])),
+            indices=self._indices[rows],
+            odom_poses=None if self._odom is None else self._odom[rows],
+            gt_poses=None if self._gt is None else self._gt[rows],
+            gt_storeys=[self._gt_storeys[r] for r in rows],
+            frame_extras=[self._extras[r] for r in rows],
+        )
+
     def __len__(self) -> int:
         return len(self._timestamps)
 

@@ -2,10 +2,15 @@
 
 x_t = x_{t-1} ⊕ u_t + [ε_trans, ε_rot] with ε_trans ~ N(0, σ_trans² I) (metres, world frame: the noise is
 isotropic, so the frame does not matter) and ε_rot ~ N(0, σ_rot²) (radians), drawn independently per particle
-and per step, as the paper does; the noise does not scale with the length of the increment.
+and per step, as the paper does; the noise does not scale with the length of the increment. A step is therefore a
+keyframe, taken every `localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn (`keyframe_due`):
+the simulator records at that spacing, `bimfactor convert` keeps a recording's frames at it (`keyframe_indices`),
+and a live feed should step the localizer at it. Stepping every camera frame would add σ_trans of noise per frame.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -13,6 +18,23 @@ from bimfactor.types import se2_between, se2_compose, wrap_angle
 
 _MIN_TURN_RATE = 1e-9  # rad/s: below this a velocity command is a straight line
 ODOMETRY_MIN_TRANSLATION_M = 1e-4  # below this an increment is a pure turn: δrot1 = 0, δrot2 = Δθ
+
+
+def keyframe_due(last: np.ndarray, pose: np.ndarray, distance_m: float, angle_rad: float) -> bool:
+    """Whether `pose` (x, y, yaw) has moved `distance_m` or turned `angle_rad` from the `last` keyframe's pose."""
+    moved = math.hypot(pose[0] - last[0], pose[1] - last[1])
+    turned = abs(float(wrap_angle(pose[2] - last[2])))
+    return moved >= distance_m or turned >= angle_rad
+
+
+def keyframe_indices(poses: np.ndarray, distance_m: float, angle_rad: float) -> np.ndarray:
+    """Rows of (N, 3) poses that are keyframes: the first, then each one `keyframe_due` from the last kept."""
+    poses = np.asarray(poses, np.float64).reshape(-1, 3)
+    kept = [0] if len(poses) else []
+    for i in range(1, len(poses)):
+        if keyframe_due(poses[kept[-1]], poses[i], distance_m, angle_rad):
+            kept.append(i)
+    return np.asarray(kept, np.int64)
 
 
 def odometry_increment(odom_prev: np.ndarray, odom_curr: np.ndarray) -> np.ndarray:

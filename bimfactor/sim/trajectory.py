@@ -4,9 +4,9 @@ The robot drives on a storey's indoor free space: the prior's navigable layer (r
 radius) joined through its doorways. Paths are planned by Dijkstra on a coarse graph (one node per 0.2 m
 block, at the block's cell farthest from obstacles; edges checked at full resolution, cost grown near
 obstacles closer than `inflation_m`), then shortcut at full resolution. A unicycle pure-pursuit controller
-with the robot's speed and turn-rate limits follows them; a keyframe is taken every `keyframe_distance_m`
-of travel or `keyframe_angle_deg` of turn, and a trajectory has exactly T keyframes: when a goal is reached
-first, a next goal in another room is chosen.
+with the robot's speed and turn-rate limits follows them; a keyframe is taken every
+`localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn (`motion.keyframe_due`), and a
+trajectory has exactly T keyframes: when a goal is reached first, a next goal in another room is chosen.
 
 Routes (`sim.trajectory.route`): `viewpoints` (the default) starts and stops where at least
 `min_view_objects` objects (doors left out) lie within `view_radius_m` in line of sight, and the robot faces
@@ -32,6 +32,7 @@ from bimfactor.bim.rooms import OUTSIDE
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config, load_config
 from bimfactor.errors import BimfactorError, InputError
+from bimfactor.localization.motion import keyframe_due
 from bimfactor.types import wrap_angle
 
 log = logging.getLogger(__name__)
@@ -321,10 +322,10 @@ class TrajectorySimulator:
         rng = np.random.default_rng([seed, index, _TRAJECTORY_STREAM])
         graph = self.graphs[storey]
         rooms = self.rooms[(storey, comp)]
-        tcfg, steps = self.cfg.sim.trajectory, self.cfg.evaluation.trajectory_length
+        steps = self.cfg.evaluation.trajectory_length
 
         # Start: a roomy node of the start room from which another room lies within the first goal's budget.
-        budget = max(FIRST_GOAL_BUDGET * steps * tcfg.keyframe_distance_m, MIN_GOAL_BUDGET_M)
+        budget = max(FIRST_GOAL_BUDGET * steps * self.cfg.localization.keyframe_distance_m, MIN_GOAL_BUDGET_M)
         in_comp = graph.node_component == comp
         others = np.flatnonzero(in_comp & np.isin(graph.node_room, [r for r in rooms if r != room]))
         to_other, _ = graph.shortest_paths(others)
@@ -355,12 +356,12 @@ class _Driver:
 
     def __init__(self, sim: TrajectorySimulator, graph: NavGraph, rng: np.random.Generator, steps: int) -> None:
         self.sim, self.graph, self.rng, self.steps = sim, graph, rng, steps
-        robot, tcfg = sim.cfg.sim.robot, sim.cfg.sim.trajectory
+        robot, tcfg, steps_cfg = sim.cfg.sim.robot, sim.cfg.sim.trajectory, sim.cfg.localization
         self.dt = robot.control_dt_s
         self.v_max = robot.max_speed_mps
         self.w_max = math.radians(robot.max_turn_rate_deg_s)
-        self.kf_distance = tcfg.keyframe_distance_m
-        self.kf_angle = math.radians(tcfg.keyframe_angle_deg)
+        self.kf_distance = steps_cfg.keyframe_distance_m
+        self.kf_angle = math.radians(steps_cfg.keyframe_angle_deg)
         self.min_goal_distance = tcfg.min_start_goal_m
         self.times: list[float] = []
         self.poses: list[tuple[float, float, float]] = []
@@ -493,10 +494,7 @@ class _Driver:
         return v, v * curvature
 
     def _is_keyframe(self, pose) -> bool:
-        last = self.poses[self.keyframes[-1]]
-        moved = math.hypot(pose[0] - last[0], pose[1] - last[1])
-        turned = abs(float(wrap_angle(pose[2] - last[2])))
-        return moved >= self.kf_distance or turned >= self.kf_angle
+        return keyframe_due(self.poses[self.keyframes[-1]], pose, self.kf_distance, self.kf_angle)
 
     def _log(self, pose, keyframe: bool) -> None:
         self.times.append(len(self.times) * self.dt)

@@ -176,6 +176,26 @@ def test_reader_returns_what_was_written(tmp_path: Path, config: RosbagConfig, e
     np.testing.assert_array_equal(back[1].rgb, frames[1].rgb)
 
 
+def test_convert_keeps_the_keyframes_of_the_odometry(tmp_path: Path, config: RosbagConfig) -> None:
+    from tests.test_cli import invoke
+
+    truth = _write_bag(tmp_path / "bag", config, "16UC1")
+    # Colour frames k = 0, 1, 2, 4 meet odometry message j = 10 k + 2: (0.01 j, −0.02 j, 0.1 j). From frame 0,
+    # frame 1 moved 0.22 m and turned 57°, frame 2 0.45 m; from frame 2, frame 4 moved 0.45 m.
+    spacing = ("--set", "localization.keyframe_distance_m=0.4", "--set", "localization.keyframe_angle_deg=90")
+    result = invoke("convert", "rosbag", tmp_path / "bag", "-o", tmp_path / "kf", *spacing)
+    assert result.exit_code == 0, result.output
+    assert "3 keyframes of 4 frames (every 0.4 m or 90° of odometry)" in result.output
+    kept = read_sequence(tmp_path / "kf")
+    stamps = [t / 1e9 for t in truth["stamps"]]
+    np.testing.assert_array_equal(kept.timestamps(), [stamps[0], stamps[2], stamps[3]])
+    np.testing.assert_array_equal(kept[1].rgb, truth["rgb"][2])
+
+    result = invoke("convert", "rosbag", tmp_path / "bag", "-o", tmp_path / "all", "--all-frames", *spacing)
+    assert result.exit_code == 0, result.output
+    np.testing.assert_array_equal(read_sequence(tmp_path / "all").timestamps(), stamps)
+
+
 def test_missing_topics_are_listed(tmp_path: Path, config: RosbagConfig) -> None:
     _write_bag(tmp_path / "bag", config, "16UC1", topics=(config.rgb_topic, config.odom_topic))
     with pytest.raises(InputError) as exc_info:

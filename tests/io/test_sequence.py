@@ -91,6 +91,21 @@ def test_in_memory_sequence_matches_the_frames() -> None:
     assert [f.extras for f in seq] == [f.extras for f in frames]
 
 
+def test_a_subset_keeps_the_chosen_frames_and_their_indices(written: tuple[Path, list]) -> None:
+    path, frames = written
+    seq = read_sequence(path)
+    part = seq.subset(np.array([1, 3, 4]))
+    assert len(part) == 3 and [f.index for f in part] == [frames[i].index for i in (1, 3, 4)]
+    np.testing.assert_array_equal(part.timestamps(), seq.timestamps()[[1, 3, 4]])
+    np.testing.assert_array_equal(part.odometry(), seq.odometry()[[1, 3, 4]])
+    np.testing.assert_array_equal(part[1].rgb, frames[3].rgb)
+    np.testing.assert_array_equal(part[2].depth_m, seq[4].depth_m)
+    assert part.ground_truth_storeys() == [seq.ground_truth_storeys()[i] for i in (1, 3, 4)]
+    for rows in ([3, 1], [0, len(frames)], [-1, 2]):
+        with pytest.raises(ValueError, match="rows must increase"):
+            seq.subset(np.array(rows))
+
+
 def test_random_access_and_index_errors(written: tuple[Path, list]) -> None:
     path, frames = written
     seq = read_sequence(path)

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from bimfactor.localization.motion import (
+    keyframe_due,
+    keyframe_indices,
     odometry_covariance,
     odometry_increment,
     odometry_increment_variances,
@@ -81,3 +83,24 @@ def test_odometry_covariance_matches_the_sampled_motion_model(increment):
     sampled = np.column_stack([trans * np.cos(rot1), trans * np.sin(rot1), rot1 + rot2])
     expected = odometry_covariance(np.array(increment), alpha)
     np.testing.assert_allclose(np.cov(sampled.T), expected, rtol=0.1, atol=1e-4)
+
+
+def test_keyframes_every_distance_or_turn_from_the_last_kept():
+    turn = np.deg2rad(15.0)
+    poses = np.array(
+        [
+            [0.0, 0.0, 0.0],  # first: always
+            [0.3, 0.0, 0.0],  # 0.3 m
+            [0.5, 0.0, 0.0],  # 0.5 m from the first: kept
+            [0.6, 0.1, 0.2],  # 0.14 m, 11.5°
+            [0.6, 0.1, 0.27],  # 15.5° from the last kept: kept
+            [0.6, 0.1, 0.27 + 2 * np.pi],  # the same heading, one turn on
+            [0.9, 0.5, 0.27],  # 0.5 m: kept
+            [0.9, 0.5, np.pi - 0.1],  # 149° from the last kept, across the seam below: kept
+            [0.9, 0.5, -np.pi + 0.1],  # 11.5° on across ±π
+        ]
+    )
+    np.testing.assert_array_equal(keyframe_indices(poses, 0.5, turn), [0, 2, 4, 6, 7])
+    assert keyframe_indices(np.zeros((0, 3)), 0.5, turn).shape == (0,)
+    assert not keyframe_due(poses[7], poses[8], 0.5, turn)
+    assert keyframe_due(poses[7], poses[8], 0.5, np.deg2rad(11.0))

@@ -73,7 +73,7 @@ def test_starts_are_distinct_rooms(building: Building, six_trajectories: list[Si
 
 
 def test_keyframes_every_distance_or_angle(building: Building, six_trajectories: list[SimTrajectory]) -> None:
-    tcfg, robot = building.cfg.sim.trajectory, building.cfg.sim.robot
+    tcfg, robot = building.cfg.localization, building.cfg.sim.robot
     max_step_m = robot.max_speed_mps * robot.control_dt_s
     max_turn = math.radians(robot.max_turn_rate_deg_s) * robot.control_dt_s
     for trajectory in six_trajectories:
