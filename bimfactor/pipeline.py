@@ -42,7 +42,8 @@ from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.symmetry import Motion, twin_motions
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config
-from bimfactor.embed.text import TextEmbedder, make_text_embedder
+from bimfactor.embed.text import TextEmbedder, make_text_embedder, text_model_name
+from bimfactor.errors import ConfigError, InputError
 from bimfactor.localization.field import ScanLikelihood, frame_endpoints
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.modes import extract_modes
@@ -238,6 +239,12 @@ class Localizer:
         self.meta = meta
         self.cfg = cfg
         self.variant = cfg.localization.variant
+        embedding = text_embedder.name if text_embedder is not None else text_model_name(cfg.embed)
+        if embedding != prior.embedding_model:
+            raise ConfigError(
+                f"the prior's objects are embedded with {prior.embedding_model}, but this run embeds with {embedding}: "
+                "localize with the embed.* settings the prior was built with, or rebuild the prior with these"
+            )
         embedder = text_embedder or make_text_embedder(cfg.embed)
         self.perception = make_perception(cfg, meta, embedder, seed=seed)
         self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
@@ -252,6 +259,11 @@ class Localizer:
     def step(self, frame: Frame) -> LocalizerStep:
         """One frame: perception, the filter, (graph variants) the back end on the filter's modes, and (full) the fine
         stage on the best mode."""
+        if not np.all(np.isfinite(frame.odom_pose)):
+            raise InputError(
+                f"frame {frame.index} has no odometry pose: the localizer predicts each step from wheel odometry "
+                "(a TUM RGB-D folder has none; convert a recording with an odometry topic)"
+            )
         started = time.perf_counter()
         seen = self.perception.step(frame)
         perception_ms = (time.perf_counter() - started) * 1000

@@ -14,6 +14,8 @@ from bimfactor.backend.posegraph import semantic_associator
 from bimfactor.backend.refine import refine_mode
 from bimfactor.bim.symmetry import Motion
 from bimfactor.config import Config, load_config
+from bimfactor.errors import ConfigError, InputError
+from bimfactor.evaluation import report
 from bimfactor.evaluation.metrics import translation_errors_m
 from bimfactor.evaluation.report import twin_summary, write_run
 from bimfactor.localization.likelihood import SemanticLikelihood
@@ -190,6 +192,45 @@ def test_the_run_folder_lists_the_twin_poses_and_says_how_often_the_belief_split
     summary = twin_summary(twin_run)
     assert summary is not None
     assert f"at {n // 2} of {n} steps" in summary and f"at {len(range(1, n, 4))} steps" in summary
+
+
+def test_a_frame_without_odometry_is_refused(
+    paper_floor: Building, drive: SimResult, text_embedder, test_config: Config
+) -> None:
+    localizer = Localizer(paper_floor.prior, drive.meta, test_config, SEED, text_embedder=text_embedder)
+    localizer.step(drive.frames[0])
+    blind = dataclasses.replace(drive.frames[1], odom_pose=np.array([1.0, np.nan, 0.0]))
+    with pytest.raises(InputError, match=f"frame {blind.index} has no odometry pose"):
+        localizer.step(blind)
+
+
+def test_a_prior_embedded_with_another_model_is_refused(
+    paper_floor: Building, drive: SimResult, text_embedder, test_config: Config
+) -> None:
+    """Observations and BIM objects must share one embedding space; the check needs no model weights."""
+    other = dataclasses.replace(paper_floor.prior, embedding_model="clip:ViT-L-14")
+    with pytest.raises(ConfigError, match=r"embedded with clip:ViT-L-14, but this run embeds with all-MiniLM-L6-v2"):
+        Localizer(other, drive.meta, test_config, SEED, text_embedder=text_embedder)
+    with pytest.raises(ConfigError, match="embedded with clip:ViT-L-14"):
+        Localizer(other, drive.meta, test_config, SEED)
+
+
+def test_a_run_folder_is_replaced_whole_or_not_at_all(
+    paper_floor: Building, runs: dict[str, LocalizationRun], tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run that fails while its folder is written leaves the earlier run as it was, and no partial folder."""
+    folder = tmp_path / "run"
+    write_run(runs["smcl"], paper_floor.prior, folder, "earlier: true\n", "earlier")
+    before = {f.name: f.read_bytes() for f in folder.iterdir()}
+
+    def broken_figure(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(report, "save_estimate_plot", broken_figure)
+    with pytest.raises(OSError, match="disk full"):
+        write_run(runs["smcl+graph"], paper_floor.prior, folder, "later: true\n", "later")
+    assert {f.name: f.read_bytes() for f in folder.iterdir()} == before
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
 
 
 def test_with_best_mode_output_the_graph_output_is_the_most_probable_mode(

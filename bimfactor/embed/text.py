@@ -147,7 +147,7 @@ class ClipTextEmbedder:
         path = Path(weights_path).expanduser()
         if not path.is_file():
             raise DependencyError(f"CLIP weights file not found: {path}")
-        self.name = f"clip:{model_name}"
+        self.name = clip_name(model_name)
         key = ("clip", model_name, str(path.resolve()), device)
         self._model = _memoised(key, lambda: self._load(model_name, path, device))
         self.dim = self._model.dim
@@ -178,6 +178,16 @@ class ClipTextEmbedder:
     def encode(self, texts: Sequence[str]) -> np.ndarray:
         """(N, D) float32 unit rows (D = 768 for ViT-L-14)."""
         return self._model.encode(texts)
+
+
+def clip_name(model_name: str) -> str:
+    """The name a CLIP text embedder of the open_clip architecture `model_name` carries."""
+    return f"clip:{model_name}"
+
+
+def text_model_name(cfg: EmbedConfig) -> str:
+    """The name of the embedder `make_text_embedder(cfg)` makes, known without loading it (a prior records it)."""
+    return clip_name(cfg.clip_model) if cfg.text_model == "clip" else MINILM_NAME
 
 
 def make_text_embedder(cfg: EmbedConfig) -> TextEmbedder:

@@ -15,7 +15,7 @@ from bimfactor.bim.prior import BimPrior
 from bimfactor.errors import InputError
 from bimfactor.evaluation.metrics import TrajectoryMetrics, trajectory_metrics
 from bimfactor.evaluation.plots import save_estimate_plot, save_particle_snapshots
-from bimfactor.io.atomic import atomic_dir, atomic_path, write_text_atomic
+from bimfactor.io.atomic import atomic_dir
 from bimfactor.io.tum import write_tum_trajectory
 from bimfactor.pipeline import LocalizationRun, RefinedRun, Track
 
@@ -97,8 +97,15 @@ def write_run(run: LocalizationRun, prior: BimPrior, out_dir: str | Path, config
     belief's weight there, else empty.
     """
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out_dir / "config.yaml", config_yaml)
+    with atomic_dir(out_dir) as tmp:
+        _write_run_files(run, prior, tmp, config_yaml, title)
+    figures = [out_dir / "trajectory.png"]
+    return figures + ([out_dir / "particles.png"] if run.snapshots else [])
+
+
+def _write_run_files(run: LocalizationRun, prior: BimPrior, out_dir: Path, config_yaml: str, title: str) -> None:
+    """`write_run`'s files, into the folder that becomes the run folder once all are written."""
+    (out_dir / "config.yaml").write_text(config_yaml)
     write_tum_trajectory(out_dir / "estimate.txt", run.timestamps_s, run.poses, comment=f"bimfactor {run.variant}")
     out, fine = run.output, run.fine
     fine_ms = fine.time_ms if fine is not None else np.zeros(len(out.poses))
@@ -120,14 +127,14 @@ def write_run(run: LocalizationRun, prior: BimPrior, out_dir: str | Path, config
              "" if modes is None else f"{graph_ms[i]:.3f}", *icp, *twin,
              *_gt_cells(run.gt_poses, run.gt_rooms, i)]
         )  # fmt: skip
-    write_text_atomic(out_dir / "steps.csv", _csv(STEP_COLUMNS, rows))
+    (out_dir / "steps.csv").write_text(_csv(STEP_COLUMNS, rows))
     if run.graph is not None:
-        write_text_atomic(out_dir / "modes.csv", _csv(MODE_COLUMNS, _mode_rows(run, prior)))
+        (out_dir / "modes.csv").write_text(_csv(MODE_COLUMNS, _mode_rows(run, prior)))
     metrics = run_metrics(run)
     if metrics is not None:
         summary = {"variant": run.variant, **metrics.to_dict(), **({"icp": fine.summary()} if fine is not None else {})}
-        write_text_atomic(out_dir / "metrics.json", json.dumps(summary, indent=2))
-    with atomic_path(out_dir / "snapshots.npz") as tmp, tmp.open("wb") as fh:
+        (out_dir / "metrics.json").write_text(json.dumps(summary, indent=2))
+    with (out_dir / "snapshots.npz").open("wb") as fh:
         np.savez_compressed(
             fh,
             **{
@@ -137,12 +144,9 @@ def write_run(run: LocalizationRun, prior: BimPrior, out_dir: str | Path, config
             },
         )
     storey = _main_storey(run.storeys)
-    figures = [save_estimate_plot(prior, run.poses, run.gt_poses, storey, out_dir / "trajectory.png", title)]
+    save_estimate_plot(prior, run.poses, run.gt_poses, storey, out_dir / "trajectory.png", title)
     if run.snapshots:
-        figures.append(
-            save_particle_snapshots(prior, run.snapshots, run.gt_poses, run.poses, storey, out_dir / "particles.png")
-        )
-    return figures
+        save_particle_snapshots(prior, run.snapshots, run.gt_poses, run.poses, storey, out_dir / "particles.png")
 
 
 TWIN_NOTICE_SHARE = 0.2
