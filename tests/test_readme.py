@@ -1,0 +1,108 @@
+"""The README's "From Python" code, run as written: the online loop on a demo-like folder, and the live-robot
+snippet up to the one-line errors it promises without weight files, with its keyframe gate."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bimfactor.errors import ConfigError, DependencyError
+from bimfactor.io.sequence import write_sequence
+from bimfactor.localization.motion import keyframe_indices
+from bimfactor.sim.simulate import simulate_sequence
+from tests.sim import conftest as sim_fixtures
+from tests.sim.conftest import Building
+
+paper_floor = sim_fixtures.paper_floor
+text_embedder = sim_fixtures.text_embedder
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def python_blocks() -> list[str]:
+    """The ```python blocks of the README's "From Python" section, in order."""
+    text = README.read_text()
+    section = text.split("\n## From Python\n", 1)[1].split("\n## ", 1)[0]
+    return re.findall(r"```python\n(.*?)```", section, flags=re.S)
+
+
+@pytest.fixture(scope="module")
+def demo_folder(paper_floor: Building, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder laid out as `bimfactor demo` leaves it: runs/demo/prior and runs/demo/sequence (trajectory 0)."""
+    root = tmp_path_factory.mktemp("readme")
+    paper_floor.prior.save(root / "runs/demo/prior")
+    drive = simulate_sequence(paper_floor.prior, paper_floor.model, paper_floor.cfg, 0, 0, progress=False)
+    write_sequence(root / "runs/demo/sequence", drive.meta, drive.frames)
+    return root
+
+
+def test_the_readme_has_the_three_blocks() -> None:
+    blocks = python_blocks()
+    assert len(blocks) == 3
+    assert "localizer.step(frame)" in blocks[0] and "Localizer(" in blocks[1] and "def on_camera_frame" in blocks[2]
+
+
+def test_the_online_loop_localizes_the_demo_sequence(
+    demo_folder: Path, paper_floor: Building, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
+    monkeypatch.chdir(demo_folder)
+    scope: dict = {}
+    exec(python_blocks()[0], scope)
+    step, frame = scope["step"], scope["frame"]
+    assert np.hypot(*(step.pose[:2] - frame.gt_pose[:2])) < 0.5
+    truth_room = int(paper_floor.prior.room_at(frame.gt_pose[None, :2], 0)[0])
+    assert scope["room"] == next(r.category for r in paper_floor.prior.rooms if r.id == truth_room)
+    assert step.filtered.converged and scope["hypotheses"] and 0.0 < scope["sigma_xy_m"] < 0.5
+    assert f"converged {step.filtered.converged}" in capsys.readouterr().out
+
+
+def test_the_live_snippet_fails_with_the_errors_it_promises(demo_folder: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without weight files: a prior embedded by MiniLM is a ConfigError; a CLIP prior then needs the CLIP file."""
+    monkeypatch.chdir(demo_folder)
+    first, live = python_blocks()[:2]
+    scope: dict = {}
+    exec(first.split("localizer = ")[0], scope)  # the imports, without running the loop again
+    prior = demo_folder / "runs/prior/my-building-clip"
+    scope["BimPrior"].load("runs/demo/prior").save(prior)
+    with pytest.raises(ConfigError, match="embedded with all-MiniLM-L6-v2, but this run embeds with clip:ViT-L-14"):
+        exec(live, scope)
+    meta = json.loads((prior / "prior.json").read_text())
+    (prior / "prior.json").write_text(json.dumps({**meta, "embedding_model": "clip:ViT-L-14"}))
+    with pytest.raises(DependencyError, match=re.escape("CLIP weights file not found: weights/ViT-L-14.pt")):
+        exec(live, scope)
+
+
+def test_the_live_callback_steps_the_localizer_at_keyframes_only(
+    demo_folder: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(demo_folder)
+    first, live, callback = python_blocks()
+    scope: dict = {}
+    exec(first.split("localizer = ")[0], scope)
+    exec(live.split("robot = ")[0], scope)  # the configuration and camera, not the Localizer
+
+    class Robot:
+        """Stands in for the Localizer: records the frames it is stepped with."""
+
+        def __init__(self) -> None:
+            self.frames: list = []
+
+        def step(self, frame):
+            self.frames.append(frame)
+            return frame.index
+
+    scope["robot"] = Robot()
+    exec(callback, scope)
+    t = np.arange(200) * 0.05
+    odometry = np.column_stack([0.3 * t, 0.1 * np.sin(t), np.minimum(0.4 * t, 2.0)])  # 0.3 m/s; turning 23°/s, then not
+    image, depth = np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32)
+    returned = [scope["on_camera_frame"](i, t[i], image, depth, odometry[i]) for i in range(len(t))]
+    cfg = scope["live"].localization
+    want = keyframe_indices(odometry, cfg.keyframe_distance_m, np.radians(cfg.keyframe_angle_deg))
+    assert [f.index for f in scope["robot"].frames] == want.tolist() and 10 < len(want) < 100
+    assert [r for r in returned if r is not None] == want.tolist()
+    np.testing.assert_array_equal(scope["robot"].frames[3].odom_pose, odometry[want[3]])
