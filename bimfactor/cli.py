@@ -647,6 +647,20 @@ def _write_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) -
     return results
 
 
+def _warn_dense_steps(sequence: Any, path: Path, cfg: Any) -> None:
+    """One warning line when a sequence's frames are much closer than the localizer's keyframes."""
+    from bimfactor.localization.motion import dense_steps_note
+
+    odometry, steps = sequence.odometry(), cfg.localization
+    note = (
+        None
+        if odometry is None
+        else dense_steps_note(odometry, steps.keyframe_distance_m, math.radians(steps.keyframe_angle_deg))
+    )
+    if note is not None:
+        typer.echo(f"warning: {path}: {note}; 'bimfactor convert sequence {path} -o OUT' keeps the keyframes", err=True)
+
+
 def _metrics_line(metrics: Any) -> str:
     """One line of a run's TrajectoryMetrics."""
     return (
@@ -705,6 +719,7 @@ def localize(
         ensure_run_destination(output)
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
+        _warn_dense_steps(sequence, sequence_dir, cfg)
         n = len(sequence)
         snapshot_steps = sorted({0, n // 10, n // 4, n // 2, n - 1})
         run = localize_sequence(
@@ -769,6 +784,7 @@ def refine(
         ensure_run_destination(output)
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
+        _warn_dense_steps(sequence, sequence_dir, cfg)
         matcher = scan_matcher(prior, cfg)
         run = localize_sequence(
             prior,

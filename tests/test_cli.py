@@ -422,6 +422,7 @@ def test_localize_writes_the_run(demo_prior: Path, tmp_path: Path, cli_config_ar
     assert set(metrics) >= {"trans_err_m", "orient_err_deg", "room_acc", "step_ms_median", "steps_to_converge"}
     assert 0.0 <= metrics["room_acc"] <= 1.0
     assert len((run / "steps.csv").read_text().splitlines()) == 51
+    assert "warning" not in result.stderr  # keyframes every 0.5 m or 15°, as the localizer expects
     assert_one_line_error(invoke("localize", demo_prior, tmp_path / "none", "-o", run), contains="sequence")
 
 
@@ -496,6 +497,18 @@ def test_refine_writes_the_refined_run(demo_prior: Path, short_sequence: Path, t
     steps = (out / "steps.csv").read_text().splitlines()
     assert len(steps) == 21 and "cov_yawyaw" in steps[0]
     assert load_config(out / "config.yaml").localization.variant == "smcl+graph"
+
+
+def test_localize_warns_when_frames_are_much_closer_than_keyframes(
+    demo_prior: Path, short_sequence: Path, tmp_path: Path
+) -> None:
+    """The sequence's 0.5 m / 15° keyframes are dense for a localizer configured for steps every 2 m or 60°."""
+    spacing = ["--set", "localization.keyframe_distance_m=2", "--set", "localization.keyframe_angle_deg=60"]
+    result = invoke("localize", demo_prior, short_sequence, "-o", tmp_path / "run", *spacing)
+    assert result.exit_code == 0, result.output
+    warning = result.stderr.strip()
+    assert warning.startswith(f"warning: {short_sequence}: its frames are 0.") and "\n" not in warning
+    assert "keyframes every 2 m or 60°" in warning and f"convert sequence {short_sequence} -o OUT" in warning
 
 
 def test_refine_fails_cleanly_on_bad_input(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:

@@ -37,6 +37,22 @@ def keyframe_indices(poses: np.ndarray, distance_m: float, angle_rad: float) -> 
     return np.asarray(kept, np.int64)
 
 
+def dense_steps_note(odometry: np.ndarray, distance_m: float, angle_rad: float) -> str | None:
+    """A warning when (N, 3) odometry poses lie much closer than keyframes (median travel below half of
+    `distance_m` and median turn below half of `angle_rad`), else None: every such frame adds a step's motion noise."""
+    odometry = np.asarray(odometry, np.float64).reshape(-1, 3)
+    if len(odometry) < 3:
+        return None
+    travel = float(np.median(np.hypot(*np.diff(odometry[:, :2], axis=0).T)))
+    turn = float(np.median(np.abs(wrap_angle(np.diff(odometry[:, 2])))))
+    if travel >= distance_m / 2 or turn >= angle_rad / 2:
+        return None
+    return (
+        f"its frames are {travel:.2f} m / {math.degrees(turn):.1f}° apart (median), but each step adds the motion "
+        f"model's noise, made for keyframes every {distance_m:g} m or {math.degrees(angle_rad):g}°"
+    )
+
+
 def odometry_increment(odom_prev: np.ndarray, odom_curr: np.ndarray) -> np.ndarray:
     """(3,) dx, dy, dyaw in the robot frame between two consecutive (3,) odometry poses T_odom_base."""
     return se2_between(np.asarray(odom_prev, float), np.asarray(odom_curr, float))
