@@ -83,6 +83,15 @@ BenchPriorOption = Annotated[
     typer.Option("--prior", metavar="PRIOR_DIR", help="A prior folder (default: the paper-floor preset)."),
 ]
 SeedOption = Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")]
+InitialPoseOption = Annotated[
+    str | None,
+    typer.Option(
+        "--initial-pose",
+        metavar="X,Y,YAW_DEG[,STOREY]",
+        help="Start from a pose guess in the BIM's frame (m, m, degrees), AMCL-style: particles from a Gaussian "
+        "of smcl.initial_sigma_xy_m / initial_sigma_yaw_deg about it. Default: uniform over the building.",
+    ),
+]
 
 
 def _one_line(text: str) -> str:
@@ -636,6 +645,21 @@ def _variant_overrides(name: str, variants: list[str] | str | None) -> list[str]
     return [f"{name}={json.dumps(variants)}"]
 
 
+def _initial_pose_overrides(text: str | None) -> list[str]:
+    """`--initial-pose X,Y,YAW_DEG[,STOREY]` as the overrides of smcl.initial_pose (and initial_storey)."""
+    if text is None:
+        return []
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) not in (3, 4) or (len(values) == 4 and not values[3].is_integer()):
+        raise InputError(f"--initial-pose '{text}': expected X,Y,YAW_DEG or X,Y,YAW_DEG,STOREY (metres, degrees)")
+    storey = [f"smcl.initial_storey={int(values[3])}"] if len(values) == 4 else []
+    return [f"smcl.initial_pose={json.dumps(values[:3])}", *storey]
+
+
 def _write_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) -> Path:
     """OUT/results.json ({"benchmark": name, **result}) and OUT/config.yaml, each written atomically."""
     from bimfactor.io.atomic import write_text_atomic
@@ -685,6 +709,7 @@ def localize(
         ),
     ] = None,
     seed: SeedOption = None,
+    initial_pose: InitialPoseOption = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -708,9 +733,18 @@ def localize(
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-graph --variant smcl+graph
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-full --variant full
       bimfactor localize runs/prior/duplex runs/duplex-k0 -o runs/loc-duplex --set smcl.num_particles=5000
+      bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-guess --initial-pose 63.5,7.9,-97
     """
     with _cli_errors(debug):
-        cfg = _start(config, [*(overrides or []), *_variant_overrides("localization.variant", variant)], verbose)
+        cfg = _start(
+            config,
+            [
+                *(overrides or []),
+                *_variant_overrides("localization.variant", variant),
+                *_initial_pose_overrides(initial_pose),
+            ],
+            verbose,
+        )
         from bimfactor.bim.prior import BimPrior
         from bimfactor.evaluation.report import ensure_run_destination, run_metrics, twin_summary, write_run
         from bimfactor.io.sequence import read_sequence
@@ -750,6 +784,7 @@ def refine(
         str, typer.Option("--variant", metavar="NAME", help="The forward pass: smcl+graph or full.")
     ] = "smcl+graph",
     seed: SeedOption = None,
+    initial_pose: InitialPoseOption = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -771,7 +806,15 @@ def refine(
       bimfactor refine runs/prior/duplex runs/duplex-k0 -o runs/refine-duplex --set backend.max_modes=3
     """
     with _cli_errors(debug):
-        cfg = _start(config, [*(overrides or []), *_variant_overrides("localization.variant", variant)], verbose)
+        cfg = _start(
+            config,
+            [
+                *(overrides or []),
+                *_variant_overrides("localization.variant", variant),
+                *_initial_pose_overrides(initial_pose),
+            ],
+            verbose,
+        )
         from bimfactor.bim.prior import BimPrior
         from bimfactor.evaluation.report import ensure_run_destination, run_metrics, track_metrics, write_refined
         from bimfactor.io.sequence import read_sequence
@@ -895,7 +938,9 @@ def bench_paper(
         cfg = _start(config, [*(overrides or []), *_variant_overrides("evaluation.variants", variant_list)], verbose)
         from bimfactor.bim.prior import build_prior
         from bimfactor.bim.synth import write_building
-        from bimfactor.evaluation.paper import format_tables, run_paper_bench
+        from bimfactor.evaluation.paper import check_protocol, format_tables, run_paper_bench
+
+        check_protocol(cfg)
 
         output.mkdir(parents=True, exist_ok=True)
         if ifc is None:

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import copy
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, model_validator
 
 from bimfactor.errors import ConfigError
 
@@ -186,6 +186,13 @@ class SmclConfig(_Strict):
         "as many as the occupied pose bins need, between M and `max_particles`; false: M throughout."
     )
     max_particles: int = Field(ge=1, description="KLD-sampling: the initial and largest particle count.")
+    initial_pose: Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)] | None = Field(
+        description="x, y (m, the BIM's world frame), yaw (°) of a pose guess: M particles start from a Gaussian "
+        "about it (AMCL's initial pose); null: uniform over all navigable space (global localization, the paper)."
+    )
+    initial_storey: int = Field(ge=0, description="The storey index of `initial_pose`.")
+    initial_sigma_xy_m: float = Field(gt=0.0, description="Standard deviation of the start in x and y.")
+    initial_sigma_yaw_deg: float = Field(gt=0.0, description="Standard deviation of the start in yaw.")
     kld_epsilon: float = Field(gt=0.0, lt=1.0, description="KLD-sampling: bound ε on the KL divergence.")
     kld_z: float = Field(gt=0.0, description="KLD-sampling: z_(1−δ), the standard normal quantile (2.33: δ = 0.01).")
     kld_bin_m: float = Field(gt=0.0, description="KLD-sampling: bin size in x and y.")

@@ -248,7 +248,17 @@ class Localizer:
         embedder = text_embedder or make_text_embedder(cfg.embed)
         self.perception = make_perception(cfg, meta, embedder, seed=seed)
         self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
-        self.filter.initialize()
+        start = cfg.smcl
+        if start.initial_pose is None:
+            self.filter.initialize()
+        else:
+            x, y, yaw_deg = start.initial_pose
+            self.filter.initialize_around(
+                np.array([x, y, np.deg2rad(yaw_deg)]),
+                start.initial_storey,
+                start.initial_sigma_xy_m,
+                np.deg2rad(start.initial_sigma_yaw_deg),
+            )
         self.backend = MultiHypothesisBackend.from_prior(prior, cfg.backend) if self.variant in GRAPH_VARIANTS else None
         self.matcher = (matcher or scan_matcher(prior, cfg)) if self.backend else None
         self.fine = FineRegistration.for_prior(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None

@@ -511,6 +511,25 @@ def test_localize_warns_when_frames_are_much_closer_than_keyframes(
     assert "keyframes every 2 m or 60°" in warning and f"convert sequence {short_sequence} -o OUT" in warning
 
 
+def test_localize_from_an_initial_pose(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
+    x, y, yaw = read_sequence(short_sequence)[0].gt_pose
+    guess = f"{x + 0.5},{y - 0.5},{np.degrees(yaw) + 10}"
+    run = tmp_path / "run"
+    result = invoke("localize", demo_prior, short_sequence, "-o", run, "--initial-pose", guess)
+    assert result.exit_code == 0, result.output
+    resolved = (run / "config.yaml").read_text()
+    assert f"initial_pose:\n  - {x + 0.5}" in resolved
+    rows = list(csv.DictReader((run / "steps.csv").read_text().splitlines()))
+    assert np.hypot(float(rows[0]["x"]) - x, float(rows[0]["y"]) - y) < 1.0  # about the guess from the first step
+    for bad, message in (("1,2", "expected X,Y,YAW_DEG"), ("a,b,c", "expected X,Y,YAW_DEG"),
+                         (f"{guess},1.5", "expected X,Y,YAW_DEG"), (f"{guess},4", "storey 4 does not exist"),
+                         ("5000,0,0", "no navigable space within")):  # fmt: skip
+        out = tmp_path / "bad"
+        result = invoke("localize", demo_prior, short_sequence, "-o", out, "--initial-pose", bad)
+        assert_one_line_error(result, contains=message)
+        assert not out.exists()
+
+
 def test_refine_fails_cleanly_on_bad_input(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
     assert_one_line_error(invoke("refine", demo_prior, tmp_path / "none", "-o", out), contains="none")

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bimfactor.config import Config
+from bimfactor.errors import ConfigError
 from bimfactor.evaluation.metrics import run_bootstrap_ci
 from bimfactor.io.atomic import write_text_atomic
 from bimfactor.progress import progress
@@ -236,9 +237,19 @@ def _by_step(runs: list[RunResult]) -> dict:
     }
 
 
+def check_protocol(cfg: Config) -> None:
+    """ConfigError for settings the protocol cannot take: every run starts from the uniform belief."""
+    if cfg.smcl.initial_pose is not None:
+        raise ConfigError(
+            "bench paper starts every run from a uniform belief over the building; smcl.initial_pose is one pose "
+            "guess for one sequence (bimfactor localize --initial-pose)"
+        )
+
+
 def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, workers: int | None = None) -> dict:
     """Run the protocol on a prior's building; writes OUT/results.json, OUT/config.yaml and OUT/error_by_step.png;
     returns the report."""
+    check_protocol(cfg)
     from bimfactor.bim.prior import BimPrior
     from bimfactor.bim.symmetry import twin_motions
     from bimfactor.evaluation.plots import save_error_by_step_plot  # matplotlib: not in the workers' start-up

@@ -331,6 +331,36 @@ class SemanticMCL:
         self.w_slow = self.w_fast = None
         self._initialized = True
 
+    def initialize_around(self, pose: np.ndarray, storey: int, sigma_xy_m: float, sigma_yaw_rad: float) -> None:
+        """M particles from a Gaussian about a (3,) pose guess on one storey (AMCL's initial pose), equal weights.
+
+        Draws that fall off navigable space are drawn again; InputError when the storey does not exist or no draw
+        lands on navigable space (a guess in another frame or unit, or inside a wall's block).
+        """
+        pose = np.asarray(pose, np.float64).reshape(3)
+        if not 0 <= storey < self.navigable.shape[0]:
+            raise InputError(f"initial pose: storey {storey} does not exist (the prior has {self.navigable.shape[0]})")
+        n = self.min_particles
+        kept: list[np.ndarray] = []
+        for _ in range(5):
+            drawn = pose + self.rng.standard_normal((4 * n, 3)) * [sigma_xy_m, sigma_xy_m, sigma_yaw_rad]
+            drawn[:, 2] = wrap_angle(drawn[:, 2])
+            kept.append(drawn[self.on_navigable(drawn, np.full(len(drawn), storey))])
+            if sum(len(k) for k in kept) >= n:
+                break
+        particles = np.concatenate(kept)
+        if len(particles) == 0:
+            raise InputError(
+                f"initial pose ({pose[0]:.2f} m, {pose[1]:.2f} m) on storey {storey}: no navigable space within "
+                f"about {3 * sigma_xy_m:g} m of it (the BIM's world frame, metres)"
+            )
+        self.particles = particles[self.rng.integers(0, len(particles), n)] if len(particles) < n else particles[:n]
+        self.storeys = np.full(n, storey, np.int64)
+        self.weights = np.full(n, 1.0 / n)
+        self.fresh = np.zeros(n, bool)
+        self.w_slow = self.w_fast = None
+        self._initialized = True
+
     def predict(self, odom_increment: np.ndarray) -> None:
         """Move the particles by a (3,) robot-frame odometry increment (dx, dy, dyaw) with the motion noise."""
         self._require_initialized()

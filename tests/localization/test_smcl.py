@@ -7,6 +7,7 @@ import pytest
 
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import SmclConfig
+from bimfactor.errors import InputError
 from bimfactor.localization.likelihood import polar_coordinates
 from bimfactor.localization.smcl import (
     SemanticMCL,
@@ -143,6 +144,30 @@ def test_initialize_spreads_particles_over_navigable_space_of_all_storeys(smcl_c
     np.testing.assert_allclose(mcl.weights.sum(), 1.0)
     mcl.initialize(storeys=[1])
     assert np.all(mcl.storeys == 1)
+
+
+def test_initialize_around_a_pose_guess_draws_a_gaussian_on_navigable_space(smcl_cfg: SmclConfig):
+    prior = make_prior(n_storeys=2)
+    table = VisibilityTable.build(prior, smcl_cfg, progress=False)
+    mcl = SemanticMCL(prior, table, smcl_cfg, np.random.default_rng(0), num_particles=4000)
+    guess = np.array([3.0, 3.0, np.pi - 0.05])  # the yaw draws straddle ±π
+    mcl.initialize_around(guess, 1, 0.3, np.deg2rad(10.0))
+    assert mcl.num_particles == 4000 and np.all(mcl.storeys == 1)
+    assert mcl.on_navigable(mcl.particles, mcl.storeys).all()
+    np.testing.assert_allclose(mcl.particles[:, :2].mean(axis=0), guess[:2], atol=0.03)
+    np.testing.assert_allclose(mcl.particles[:, :2].std(axis=0), 0.3, rtol=0.05)
+    turn = wrap_angle(mcl.particles[:, 2] - guess[2])
+    assert abs(turn.mean()) < np.deg2rad(0.5) and turn.std() == pytest.approx(np.deg2rad(10.0), rel=0.05)
+    assert mcl.particles[:, 2].min() >= -np.pi and mcl.particles[:, 2].max() < np.pi
+    np.testing.assert_allclose(mcl.weights, 1 / 4000)
+
+    mcl.initialize_around(np.array([0.5, 3.0, 0.0]), 0, 0.5, 0.1)  # 0.5 m from the west wall: draws into it redrawn
+    assert mcl.on_navigable(mcl.particles, mcl.storeys).all() and mcl.particles[:, 0].mean() > 0.6
+
+    with pytest.raises(InputError, match="storey 2 does not exist"):
+        mcl.initialize_around(guess, 2, 0.5, 0.1)
+    with pytest.raises(InputError, match=r"initial pose \(100.00 m, 100.00 m\) on storey 0: no navigable space"):
+        mcl.initialize_around(np.array([100.0, 100.0, 0.0]), 0, 0.5, 0.1)
 
 
 def test_particles_leaving_navigable_space_are_down_weighted(box_prior, box_visibility, smcl_cfg):
