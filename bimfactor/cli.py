@@ -589,16 +589,16 @@ def convert(
     """Read a recording (topics of a bag from the config's io.rosbag; or a bimfactor sequence, to keep its keyframes
     at another spacing) and write it as a bimfactor sequence.
 
-        A recording with odometry keeps its keyframes: the first frame, then each frame whose odometry has moved
-        localization.keyframe_distance_m or turned keyframe_angle_deg from the last one kept, the spacing the
-        localizer's per-step motion noise is made for (--all-frames keeps every frame). A recording without odometry
-        (TUM RGB-D) keeps every frame; localize needs odometry and refuses it.
+    A recording with odometry keeps its keyframes: the first frame, then each frame whose odometry has moved
+    localization.keyframe_distance_m or turned keyframe_angle_deg from the last one kept, the spacing the
+    localizer's per-step motion noise is made for (--all-frames keeps every frame). A recording without odometry
+    (TUM RGB-D) keeps every frame; localize needs odometry and refuses it.
 
-        \b
-        Examples:
-          bimfactor convert tum rgbd_dataset_freiburg1_room -o runs/fr1-room
-          bimfactor convert rosbag my_bag -o runs/bag --set io.rosbag.odom_topic=/wheel/odom
-          bimfactor convert sequence runs/bag-all -o runs/bag-1m --set localization.keyframe_distance_m=1.0
+    \b
+    Examples:
+      bimfactor convert tum rgbd_dataset_freiburg1_room -o runs/fr1-room
+      bimfactor convert rosbag my_bag -o runs/bag --set io.rosbag.odom_topic=/wheel/odom
+      bimfactor convert sequence runs/bag-all -o runs/bag-1m --set localization.keyframe_distance_m=1.0
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
