@@ -98,13 +98,12 @@ def write_run(run: LocalizationRun, prior: BimPrior, out_dir: str | Path, config
     """
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
-        _write_run_files(run, prior, tmp, config_yaml, title)
-    figures = [out_dir / "trajectory.png"]
-    return figures + ([out_dir / "particles.png"] if run.snapshots else [])
+        figures = _write_run_files(run, prior, tmp, config_yaml, title)
+    return [out_dir / figure.name for figure in figures]
 
 
-def _write_run_files(run: LocalizationRun, prior: BimPrior, out_dir: Path, config_yaml: str, title: str) -> None:
-    """`write_run`'s files, into the folder that becomes the run folder once all are written."""
+def _write_run_files(run: LocalizationRun, prior: BimPrior, out_dir: Path, config_yaml: str, title: str) -> list[Path]:
+    """`write_run`'s files, into the folder that becomes the run folder once all are written; returns the figures."""
     (out_dir / "config.yaml").write_text(config_yaml)
     write_tum_trajectory(out_dir / "estimate.txt", run.timestamps_s, run.poses, comment=f"bimfactor {run.variant}")
     out, fine = run.output, run.fine
@@ -144,9 +143,12 @@ def _write_run_files(run: LocalizationRun, prior: BimPrior, out_dir: Path, confi
             },
         )
     storey = _main_storey(run.storeys)
-    save_estimate_plot(prior, run.poses, run.gt_poses, storey, out_dir / "trajectory.png", title)
+    figures = [save_estimate_plot(prior, run.poses, run.gt_poses, storey, out_dir / "trajectory.png", title)]
     if run.snapshots:
-        save_particle_snapshots(prior, run.snapshots, run.gt_poses, run.poses, storey, out_dir / "particles.png")
+        figures.append(
+            save_particle_snapshots(prior, run.snapshots, run.gt_poses, run.poses, storey, out_dir / "particles.png")
+        )
+    return figures
 
 
 TWIN_NOTICE_SHARE = 0.2
