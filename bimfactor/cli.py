@@ -767,6 +767,12 @@ def localize(
         )
         figures = write_run(run, prior, output, cfg.dump_yaml(), title=f"{sequence.meta.name} against {prior_dir}")
         typer.echo(f"wrote {output}: {n} steps ({run.variant}); figures " + ", ".join(f.name for f in figures))
+        relocalized = [str(i) for i, spread in enumerate(run.relocalized) if spread]
+        if relocalized:
+            typer.echo(
+                "the belief stopped explaining the depth scans and was spread over the building again at step(s) "
+                f"{', '.join(relocalized)} (steps.csv: relocalized)"
+            )
         metrics = run_metrics(run)
         if metrics is not None:
             typer.echo(_metrics_line(metrics))

@@ -281,6 +281,21 @@ class SmclConfig(_Strict):
         "a wrong place from the start, where the long-term average began at the uniform cloud's) still injects; "
         "0: Thrun's rule as is.",
     )
+    relocalize: bool = Field(
+        description="Beyond the paper: when the belief stops explaining the depth scans (a kidnapped robot), spread "
+        "the particles over the whole building again, as at the start; false: only augmented MCL's injection."
+    )
+    lost_fit_ratio: float = Field(
+        gt=0.0,
+        lt=1.0,
+        description="Lost when the belief's predicted scan fit falls below this share of its running average ...",
+    )
+    lost_frames: int = Field(ge=1, description="... on this many consecutive frames with a scan ...")
+    lost_min_fit: float = Field(
+        ge=0.0, le=1.0, description="... once the running average has reached this fit (a belief that was tracking)."
+    )
+    lost_fit_alpha: float = Field(gt=0.0, le=1.0, description="Rate of the scan fit's running average.")
+    lost_min_endpoints: int = Field(ge=1, description="Frames with fewer scan endpoints say nothing about being lost.")
     converged_pos_std_m: float = Field(gt=0.0, description="Converged when the position std is below this ...")
     converged_yaw_std_deg: float = Field(gt=0.0, description="... and the yaw std below this ...")
     converged_storey_share: float = Field(

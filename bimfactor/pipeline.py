@@ -167,6 +167,8 @@ class LocalizationRun:
     n_observations: np.ndarray
     perception_ms: np.ndarray
     n_particles: np.ndarray
+    scan_fit: np.ndarray  # (T,) the belief's predicted scan fit before each update; NaN without a scan
+    relocalized: np.ndarray  # (T,) bool: the filter spread its particles over the building again at this step
     odom_increments: np.ndarray
     observations: list[Observations]
     scans: list[np.ndarray | None] = field(default_factory=list)
@@ -463,6 +465,8 @@ def localize_sequence(
         n_observations=np.asarray([r.filtered.n_observations for r in rows]),
         perception_ms=np.asarray([r.perception_ms for r in rows]),
         n_particles=np.asarray([r.filtered.n_particles for r in rows], np.int64),
+        scan_fit=np.asarray([np.nan if r.filtered.scan_fit is None else r.filtered.scan_fit for r in rows], float),
+        relocalized=np.asarray([r.filtered.relocalized for r in rows], bool),
         odom_increments=np.asarray([r.odom_increment for r in rows[1:]], float).reshape(-1, 3),
         observations=[r.observations for r in rows],
         scans=[r.scan for r in rows],

@@ -17,6 +17,9 @@ spreads particles over the navigable space of all storeys in proportion to area;
 particle on its storey (storey changes are not modelled), so the observations decide the storey.
 Beyond the paper, `augmented: true` adds augmented MCL (Thrun et al., Probabilistic Robotics, Table 8.3):
 random particles are injected with probability max(0, 1 − w_fast / w_slow) to recover from a wrong convergence.
+`relocalize: true` handles the kidnapped robot, which a trickle of injected particles recovers from slowly: when the
+belief stops explaining the depth scans (`LostMonitor`), the particles are spread over the building again, as at
+the start, and the frame that showed it is weighed by the new cloud.
 """
 
 from __future__ import annotations
@@ -55,6 +58,49 @@ class PoseEstimate:
     storey_share: float
 
 
+class LostMonitor:
+    """Tells when a belief that was tracking stops explaining the depth scans: the kidnapped robot.
+
+    Each frame's fit is the belief's predicted scan score, Σ w_i s_i in [0, 1] (`SemanticMCL.scan_fit`): about
+    0.55 while tracking (the prediction's spread and the depth noise keep it under 1), about 0.1 for a cloud
+    spread over the building, and 0.01–0.2 in the first frames after a kidnapping (within a few frames the motion
+    noise finds the wrong belief places that fit the scans locally, so the test must be quick). The monitor keeps a
+    running average of the fit (rate `lost_fit_alpha`) and is armed once that average covers 1 / `lost_fit_alpha`
+    frames and has reached `lost_min_fit`, so a belief still spread or just converged after a global start is never
+    called lost. Armed, it reports lost when `lost_frames` consecutive frames fit below `lost_fit_ratio` × the
+    average; the low frames stay out of the average. Frames with fewer than `lost_min_endpoints` scan endpoints
+    (facing a wall at arm's length) leave it as it is.
+    """
+
+    def __init__(self, cfg: SmclConfig) -> None:
+        self.cfg = cfg
+        self.average: float | None = None
+        self.frames = 0  # frames in the average
+        self.streak = 0
+
+    def reset(self) -> None:
+        self.average, self.frames, self.streak = None, 0, 0
+
+    def lost(self, fit: float | None, n_endpoints: int) -> bool:
+        """Feed one frame's fit (None: no scan); True when the belief is lost (the monitor then starts over)."""
+        cfg = self.cfg
+        if fit is None or n_endpoints < cfg.lost_min_endpoints:
+            return False
+        armed = (
+            self.average is not None and self.average >= cfg.lost_min_fit and self.frames * cfg.lost_fit_alpha >= 1.0
+        )
+        if armed and fit < cfg.lost_fit_ratio * self.average:
+            self.streak += 1
+            if self.streak >= cfg.lost_frames:
+                self.reset()
+                return True
+            return False
+        self.streak = 0
+        self.frames += 1
+        self.average = fit if self.average is None else self.average + cfg.lost_fit_alpha * (fit - self.average)
+        return False
+
+
 @dataclass
 class StepResult:
     """One filter step: the estimate after it, the ESS before resampling, and what each part took."""
@@ -66,6 +112,8 @@ class StepResult:
     n_observations: int = 0
     timings_ms: dict[str, float] = field(default_factory=dict)
     n_particles: int = 0
+    scan_fit: float | None = None  # the belief's predicted scan fit before the update (`SemanticMCL.scan_fit`)
+    relocalized: bool = False  # the particles were spread over the building again at this step
 
     @property
     def pose(self) -> np.ndarray:
@@ -238,6 +286,8 @@ class SemanticMCL:
         self.fresh = np.zeros(self.max_particles, bool)
         self.w_slow: float | None = None
         self.w_fast: float | None = None
+        self.scan_fit: float | None = None  # the last update's Σ w_i s_i over the prior weights (None: no scan)
+        self.lost_monitor = LostMonitor(cfg)
         self._initialized = False
 
     @property
@@ -329,6 +379,7 @@ class SemanticMCL:
         self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
         self.fresh = np.zeros(self.max_particles, bool)
         self.w_slow = self.w_fast = None
+        self.lost_monitor.reset()
         self._initialized = True
 
     def initialize_around(self, pose: np.ndarray, storey: int, sigma_xy_m: float, sigma_yaw_rad: float) -> None:
@@ -359,6 +410,7 @@ class SemanticMCL:
         self.weights = np.full(n, 1.0 / n)
         self.fresh = np.zeros(n, bool)
         self.w_slow = self.w_fast = None
+        self.lost_monitor.reset()
         self._initialized = True
 
     def predict(self, odom_increment: np.ndarray) -> None:
@@ -378,8 +430,10 @@ class SemanticMCL:
         P(z|x) is the semantic term for the observations and, with `scan_likelihood`, the scan term for the (N, 2)
         base-frame `scan` endpoints (`field.scan_endpoints`); either may be empty or None. With the missed-detection
         term (`detection_probability` > 0) an empty `observations` (a frame that detected nothing) still weighs.
+        With a scan, `scan_fit` becomes the belief's predicted scan score Σ w_i s_i (weights before the update).
         """
         self._require_initialized()
+        self.scan_fit = None
         has_observations = observations is not None and len(observations) > 0
         # With the missed-detection term a frame that detected nothing still says which places it did not see.
         weighs_misses = observations is not None and self.cfg.detection_probability > 0.0
@@ -402,7 +456,9 @@ class SemanticMCL:
             self.w_slow = w_avg if self.w_slow is None else self.w_slow + rate_slow * (w_avg - self.w_slow)
             self.w_fast = w_avg if self.w_fast is None else self.w_fast + rate_fast * (w_avg - self.w_fast)
         if has_scan:
-            log_likelihood += self.scan_likelihood.log_likelihood(self.particles, self.storeys, scan)
+            scores = self.scan_likelihood.scores(self.particles, self.storeys, scan)
+            self.scan_fit = float(np.dot(self.weights, scores) / self.weights.sum())
+            log_likelihood += scores / self.cfg.scan_temperature
         self.fresh[:] = False
         with np.errstate(divide="ignore"):
             log_w = np.log(self.weights) + log_likelihood
@@ -520,13 +576,19 @@ class SemanticMCL:
         lap("predict")
         n_obs = 0 if observations is None else len(observations)
         self.update(observations, scan)
+        fit = self.scan_fit
+        relocalized = self.cfg.relocalize and self.lost_monitor.lost(fit, 0 if scan is None else len(scan))
+        if relocalized:  # the kidnapped robot: start over from the whole building, weighed by this frame
+            log.info("the belief no longer explains the scans (fit %.2f): particles spread over the building", fit)
+            self.initialize()
+            self.update(observations, scan)
         lap("update")
         ess = self.effective_sample_size()
         resampled, injected = self.resample_if_needed(observations)
         lap("resample")
         estimate = self.estimate()
         lap("estimate")
-        return StepResult(estimate, ess, resampled, injected, n_obs, timings, self.num_particles)
+        return StepResult(estimate, ess, resampled, injected, n_obs, timings, self.num_particles, fit, relocalized)
 
     # -------------------------------------------------------------------------------- helpers
 

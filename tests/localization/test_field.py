@@ -164,3 +164,71 @@ def test_injected_particles_stay_out_of_the_estimate_until_weighed(
     mcl.update(None, _divider_scan())  # a measurement weighs them: they count again
     assert not mcl.fresh.any() and np.array_equal(mcl.estimation_weights(), mcl.weights)
     assert np.abs(mcl.estimate().pose - [3.0, 3.0, 0.5]).max() > 1e-6
+
+
+# ------------------------------------------------------------------------------------------ the kidnapped robot
+
+
+def _lost_cfg(smcl_cfg: SmclConfig, relocalize: bool = True) -> SmclConfig:
+    return smcl_cfg.model_copy(
+        update={
+            "scan_likelihood": True,
+            "augmented": False,
+            "relocalize": relocalize,
+            "lost_fit_ratio": 0.5,
+            "lost_frames": 2,
+            "lost_min_fit": 0.35,
+            "lost_fit_alpha": 0.1,
+            "lost_min_endpoints": 10,
+            "sigma_trans_m": 0.0,
+            "sigma_rot_deg": 0.0,
+        }
+    )
+
+
+def test_the_lost_monitor_fires_after_consecutive_poor_fits_of_a_belief_that_was_tracking(smcl_cfg: SmclConfig):
+    from bimfactor.localization.smcl import LostMonitor
+
+    monitor = LostMonitor(_lost_cfg(smcl_cfg))
+    assert not any(monitor.lost(0.6, 40) for _ in range(9))  # tracking: the average is 0.6 ...
+    assert not monitor.lost(0.1, 40) and monitor.streak == 0  # ... but over fewer than 1 / α = 10 frames: not armed
+    assert monitor.frames == 10 and monitor.average == pytest.approx(0.55)  # so the poor frame entered the average
+    monitor.average = 0.6
+    assert not monitor.lost(0.1, 40)
+    assert not monitor.lost(0.05, 3)  # too few endpoints: neither counts nor breaks the streak
+    assert monitor.lost(0.1, 40)  # the second poor frame in a row
+    assert monitor.average is None and monitor.streak == 0 and monitor.frames == 0  # it starts over
+    again = LostMonitor(_lost_cfg(smcl_cfg))
+    for fit in (0.6,) * 10 + (0.1, 0.6, 0.1, 0.6):  # a good frame breaks the streak
+        assert not again.lost(fit, 40)
+    assert again.average == pytest.approx(0.6)  # the poor frames stayed out of the average
+    spread = LostMonitor(_lost_cfg(smcl_cfg))
+    assert not any(spread.lost(fit, 40) for fit in (0.1,) * 12 + (0.01,) * 4)  # never armed: never lost
+    assert not LostMonitor(_lost_cfg(smcl_cfg)).lost(None, 0)
+
+
+def _kidnapped_scan() -> np.ndarray:
+    """What the robot sees after being carried off: from (3, 3) facing +x these endpoints lie in free space of room A,
+    1–1.5 m from any wall."""
+    return np.column_stack([np.full(11, 1.5), np.linspace(-0.5, 0.5, 11)])
+
+
+def test_a_tracking_filter_that_stops_explaining_the_scans_spreads_over_the_building_again(
+    box_prior: BimPrior, box_visibility: VisibilityTable, smcl_cfg: SmclConfig
+):
+    runs = {}
+    for relocalize in (True, False):
+        mcl = SemanticMCL(box_prior, box_visibility, _lost_cfg(smcl_cfg, relocalize), np.random.default_rng(1), 300)
+        mcl.initialize()
+        mcl.particles[:] = [3.0, 3.0, 0.0]  # tracking at the truth
+        steps = [mcl.step(None, None, _divider_scan()) for _ in range(10)]
+        assert all(s.scan_fit is not None and s.scan_fit > 0.9 for s in steps)
+        steps += [mcl.step(None, None, _kidnapped_scan()) for _ in range(2)]
+        runs[relocalize] = (steps, mcl.particles.copy())
+    steps, particles = runs[True]
+    assert [s.relocalized for s in steps] == [False] * 11 + [True]
+    assert steps[-1].scan_fit < 0.1  # the fit that showed it: before the particles were spread
+    assert np.ptp(particles[:, 0]) > 8.0 and np.ptp(particles[:, 1]) > 4.0  # over both rooms of the box
+    steps, particles = runs[False]
+    assert not any(s.relocalized for s in steps)
+    np.testing.assert_allclose(particles[:, :2], [[3.0, 3.0]] * len(particles))  # the paper's filter stays put
