@@ -920,6 +920,15 @@ def bench_paper(
             help="smcl, smcl+graph, refine or full (repeatable; default: the config's evaluation.variants).",
         ),
     ] = None,
+    scenario: Annotated[
+        str | None,
+        typer.Option(
+            "--scenario",
+            metavar="NAME",
+            help="global (the paper: from the uniform belief), guess (from a pose guess off the truth) or kidnap "
+            "(carried to another route mid-run); default: the config's evaluation.scenario.",
+        ),
+    ] = None,
     workers: Annotated[int | None, typer.Option("--workers", min=1, help="Parallel processes (default: CPUs).")] = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
@@ -930,7 +939,9 @@ def bench_paper(
     variant and writes OUT/results.json (per variant: trans_err_m, orient_err_deg, room_acc, step_ms_median,
     steps_to_converge, trans_err_conv_m, orient_err_conv_deg, ellipse_coverage; the average also the 95 %
     bootstrap intervals over runs trans_err_ci95_m, orient_err_ci95_deg, room_acc_ci95 and the mean error per
-    step; full also icp_accepted_share and icp_rejections), OUT/error_by_step.png and OUT/config.yaml.
+    step; full also icp_accepted_share and icp_rejections), OUT/error_by_step.png and OUT/config.yaml. With
+    --scenario kidnap the scored steps follow the kidnapping, and the average also holds
+    tracking_before_kidnap_runs and steps_to_recover_median.
 
     \b
     Examples:
@@ -938,10 +949,16 @@ def bench_paper(
       bimfactor bench paper --variant smcl --variant refine -o runs/bench-paper-refine
       bimfactor bench paper --variant smcl+graph --variant full -o runs/bench-paper-full
       bimfactor bench paper --ifc ../shared/data/ifc/duplex.ifc -o runs/bench-paper-duplex
+      bimfactor bench paper --scenario kidnap --variant smcl --variant smcl+graph -o runs/bench-paper-kidnap
     """
     with _cli_errors(debug):
         variant_list = list(variants) if variants else None
-        cfg = _start(config, [*(overrides or []), *_variant_overrides("evaluation.variants", variant_list)], verbose)
+        scenario_set = [f"evaluation.scenario={scenario}"] if scenario else []
+        cfg = _start(
+            config,
+            [*(overrides or []), *scenario_set, *_variant_overrides("evaluation.variants", variant_list)],
+            verbose,
+        )
         from bimfactor.bim.prior import build_prior
         from bimfactor.bim.synth import write_building
         from bimfactor.evaluation.paper import check_protocol, format_tables, run_paper_bench

@@ -564,6 +564,22 @@ class EvaluationConfig(_Strict):
         "the trajectory is simulated `warmup_max_steps` longer, and a run not converged by then is scored from there)."
     )
     warmup_max_steps: int = Field(ge=0, description="filter_converged: the most unscored steps before the T scored.")
+    scenario: Literal["global", "guess", "kidnap"] = Field(
+        description="How a run starts: global (the paper: from the uniform belief over the building), guess (from a "
+        "pose guess `guess_offset_m` / `guess_offset_deg` off the first frame's truth, AMCL's initial pose), or "
+        "kidnap (from the uniform belief; after `kidnap_at` keyframes the robot is carried, unseen by odometry, to "
+        "keyframe `kidnap_resume_at` of the route three further on, and the T steps from there are scored)."
+    )
+    guess_offset_m: float = Field(ge=0.0, description="guess: the guess's distance from the true first position.")
+    guess_offset_deg: float = Field(ge=0.0, le=180.0, description="guess: its heading error (seeded sign).")
+    kidnap_at: int = Field(ge=1, description="kidnap: keyframes driven before the robot is carried off.")
+    kidnap_resume_at: int = Field(ge=0, description="kidnap: the keyframe of the other route it is put down at.")
+
+    @model_validator(mode="after")
+    def _scenario_scoring(self) -> EvaluationConfig:
+        if self.scenario != "global" and self.score_from != "start":
+            raise ValueError(f"scenario {self.scenario} scores from its own start: it needs score_from start")
+        return self
 
     @property
     def warmup_steps(self) -> int:

@@ -582,6 +582,29 @@ def test_bench_paper_scores_every_variant(tmp_path: Path, cli_config_args: list[
     assert 0 <= first <= 2 and len(report["full"]["average"]["trans_err_by_step_m"]) == 5
 
 
+def test_bench_paper_runs_the_kidnap_and_pose_guess_scenarios(tmp_path: Path, cli_config_args: list[str]) -> None:
+    tiny = ["evaluation.num_trajectories=2", "evaluation.repeats=1", "evaluation.trajectory_length=4",
+            "evaluation.kidnap_at=3", "evaluation.kidnap_resume_at=2"]  # fmt: skip
+    sets = [a for t in tiny for a in ("--set", t)]
+    kidnap = invoke("bench", "paper", "-o", tmp_path / "kidnap", "--workers", "1", "--scenario", "kidnap",
+                    "--variant", "smcl", *sets, *cli_config_args)  # fmt: skip
+    assert kidnap.exit_code == 0, kidnap.output
+    report = json.loads((tmp_path / "kidnap" / "results.json").read_text())
+    assert report["protocol"]["scenario"] == "kidnap" and report["protocol"]["kidnap_at"] == 3
+    average = report["smcl"]["average"]
+    assert average["scored_from_steps"] == [3, 3] and len(average["trans_err_by_step_m"]) == 4
+    assert 0 <= average["tracking_before_kidnap_runs"] <= 2 and "relocalized_runs" in average
+    assert "\nkidnapped: " in kidnap.stdout and "scored from the step" not in kidnap.stdout
+    guess = invoke("bench", "paper", "-o", tmp_path / "guess", "--workers", "1", "--scenario", "guess",
+                   "--variant", "smcl", *sets, *cli_config_args)  # fmt: skip
+    assert guess.exit_code == 0, guess.output
+    report = json.loads((tmp_path / "guess" / "results.json").read_text())
+    assert report["protocol"]["guess_offset_m"] == 1.0 and report["protocol"]["guess_offset_deg"] == 20.0
+    assert report["smcl"]["average"]["trans_err_by_step_m"][0] < 2.0  # about the guess, not over the whole floor
+    assert_one_line_error(invoke("bench", "paper", "-o", tmp_path / "x", "--scenario", "teleport"), contains="scenario")
+    assert not (tmp_path / "x").exists()
+
+
 def test_compare_registrars_writes_summary_and_figure(
     demo_prior: Path, tmp_path: Path, cli_config_args: list[str]
 ) -> None:

@@ -213,6 +213,36 @@ def test_an_initial_pose_guess_starts_the_filter_about_it(
     assert errors.max() < 1.0 and errors[-1] < 0.5, errors
 
 
+def test_a_kidnapped_robot_is_noticed_and_the_belief_spread_over_the_building_again(
+    paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str]
+) -> None:
+    """Tracking from a pose guess, the robot is carried to another route unseen by odometry: at the second frame
+    the filter (`smcl.relocalize`) spreads its particles over the building; without it, it keeps the old place."""
+    from bimfactor.sim.simulate import kidnap
+
+    other = simulate_sequence(paper_floor.prior, paper_floor.model, paper_floor.cfg, 3, 0, progress=False)
+    frames = kidnap(drive.frames, other.frames, at=12, resume_at=10)[:16]
+    truth = np.array([f.gt_pose for f in frames])
+    assert np.hypot(*(truth[12, :2] - truth[11, :2])) > 5.0
+    x, y, yaw = truth[0]
+    guess = f"smcl.initial_pose=[{x}, {y}, {np.degrees(yaw)}]"
+    spread = {}
+    for relocalize in (True, False):
+        cfg = load_config(None, [*config_overrides, guess, f"smcl.relocalize={str(relocalize).lower()}"])
+        run = localize_sequence(
+            paper_floor.prior, drive.meta, frames, cfg, SEED, text_embedder=text_embedder, show_progress=False
+        )
+        assert translation_errors_m(run.poses[:12], truth[:12]).max() < 1.0  # tracking before it
+        assert np.nanmedian(run.scan_fit[2:12]) > 0.4 and np.nanmax(run.scan_fit[12:14]) < 0.5 * np.nanmean(
+            run.scan_fit[2:12]
+        )
+        spread[relocalize] = run
+    steps = np.flatnonzero(spread[True].relocalized)
+    assert steps.tolist() == [13], steps  # the second poor frame
+    assert spread[True].n_particles[steps[0]] == paper_floor.cfg.smcl.max_particles  # the whole building again
+    assert not spread[False].relocalized.any()
+
+
 def test_a_frame_without_odometry_is_refused(
     paper_floor: Building, drive: SimResult, text_embedder, test_config: Config
 ) -> None:

@@ -9,6 +9,13 @@ every step of every run, and comes with a 95 % bootstrap interval that resamples
 a wrong place is wrong for many steps at once, so the steps' std says little about how far the average can move
 when the same protocol runs with other seeds). Runs go to parallel processes.
 
+Scenarios (`evaluation.scenario`): `global` is the paper's, every run from the uniform belief over the building;
+`guess` starts each run from a pose guess a fixed distance and heading off the first frame's truth, in a direction
+and sign drawn from the run's seed (AMCL's initial pose; the filter's Gaussian is `smcl.initial_sigma_*`); `kidnap`
+starts uniform, and after `kidnap_at` keyframes of route k carries the robot to keyframe `kidnap_resume_at` of route
+k + 3 (odometry sees nothing, `sim.simulate.kidnap`), scoring the T steps from there: `steps_to_converge` is then the
+steps to recover, and each run also says whether it was tracking when carried off.
+
 Variants (`evaluation.variants`): `smcl` (the paper's filter), `smcl+graph` (the best mode of the per-mode pose
 graphs), `refine` (smcl+graph, then offline batch smoothing) and `full` (smcl+graph with ICP against the BIM walls
 fed back into the best mode's graph). The back end only reads the particle set, so one smcl+graph run yields the
@@ -36,11 +43,13 @@ from bimfactor.errors import ConfigError
 from bimfactor.evaluation.metrics import run_bootstrap_ci
 from bimfactor.io.atomic import write_text_atomic
 from bimfactor.progress import progress
+from bimfactor.types import wrap_angle
 
 if TYPE_CHECKING:
     from bimfactor.bim.prior import BimPrior
     from bimfactor.bim.symmetry import Motion
     from bimfactor.sim.simulate import SimResult
+    from bimfactor.types import Frame, SequenceMeta
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +70,8 @@ class RunResult:
     icp_accepted: np.ndarray | None = None
     icp_rejections: dict[str, int] | None = None
     scored_from: int = 0
+    relocalizations: int = 0  # steps at which the filter spread its particles over the building again
+    tracking_before: bool | None = None  # kidnap: within 1 m and 15° of the truth at the last step before it
     trans_err_twin_m: np.ndarray | None = None  # up to the building's twin motion (`errors_up_to_twin`), if any
     orient_err_twin_deg: np.ndarray | None = None
 
@@ -83,17 +94,64 @@ def scoring_window(converged: np.ndarray, steps: int, score_from: str, warmup_ma
     return slice(first, first + steps)
 
 
-def simulate_route(prior_dir: str | Path, cfg: Config, trajectory: int) -> tuple[SimResult, BimPrior]:
-    """Trajectory `trajectory` of the config seed on the prior's building, as the protocol simulates it (with
-    `filter_converged`, `warmup_max_steps` keyframes longer); returns it with the loaded prior."""
+def simulate_route(
+    prior_dir: str | Path, cfg: Config, trajectory: int, length: int | None = None
+) -> tuple[SimResult, BimPrior]:
+    """Trajectory `trajectory` of the config seed on the prior's building, `length` keyframes long (default: as the
+    protocol simulates it, with `filter_converged` `warmup_max_steps` keyframes longer); returns it with the loaded
+    prior."""
     from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
 
     ev = cfg.evaluation
     prior, model = load_world_inputs(prior_dir, cfg)
-    sim_cfg = cfg.model_copy(
-        update={"evaluation": ev.model_copy(update={"trajectory_length": ev.trajectory_length + ev.warmup_steps})}
-    )
+    length = ev.trajectory_length + ev.warmup_steps if length is None else length
+    sim_cfg = cfg.model_copy(update={"evaluation": ev.model_copy(update={"trajectory_length": length})})
     return simulate_sequence(prior, model, sim_cfg, trajectory, cfg.seed, progress=False), prior
+
+
+def kidnap_route(trajectory: int, num_trajectories: int) -> int:
+    """The route a robot on route `trajectory` is carried to in the kidnap scenario: three further on."""
+    return (trajectory + 3) % num_trajectories
+
+
+def pose_guess(true_pose: np.ndarray, offset_m: float, offset_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """(3,) a pose guess `offset_m` from `true_pose` in a uniformly drawn direction, its yaw `offset_deg` off with a
+    drawn sign."""
+    direction = rng.uniform(-np.pi, np.pi)
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    x, y, yaw = np.asarray(true_pose, float)
+    turned = wrap_angle(yaw + sign * np.deg2rad(offset_deg))
+    return np.array([x + offset_m * np.cos(direction), y + offset_m * np.sin(direction), turned])
+
+
+def scenario_run(
+    prior_dir: str | Path, cfg: Config, trajectory: int, repeat: int
+) -> tuple[BimPrior, SequenceMeta, list[Frame], Config, slice]:
+    """What one run of the protocol localizes under `evaluation.scenario`: the prior, the sequence, the config (with
+    `guess`, its initial pose) and the steps scored when they do not depend on the run (None: `scoring_window`)."""
+    from bimfactor.sim.simulate import kidnap
+
+    ev = cfg.evaluation
+    if ev.scenario == "kidnap":
+        sim, prior = simulate_route(prior_dir, cfg, trajectory, max(ev.kidnap_at, ev.trajectory_length))
+        other, _ = simulate_route(
+            prior_dir, cfg, kidnap_route(trajectory, ev.num_trajectories), ev.kidnap_resume_at + ev.trajectory_length
+        )
+        frames = kidnap(sim.frames, other.frames, ev.kidnap_at, ev.kidnap_resume_at)
+        return prior, sim.meta, frames, cfg, slice(ev.kidnap_at, ev.kidnap_at + ev.trajectory_length)
+    sim, prior = simulate_route(prior_dir, cfg, trajectory)
+    if ev.scenario == "guess":
+        first = sim.frames[0]
+        rng = np.random.default_rng([run_seed(cfg.seed, trajectory, repeat), GUESS_STREAM])
+        x, y, yaw = pose_guess(first.gt_pose, ev.guess_offset_m, ev.guess_offset_deg, rng)
+        guess = [float(x), float(y), float(np.rad2deg(yaw))]
+        smcl = cfg.smcl.model_copy(update={"initial_pose": guess, "initial_storey": first.gt_storey or 0})
+        cfg = cfg.model_copy(update={"smcl": smcl})
+        return prior, sim.meta, sim.frames, cfg, slice(0, ev.trajectory_length)
+    return prior, sim.meta, sim.frames, cfg, None
+
+
+GUESS_STREAM = 0x6E55  # the random stream of a run's pose guess
 
 
 def run_seed(seed: int, trajectory: int, repeat: int) -> int:
@@ -109,6 +167,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
         errors_up_to_twin,
         inside_ellipse,
         orientation_errors_deg,
+        steps_to_converge,
         translation_errors_m,
     )
     from bimfactor.evaluation.report import track_metrics
@@ -117,7 +176,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
     cfg = Config.model_validate_json(cfg_json)
     ev = cfg.evaluation
     variants = ev.variants
-    sim, prior = simulate_route(prior_dir, cfg, trajectory)
+    prior, meta, frames, cfg, window = scenario_run(prior_dir, cfg, trajectory, repeat)
     online_variants = forward_variants(variants)
     matcher = scan_matcher(prior, cfg) if any(v in GRAPH_VARIANTS for v in online_variants) else None
     forward = {}
@@ -125,8 +184,8 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
         online_cfg = cfg.model_copy(update={"localization": cfg.localization.model_copy(update={"variant": online})})
         forward[online] = localize_sequence(
             prior,
-            sim.meta,
-            sim.frames,
+            meta,
+            frames,
             online_cfg,
             seed=run_seed(cfg.seed, trajectory, repeat),
             show_progress=False,
@@ -140,9 +199,9 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
     if "refine" in variants:
         tracks["refine"] = refine_run(forward["smcl+graph"], prior, cfg, matcher).estimate
     # Every variant of the run is scored over the same steps; where they begin depends on the filter's own flag only.
-    scored = scoring_window(run.converged, ev.trajectory_length, ev.score_from, ev.warmup_steps)
+    scored = window or scoring_window(run.converged, ev.trajectory_length, ev.score_from, ev.warmup_steps)
     gt_poses, gt_rooms = run.gt_poses[scored], run.gt_rooms[scored]
-    gt_storeys = np.asarray([f.gt_storey or 0 for f in sim.frames])[scored]
+    gt_storeys = np.asarray([f.gt_storey or 0 for f in frames])[scored]
     results = []
     for variant in variants:
         track = tracks[variant].window(scored)
@@ -150,6 +209,16 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
         fine = forward[variant].fine.window(scored) if variant in forward and forward[variant].fine else None
         metrics = track_metrics(track, gt_poses, gt_rooms)
         assert metrics is not None
+        tracking_before = None
+        if ev.scenario == "kidnap":
+            before = slice(scored.start - 1, scored.start)
+            tracking_before = (
+                steps_to_converge(
+                    translation_errors_m(tracks[variant].poses[before], run.gt_poses[before]),
+                    orientation_errors_deg(tracks[variant].poses[before], run.gt_poses[before]),
+                )
+                is not None
+            )
         results.append(
             RunResult(
                 variant,
@@ -164,6 +233,8 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
                 fine.accepted[fine.ran].astype(float) if fine is not None else None,
                 fine.rejection_counts() if fine is not None else None,
                 scored.start,
+                int(forward.get(variant, run).relocalized.sum()),
+                tracking_before,
                 *twin_errors,
             )
         )
@@ -206,12 +277,26 @@ def _pooled(runs: list[RunResult]) -> dict:
         "scored_from_steps": [r.scored_from for r in runs],
         "converged_runs": sum(c is not None for c in converged),
         "runs": len(runs),
+        "relocalized_runs": sum(r.relocalizations > 0 for r in runs),
+        **_kidnap_counts(runs),
         "trans_err_conv_m": float(np.mean(conv_trans)) if conv_trans else None,
         "orient_err_conv_deg": float(np.mean(conv_orient)) if conv_orient else None,
         "ellipse_coverage": float(np.concatenate([r.inside_ellipse95 for r in runs]).mean()),
         **icp,
         **twin,
         **_by_step(runs),
+    }
+
+
+def _kidnap_counts(runs: list[RunResult]) -> dict:
+    """Kidnap scenario: how many runs were tracking when carried off, and the median steps to recover over the runs
+    that recovered (`steps_to_converge` of the scored steps after it)."""
+    if not runs or any(r.tracking_before is None for r in runs):
+        return {}
+    recovered = [r.metrics["steps_to_converge"] for r in runs if r.metrics["steps_to_converge"] is not None]
+    return {
+        "tracking_before_kidnap_runs": sum(bool(r.tracking_before) for r in runs),
+        "steps_to_recover_median": float(np.median(recovered)) if recovered else None,
     }
 
 
@@ -238,11 +323,17 @@ def _by_step(runs: list[RunResult]) -> dict:
 
 
 def check_protocol(cfg: Config) -> None:
-    """ConfigError for settings the protocol cannot take: every run starts from the uniform belief."""
+    """ConfigError for settings the protocol cannot take: every run starts as its scenario says, and `refine`
+    smooths one continuous trajectory, which a kidnapped run is not."""
     if cfg.smcl.initial_pose is not None:
         raise ConfigError(
-            "bench paper starts every run from a uniform belief over the building; smcl.initial_pose is one pose "
-            "guess for one sequence (bimfactor localize --initial-pose)"
+            "bench paper starts every run as evaluation.scenario says (a pose guess per run with --scenario guess); "
+            "smcl.initial_pose is one pose guess for one sequence (bimfactor localize --initial-pose)"
+        )
+    if cfg.evaluation.scenario == "kidnap" and "refine" in cfg.evaluation.variants:
+        raise ConfigError(
+            "the kidnap scenario cannot score refine, which smooths one continuous trajectory: pass --variant smcl, "
+            "smcl+graph or full"
         )
 
 
@@ -275,6 +366,13 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
             "repeats": ev.repeats,
             "score_from": ev.score_from,
             "warmup_max_steps": ev.warmup_steps,
+            "scenario": ev.scenario,
+            **(
+                {"guess_offset_m": ev.guess_offset_m, "guess_offset_deg": ev.guess_offset_deg}
+                if ev.scenario == "guess"
+                else {}
+            ),
+            **({"kidnap_at": ev.kidnap_at, "kidnap_resume_at": ev.kidnap_resume_at} if ev.scenario == "kidnap" else {}),
         },
         "variants": list(ev.variants),
         "twins": {storey: motion.describe() for storey, motion in twins.items()},
@@ -329,8 +427,17 @@ def format_table_one(report: dict, variant: str) -> str:
             f"up to the building's twin places (storeys {storeys}; the motions are results.json's twins): "
             f"{average['trans_err_up_to_twin_m']:.2f} m, {average['orient_err_up_to_twin_deg']:.1f}°"
         )
+    if "tracking_before_kidnap_runs" in average:
+        median = average["steps_to_recover_median"]
+        lines.append(
+            f"kidnapped: {average['tracking_before_kidnap_runs']} of {average['runs']} runs were tracking when carried "
+            f"off; {average['converged_runs']} recovered (within 1 m and 15° to the end), in a median "
+            f"{'–' if median is None else f'{median:g}'} steps"
+        )
+    if average.get("relocalized_runs"):
+        lines.append(f"the filter spread its particles over the building again in {average['relocalized_runs']} runs")
     starts = average.get("scored_from_steps", [])
-    if any(starts):
+    if report.get("protocol", {}).get("score_from") == "filter_converged" and any(starts):
         lines.append(
             f"scored from the step the filter first reported itself converged: median step {np.median(starts):g} "
             f"(range {min(starts)}–{max(starts)}) of the {average['runs']} runs"

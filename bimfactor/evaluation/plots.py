@@ -231,9 +231,12 @@ def save_error_by_step_plot(report: dict, path: str | Path) -> Path | None:
     ax_o.set_yscale("log")
     ax_t.set_ylabel("translation error [m]")
     ax_o.set_ylabel("orientation error [°]")
-    ax_o.set_xlabel("step")
+    protocol = report.get("protocol", {})
+    kidnapped = protocol.get("scenario") == "kidnap"
+    ax_o.set_xlabel("keyframe after the robot was carried off" if kidnapped else "scored step")
     runs = next(iter(curves.values()))["runs"]
-    ax_t.set_title(f"Error per step, mean over {runs} runs")
+    scenario = {"kidnap": ", kidnapped robot", "guess": ", from a pose guess"}.get(protocol.get("scenario", ""), "")
+    ax_t.set_title(f"Error per step, mean over {runs} runs{scenario}")
     ax_t.legend(fontsize=8)
     for ax in (ax_t, ax_o):
         ax.grid(True, which="both", alpha=0.3)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import statistics
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +23,7 @@ from bimfactor.progress import progress as progress_bar
 from bimfactor.sim.sensors import RgbdCamera, simulate_odometry
 from bimfactor.sim.trajectory import SimTrajectory, TrajectorySimulator
 from bimfactor.sim.world import SimWorld
-from bimfactor.types import Frame, SequenceMeta
+from bimfactor.types import Frame, SequenceMeta, se2_between, se2_compose
 
 log = logging.getLogger(__name__)
 
@@ -122,6 +122,33 @@ def simulate_sequence(
     )
     log.info("simulated %s: %d frames on storey %d", meta.name, len(frames), storey)
     return SimResult(meta, frames, trajectory)
+
+
+def kidnap(first: list[Frame], second: list[Frame], at: int, resume_at: int) -> list[Frame]:
+    """The kidnapped robot: `first`'s frames up to keyframe `at`, then `second`'s from keyframe `resume_at` on.
+
+    The robot is carried, not driven, between the two: the odometry of the second part continues from the last
+    odometry pose of the first with `second`'s own increments, so the odometry says the robot stood still across
+    the seam while the ground truth jumps. Timestamps continue one keyframe interval later; frames are renumbered.
+    Both parts must come from one building and one world (the same instance table).
+    """
+    if not 0 < at <= len(first) or not 0 <= resume_at < len(second):
+        raise ValueError(f"kidnap at {at} of {len(first)} frames, resume at {resume_at} of {len(second)}: out of range")
+    head, tail = first[:at], second[resume_at:]
+    odom_from, odom_to = np.asarray(tail[0].odom_pose, float), np.asarray(head[-1].odom_pose, float)
+    interval = float(np.median(np.diff([f.timestamp_s for f in first]))) if len(first) > 1 else 1.0
+    shift = head[-1].timestamp_s + interval - tail[0].timestamp_s
+    frames = [replace(f) for f in head]
+    for i, f in enumerate(tail):
+        frames.append(
+            replace(
+                f,
+                index=at + i,
+                timestamp_s=f.timestamp_s + shift,
+                odom_pose=se2_compose(odom_to, se2_between(odom_from, f.odom_pose)),
+            )
+        )
+    return frames
 
 
 def sim_sequence_meta(name: str, prior: BimPrior, world: SimWorld, camera: RgbdCamera, extras: dict) -> SequenceMeta:

@@ -5,7 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bimfactor.evaluation.paper import RunResult, _confidence_intervals, _pooled, format_table_one, scoring_window
+from bimfactor.config import load_config
+from bimfactor.errors import ConfigError
+from bimfactor.evaluation.paper import (
+    RunResult,
+    _confidence_intervals,
+    _pooled,
+    check_protocol,
+    format_table_one,
+    kidnap_route,
+    pose_guess,
+    scoring_window,
+)
 from bimfactor.pipeline import FineTrack, Track
 
 
@@ -38,7 +49,11 @@ def test_the_average_carries_a_bootstrap_interval_over_runs_and_the_table_prints
     assert format_table_one(single, "smcl").splitlines()[-1].startswith("Avg.")
     for run, start in zip(runs, (0, 2, 2, 4, 9, 3, 30), strict=True):
         run.scored_from = start
-    warmed = {"variants": ["smcl"], "smcl": {"average": _pooled(runs), "per_trajectory": {}}}
+    warmed = {
+        "variants": ["smcl"],
+        "smcl": {"average": _pooled(runs), "per_trajectory": {}},
+        "protocol": {"score_from": "filter_converged"},
+    }
     assert format_table_one(warmed, "smcl").splitlines()[-1] == (
         "scored from the step the filter first reported itself converged: median step 3 (range 0–30) of the 7 runs"
     )
@@ -81,3 +96,53 @@ def test_a_window_of_a_track_keeps_those_steps_of_every_field() -> None:
     fine = FineTrack(np.ones(steps, bool), np.arange(steps) % 2 == 0, [[f"r{i}"] for i in range(steps)], np.ones(steps))
     tail = fine.window(slice(4, 6))
     assert tail.reasons == [["r4"], ["r5"]] and tail.accepted.tolist() == [True, False]
+
+
+def test_a_pose_guess_lies_the_set_distance_and_turn_off_the_truth_in_seeded_directions() -> None:
+    truth = np.array([4.0, -2.0, np.deg2rad(175.0)])
+    guesses = np.array([pose_guess(truth, 1.0, 20.0, np.random.default_rng(seed)) for seed in range(40)])
+    np.testing.assert_allclose(np.hypot(*(guesses[:, :2] - truth[:2]).T), 1.0)
+    turns = np.rad2deg(np.angle(np.exp(1j * (guesses[:, 2] - truth[2]))))
+    np.testing.assert_allclose(np.abs(turns), 20.0)  # across the ±180° seam too
+    assert (turns > 0).any() and (turns < 0).any()
+    directions = np.arctan2(guesses[:, 1] - truth[1], guesses[:, 0] - truth[0])
+    assert np.ptp(directions) > np.pi  # not one direction for every run
+    np.testing.assert_array_equal(pose_guess(truth, 1.0, 20.0, np.random.default_rng(3)), guesses[3])
+
+
+def test_the_kidnapped_robot_is_carried_to_the_route_three_further_on() -> None:
+    assert [kidnap_route(k, 6) for k in range(6)] == [3, 4, 5, 0, 1, 2]
+    assert kidnap_route(0, 1) == 0
+
+
+def test_a_scenario_other_than_the_papers_scores_from_its_own_start() -> None:
+    assert load_config(None, ["evaluation.scenario=kidnap"]).evaluation.scenario == "kidnap"
+    with pytest.raises(ConfigError, match="scenario guess scores from its own start"):
+        load_config(None, ["evaluation.scenario=guess", "evaluation.score_from=filter_converged"])
+    with pytest.raises(ConfigError, match=r"evaluation\.scenario"):
+        load_config(None, ["evaluation.scenario=teleport"])
+    with pytest.raises(ConfigError, match="cannot score refine"):
+        check_protocol(load_config(None, ["evaluation.scenario=kidnap"]))  # the default variants include refine
+    check_protocol(load_config(None, ["evaluation.scenario=kidnap", "evaluation.variants=[smcl, smcl+graph]"]))
+    with pytest.raises(ConfigError, match="one pose guess for one sequence"):
+        check_protocol(load_config(None, ["evaluation.scenario=guess", "smcl.initial_pose=[1, 2, 3]"]))
+
+
+def test_the_kidnap_table_says_how_many_runs_were_tracking_and_how_soon_they_recovered() -> None:
+    runs = [_run(k, 0, 0.3, 1.0) for k in range(4)]
+    for run, before, recover, relocalized in zip(
+        runs, (True, True, True, False), (3, 9, None, 5), (1, 1, 0, 0), strict=True
+    ):
+        run.tracking_before = before
+        run.metrics["steps_to_converge"] = recover
+        run.relocalizations = relocalized
+    average = _pooled(runs)
+    assert average["tracking_before_kidnap_runs"] == 3 and average["steps_to_recover_median"] == 5.0
+    assert average["converged_runs"] == 3 and average["relocalized_runs"] == 2
+    text = format_table_one({"variants": ["smcl"], "smcl": {"average": average, "per_trajectory": {}}}, "smcl")
+    assert text.splitlines()[-2:] == [
+        "kidnapped: 3 of 4 runs were tracking when carried off; 3 recovered (within 1 m and 15° to the end), in a "
+        "median 5 steps",
+        "the filter spread its particles over the building again in 2 runs",
+    ]
+    assert "tracking_before_kidnap_runs" not in _pooled([_run(0, 0, 0.3, 1.0)])  # other scenarios: no such line

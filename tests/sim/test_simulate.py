@@ -104,3 +104,40 @@ def test_benchmark_render_reports(paper_floor: Building, config_overrides: list[
     report = benchmark_render(paper_floor.prior, paper_floor.model, cfg, n_frames=4)
     assert report["n_frames"] == 4 and (report["width"], report["height"]) == (64, 48)
     assert report["frames_per_s"] > 0 and report["median_ms"] > 0
+
+
+def _frames(poses: np.ndarray, odometry: np.ndarray, t0: float) -> list:
+    from bimfactor.types import Frame
+
+    blank = np.zeros((2, 2), np.float32)
+    return [
+        Frame(i, t0 + i, np.zeros((2, 2, 3), np.uint8), blank, odometry[i], gt_pose=poses[i], gt_storey=0)
+        for i in range(len(poses))
+    ]
+
+
+def test_a_kidnapped_robot_jumps_in_truth_while_its_odometry_stands_still() -> None:
+    from bimfactor.sim.simulate import kidnap
+
+    rng = np.random.default_rng(0)
+    first = _frames(rng.normal(size=(6, 3)), rng.normal(size=(6, 3)), t0=100.0)
+    second = _frames(rng.normal(size=(8, 3)) + 20.0, rng.normal(size=(8, 3)), t0=7.0)
+    frames = kidnap(first, second, at=4, resume_at=3)
+    assert len(frames) == 4 + 5 and [f.index for f in frames] == list(range(9))
+    np.testing.assert_array_equal(
+        [f.gt_pose for f in frames], [*(f.gt_pose for f in first[:4]), *(f.gt_pose for f in second[3:])]
+    )
+    odometry = np.asarray([f.odom_pose for f in frames])
+    np.testing.assert_allclose(se2_between(odometry[3], odometry[4]), np.zeros(3), atol=1e-12)  # carried, not driven
+    for i in range(4, 8):  # after the seam, the second route's own increments
+        np.testing.assert_allclose(
+            se2_between(odometry[i], odometry[i + 1]),
+            se2_between(second[i - 1].odom_pose, second[i].odom_pose),
+            atol=1e-9,
+        )
+    np.testing.assert_array_equal(odometry[:4], [f.odom_pose for f in first[:4]])
+    times = [f.timestamp_s for f in frames]
+    assert np.all(np.diff(times) > 0) and times[4] == pytest.approx(times[3] + 1.0)
+    assert first[0].index == 0 and second[3].index == 3  # the inputs are left as they were
+    with pytest.raises(ValueError, match="out of range"):
+        kidnap(first, second, at=7, resume_at=0)
