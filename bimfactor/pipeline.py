@@ -250,23 +250,39 @@ class Localizer:
         embedder = text_embedder or make_text_embedder(cfg.embed)
         self.perception = make_perception(cfg, meta, embedder, seed=seed)
         self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
-        start = cfg.smcl
-        if start.initial_pose is None:
-            self.filter.initialize()
-        else:
-            x, y, yaw_deg = start.initial_pose
-            self.filter.initialize_around(
-                np.array([x, y, np.deg2rad(yaw_deg)]),
-                start.initial_storey,
-                start.initial_sigma_xy_m,
-                np.deg2rad(start.initial_sigma_yaw_deg),
-            )
+        start = cfg.smcl.initial_pose
+        self._start_belief(
+            None if start is None else [start[0], start[1], np.deg2rad(start[2])], cfg.smcl.initial_storey
+        )
         self.backend = MultiHypothesisBackend.from_prior(prior, cfg.backend) if self.variant in GRAPH_VARIANTS else None
         self.matcher = (matcher or scan_matcher(prior, cfg)) if self.backend else None
         self.fine = FineRegistration.for_prior(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None
         # The frames before the current one that a submap stitches in (registration.submap_keyframes − 1).
         self._recent: deque[Frame] = deque(maxlen=cfg.registration.submap_keyframes - 1)
         self._last_odom: np.ndarray | None = None
+
+    def _start_belief(self, pose: np.ndarray | list[float] | None, storey: int) -> None:
+        """The filter's particles: about a (3,) pose guess on a storey (AMCL's initial pose, `smcl.initial_sigma_*`),
+        or without one uniform over the whole building."""
+        if pose is None:
+            self.filter.initialize()
+        else:
+            self.filter.initialize_around(
+                np.asarray(pose, float),
+                storey,
+                self.cfg.smcl.initial_sigma_xy_m,
+                np.deg2rad(self.cfg.smcl.initial_sigma_yaw_deg),
+            )
+
+    def reset(self, pose: np.ndarray | list[float] | None = None, storey: int = 0) -> None:
+        """Start the belief over, as an operator does mid-run: from a (3,) pose guess x, y, yaw (the BIM's world
+        frame, metres and radians; AMCL's initial pose) on `storey`, or without one over the whole building (AMCL's
+        global localization). The back end's modes and the fine stage's submap start over too; the odometry and
+        the online scene graph carry on. InputError for a guess with no navigable space about it."""
+        self._start_belief(pose, storey)
+        if self.backend is not None:
+            self.backend = MultiHypothesisBackend.from_prior(self.prior, self.cfg.backend)
+        self._recent.clear()
 
     def step(self, frame: Frame) -> LocalizerStep:
         """One frame: perception, the filter, (graph variants) the back end on the filter's modes, and (full) the fine

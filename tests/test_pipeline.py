@@ -243,6 +243,35 @@ def test_a_kidnapped_robot_is_noticed_and_the_belief_spread_over_the_building_ag
     assert not spread[False].relocalized.any()
 
 
+def test_an_operator_can_start_the_belief_over_from_a_pose_guess_or_the_whole_building(
+    paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str]
+) -> None:
+    """`Localizer.reset`: AMCL's initial pose mid-run (the particles about the guess, the back end's modes
+    anew) and its global localization (the particles over the whole building)."""
+    truth = np.array([f.gt_pose for f in drive.frames])
+    x, y, yaw = truth[0]
+    cfg = load_config(
+        None, [*config_overrides, "localization.variant=smcl+graph", f"smcl.initial_pose=[{x}, {y}, {np.degrees(yaw)}]"]
+    )
+    localizer = Localizer(paper_floor.prior, drive.meta, cfg, SEED, text_embedder=text_embedder)
+    for frame in drive.frames[:6]:
+        before = localizer.step(frame)
+    assert before.graph is not None and before.graph.modes and np.hypot(*(before.pose[:2] - truth[5, :2])) < 0.5
+    old_backend = localizer.backend
+    guess = truth[6] + [0.3, -0.3, 0.1]
+    localizer.reset(guess)
+    assert localizer.backend is not old_backend and not localizer.backend.graphs
+    offsets = np.hypot(*(localizer.filter.particles[:, :2] - guess[:2]).T)
+    assert np.median(offsets) < 0.8 and offsets.max() < 3.0  # σ = 0.5 m about the guess (median radius 0.59 m)
+    after = localizer.step(drive.frames[6])
+    assert np.hypot(*(after.pose[:2] - truth[6, :2])) < 1.0
+    localizer.reset()
+    spread = localizer.filter.particles
+    assert len(spread) == cfg.smcl.max_particles and np.ptp(spread[:, 0]) > 40.0 and np.ptp(spread[:, 1]) > 40.0
+    with pytest.raises(InputError, match="no navigable space"):
+        localizer.reset([1e4, 1e4, 0.0])
+
+
 def test_a_frame_without_odometry_is_refused(
     paper_floor: Building, drive: SimResult, text_embedder, test_config: Config
 ) -> None:
