@@ -23,7 +23,7 @@ import click
 import typer
 
 from bimfactor import __version__
-from bimfactor.errors import BimfactorError, InputError
+from bimfactor.errors import BimfactorError, ConfigError, InputError
 
 if TYPE_CHECKING:
     from bimfactor.bim.ifc import IfcModel
@@ -509,6 +509,16 @@ def simulate(
         bool, typer.Option("--all", help="All standard trajectories, into SEQ_DIR/k<K>/ (the paper's protocol).")
     ] = False,
     seed: Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")] = None,
+    kidnap_to: Annotated[
+        int | None,
+        typer.Option(
+            "--kidnap-to",
+            min=0,
+            metavar="J",
+            help="The kidnapped robot: after evaluation.kidnap_at keyframes of K, carry it unseen by odometry to "
+            "keyframe evaluation.kidnap_resume_at of trajectory J.",
+        ),
+    ] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
@@ -526,47 +536,75 @@ def simulate(
       bimfactor simulate runs/demo/prior -o runs/seq0 --trajectory 0 --seed 1
       bimfactor simulate runs/demo/prior -o runs/paper-six --all
       bimfactor simulate runs/prior/duplex -o runs/duplex-asbuilt --set sim.as_built.removed_fraction=0.2
+      bimfactor simulate runs/demo/prior -o runs/kidnapped --trajectory 0 --kidnap-to 3
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
         used_seed = cfg.seed if seed is None else seed
+        if all_trajectories and kidnap_to is not None:
+            raise ConfigError("--kidnap-to carries one trajectory's robot to another: not with --all")
         if all_trajectories:
             for k in range(cfg.evaluation.num_trajectories):
                 typer.echo(_simulate_to_disk(prior_dir, output / f"k{k}", cfg, k, used_seed, overwrite))
         else:
-            typer.echo(_simulate_to_disk(prior_dir, output, cfg, trajectory, used_seed, overwrite))
+            typer.echo(_simulate_to_disk(prior_dir, output, cfg, trajectory, used_seed, overwrite, kidnap_to))
 
 
-def _simulate_to_disk(prior_dir: Path, output: Path, cfg: Config, trajectory: int, seed: int, overwrite: bool) -> str:
-    """Simulate, write the sequence atomically, then its config and preview; returns a one-line account."""
+def _simulate_to_disk(
+    prior_dir: Path,
+    output: Path,
+    cfg: Config,
+    trajectory: int,
+    seed: int,
+    overwrite: bool,
+    kidnap_to: int | None = None,
+) -> str:
+    """Simulate (with `kidnap_to`, two trajectories spliced by `sim.simulate.kidnap`), write the sequence atomically,
+    then its config and preview; returns a one-line account."""
+    from dataclasses import replace
+
     import numpy as np
 
     from bimfactor.evaluation.plots import save_trajectory_plot
     from bimfactor.io.atomic import write_text_atomic
     from bimfactor.io.preview import write_preview
     from bimfactor.io.sequence import read_sequence, write_sequence
-    from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
+    from bimfactor.sim.simulate import build_world, kidnap, load_world_inputs, simulate_sequence
 
     prior, model = load_world_inputs(prior_dir, cfg)
-    result = simulate_sequence(prior, model, cfg, trajectory, seed)
-    write_sequence(output, result.meta, result.frames, overwrite=overwrite)
+    world = build_world(prior, model, cfg, seed)
+    result = simulate_sequence(prior, model, cfg, trajectory, seed, world=world)
+    meta, frames, drive = result.meta, result.frames, result.trajectory
+    dense_xy, keyframes, account = drive.poses[:, :2], drive.keyframe_poses, f"trajectory {trajectory}"
+    if kidnap_to is not None:
+        ev = cfg.evaluation
+        other = simulate_sequence(prior, model, cfg, kidnap_to, seed, world=world)
+        try:
+            frames = kidnap(frames, other.frames, ev.kidnap_at, ev.kidnap_resume_at)
+        except ValueError as exc:
+            raise ConfigError(f"evaluation.kidnap_at / kidnap_resume_at: {exc}") from None
+        carried = {"to_trajectory": kidnap_to, "at": ev.kidnap_at, "resume_at": ev.kidnap_resume_at}
+        meta = replace(meta, name=f"{meta.name}-kidnapped-t{kidnap_to}", extras={**meta.extras, "kidnapped": carried})
+        keyframes = np.asarray([f.gt_pose for f in frames])
+        dense_xy = keyframes[:, :2]
+        account = f"trajectory {trajectory}, carried after keyframe {ev.kidnap_at} to trajectory {kidnap_to}"
+    write_sequence(output, meta, frames, overwrite=overwrite)
     write_text_atomic(output / "config.yaml", cfg.dump_yaml())
     preview = write_preview(read_sequence(output), output / "preview.png")
-    drive = result.trajectory
-    rooms = {int(r) for r in prior.room_at(drive.poses[:, :2], drive.storey_index) if r >= 0}
-    odom = np.asarray([f.odom_pose for f in result.frames])
+    rooms = {int(r) for r in prior.room_at(dense_xy, drive.storey_index) if r >= 0}
+    odom = np.asarray([f.odom_pose for f in frames])
     save_trajectory_plot(
         prior,
         drive.storey_index,
         output / "trajectory.png",
-        drive.poses[:, :2],
-        drive.keyframe_poses,
+        dense_xy,
+        keyframes,
         odom,
-        title=f"{result.meta.name}: {len(result.frames)} keyframes, {len(rooms)} rooms",
+        title=f"{meta.name}: {len(frames)} keyframes, {len(rooms)} rooms",
     )
     return (
-        f"wrote {output}: {len(result.frames)} keyframes of trajectory {trajectory} (seed {seed}), "
-        f"{len(rooms)} rooms visited; figures {preview.name}, trajectory.png"
+        f"wrote {output}: {len(frames)} keyframes of {account} (seed {seed}), {len(rooms)} rooms visited; "
+        f"figures {preview.name}, trajectory.png"
     )
 
 

@@ -344,6 +344,28 @@ def test_simulate_writes_a_sequence_with_preview_and_config(
     assert_one_line_error(again, contains="exists")
 
 
+def test_simulate_a_kidnapped_robot(demo_prior: Path, tmp_path: Path, cli_config_args: list[str]) -> None:
+    out = tmp_path / "kidnapped"
+    sets = ["--set", "evaluation.trajectory_length=8", "--set", "evaluation.kidnap_at=4",
+            "--set", "evaluation.kidnap_resume_at=2"]  # fmt: skip
+    result = invoke("simulate", demo_prior, "-o", out, "--trajectory", "0", "--kidnap-to", "3", *sets, *cli_config_args)
+    assert result.exit_code == 0, result.output
+    assert "10 keyframes of trajectory 0, carried after keyframe 4 to trajectory 3 (seed 0)" in result.stdout
+    sequence = read_sequence(out)
+    assert sequence.meta.extras["kidnapped"] == {"to_trajectory": 3, "at": 4, "resume_at": 2}
+    truth = np.asarray([f.gt_pose for f in sequence])
+    odometry = np.asarray([f.odom_pose for f in sequence])
+    assert np.hypot(*(truth[4, :2] - truth[3, :2])) > 5.0 and np.allclose(odometry[4], odometry[3])
+    assert (out / "trajectory.png").stat().st_size > 10_000
+    too_far = invoke("simulate", demo_prior, "-o", tmp_path / "x", "--kidnap-to", "3", *sets[:2],
+                     "--set", "evaluation.kidnap_at=9", *cli_config_args)  # fmt: skip
+    assert_one_line_error(too_far, contains="kidnap_at")
+    assert_one_line_error(
+        invoke("simulate", demo_prior, "-o", tmp_path / "y", "--all", "--kidnap-to", "1"), contains="--all"
+    )
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
 def test_simulate_refuses_a_missing_prior_and_a_moved_ifc(demo_prior: Path, tmp_path: Path) -> None:
     assert_one_line_error(invoke("simulate", tmp_path / "nope", "-o", tmp_path / "s"), contains="not a bimfactor prior")
     moved = tmp_path / "prior-copy"
