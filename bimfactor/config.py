@@ -286,11 +286,14 @@ class SmclConfig(_Strict):
         "the particles over the whole building again, as at the start; false: only augmented MCL's injection."
     )
     lost_fit_ratio: float = Field(
-        gt=0.0,
-        lt=1.0,
-        description="Lost when the belief's predicted scan fit falls below this share of its running average ...",
+        gt=0.0, lt=1.0, description="Lost: a sudden drop, the belief's scan fit below this share of its average ..."
     )
-    lost_frames: int = Field(ge=1, description="... on this many consecutive frames with a scan ...")
+    lost_frames: int = Field(ge=1, description="... on this many consecutive frames with a scan; or ...")
+    lost_cusum_drift: float = Field(
+        ge=0.0,
+        description="... a held drop: Page's CUSUM of ln(average fit / fit), less this drift a frame, ...",
+    )
+    lost_cusum_threshold: float = Field(gt=0.0, description="... exceeds this ...")
     lost_min_fit: float = Field(
         ge=0.0, le=1.0, description="... once the running average has reached this fit (a belief that was tracking)."
     )

@@ -63,41 +63,50 @@ class LostMonitor:
 
     Each frame's fit is the belief's predicted scan score, Σ w_i s_i in [0, 1] (`SemanticMCL.scan_fit`): about
     0.55 while tracking (the prediction's spread and the depth noise keep it under 1), about 0.1 for a cloud
-    spread over the building, and 0.01–0.2 in the first frames after a kidnapping (within a few frames the motion
-    noise finds the wrong belief places that fit the scans locally, so the test must be quick). The monitor keeps a
-    running average of the fit (rate `lost_fit_alpha`) and is armed once that average covers 1 / `lost_fit_alpha`
-    frames and has reached `lost_min_fit`, so a belief still spread or just converged after a global start is never
-    called lost. Armed, it reports lost when `lost_frames` consecutive frames fit below `lost_fit_ratio` × the
-    average; the low frames stay out of the average. Frames with fewer than `lost_min_endpoints` scan endpoints
-    (facing a wall at arm's length) leave it as it is.
+    spread over the building, 0.01–0.2 in the first frames after a kidnapping to an unlike place, and 0.3–0.45 for
+    many frames after one to a place whose walls the old belief half explains. The monitor keeps a running average
+    of the fit (rate `lost_fit_alpha`) and is armed once that average covers 1 / `lost_fit_alpha` frames and has
+    reached `lost_min_fit` (a belief still spread or just converged after a global start is never called lost).
+    Armed, two tests say lost:
+    - a sudden drop: `lost_frames` consecutive frames below `lost_fit_ratio` × the average. It must be quick:
+      within two or three frames of a kidnapping the motion noise finds the old belief places nearby that fit the
+      new scans locally;
+    - a held one, Page's CUSUM of the fit's log-ratio to the average: S ← max(0, S + min(ln(average / fit), h) −
+      `lost_cusum_drift`), lost when S exceeds h = `lost_cusum_threshold`. A fit held at half the average takes
+      four frames; fits above e^−drift ≈ 0.67 of it never add up (a robot nosing up to furniture the map lacks
+      dips to about half for a few frames).
+    No single frame says lost (a passer-by filling the view). Frames that start or continue either test stay out
+    of the average. Frames with fewer than `lost_min_endpoints` scan endpoints (facing a wall at arm's length)
+    leave it as it is.
     """
 
     def __init__(self, cfg: SmclConfig) -> None:
         self.cfg = cfg
         self.average: float | None = None
         self.frames = 0  # frames in the average
-        self.streak = 0
+        self.streak = 0  # consecutive frames below lost_fit_ratio × the average
+        self.cusum = 0.0
 
     def reset(self) -> None:
-        self.average, self.frames, self.streak = None, 0, 0
+        self.average, self.frames, self.streak, self.cusum = None, 0, 0, 0.0
 
     def lost(self, fit: float | None, n_endpoints: int) -> bool:
         """Feed one frame's fit (None: no scan); True when the belief is lost (the monitor then starts over)."""
         cfg = self.cfg
         if fit is None or n_endpoints < cfg.lost_min_endpoints:
             return False
-        armed = (
-            self.average is not None and self.average >= cfg.lost_min_fit and self.frames * cfg.lost_fit_alpha >= 1.0
-        )
-        if armed and fit < cfg.lost_fit_ratio * self.average:
-            self.streak += 1
-            if self.streak >= cfg.lost_frames:
+        average = self.average
+        if average is not None and average >= cfg.lost_min_fit and self.frames * cfg.lost_fit_alpha >= 1:
+            self.streak = self.streak + 1 if fit < cfg.lost_fit_ratio * average else 0
+            surprise = min(float(np.log(average / max(fit, 1e-3))), cfg.lost_cusum_threshold)
+            self.cusum = max(0.0, self.cusum + surprise - cfg.lost_cusum_drift)
+            if self.streak >= cfg.lost_frames or self.cusum > cfg.lost_cusum_threshold:
                 self.reset()
                 return True
-            return False
-        self.streak = 0
+            if self.streak or self.cusum > 0.0:
+                return False
         self.frames += 1
-        self.average = fit if self.average is None else self.average + cfg.lost_fit_alpha * (fit - self.average)
+        self.average = fit if average is None else average + cfg.lost_fit_alpha * (fit - average)
         return False
 
 

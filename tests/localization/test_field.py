@@ -177,6 +177,8 @@ def _lost_cfg(smcl_cfg: SmclConfig, relocalize: bool = True) -> SmclConfig:
             "relocalize": relocalize,
             "lost_fit_ratio": 0.5,
             "lost_frames": 2,
+            "lost_cusum_drift": 0.4,
+            "lost_cusum_threshold": 1.0,
             "lost_min_fit": 0.35,
             "lost_fit_alpha": 0.1,
             "lost_min_endpoints": 10,
@@ -186,24 +188,41 @@ def _lost_cfg(smcl_cfg: SmclConfig, relocalize: bool = True) -> SmclConfig:
     )
 
 
-def test_the_lost_monitor_fires_after_consecutive_poor_fits_of_a_belief_that_was_tracking(smcl_cfg: SmclConfig):
+def _tracking_monitor(smcl_cfg: SmclConfig):
+    """A monitor armed by ten frames that fit 0.6."""
     from bimfactor.localization.smcl import LostMonitor
 
     monitor = LostMonitor(_lost_cfg(smcl_cfg))
-    assert not any(monitor.lost(0.6, 40) for _ in range(9))  # tracking: the average is 0.6 ...
-    assert not monitor.lost(0.1, 40) and monitor.streak == 0  # ... but over fewer than 1 / α = 10 frames: not armed
-    assert monitor.frames == 10 and monitor.average == pytest.approx(0.55)  # so the poor frame entered the average
-    monitor.average = 0.6
-    assert not monitor.lost(0.1, 40)
-    assert not monitor.lost(0.05, 3)  # too few endpoints: neither counts nor breaks the streak
-    assert monitor.lost(0.1, 40)  # the second poor frame in a row
-    assert monitor.average is None and monitor.streak == 0 and monitor.frames == 0  # it starts over
-    again = LostMonitor(_lost_cfg(smcl_cfg))
-    for fit in (0.6,) * 10 + (0.1, 0.6, 0.1, 0.6):  # a good frame breaks the streak
-        assert not again.lost(fit, 40)
-    assert again.average == pytest.approx(0.6)  # the poor frames stayed out of the average
+    assert not any(monitor.lost(0.6, 40) for _ in range(10))
+    assert monitor.frames == 10 and monitor.average == pytest.approx(0.6)
+    return monitor
+
+
+def test_the_lost_monitor_calls_a_sudden_or_a_held_drop_of_the_scan_fit_below_its_average(smcl_cfg: SmclConfig):
+    from bimfactor.localization.smcl import LostMonitor
+
+    unarmed = LostMonitor(_lost_cfg(smcl_cfg))
+    assert not any(unarmed.lost(0.6, 40) for _ in range(9))
+    assert not unarmed.lost(0.01, 40) and unarmed.cusum == 0.0  # fewer than 1 / α = 10 frames: not armed ...
+    assert unarmed.frames == 10 and unarmed.average == pytest.approx(0.541)  # ... so the frame entered the average
+    monitor = _tracking_monitor(smcl_cfg)
+    assert not monitor.lost(0.001, 40)  # a passer-by filling the view: one frame never says lost
+    assert monitor.streak == 1 and monitor.cusum == pytest.approx(1.0 - 0.4)  # S takes at most h − drift a frame
+    assert monitor.average == pytest.approx(0.6)  # the poor frame stayed out of the average
+    assert not monitor.lost(0.05, 3)  # too few endpoints: counts for nothing
+    assert monitor.lost(0.2, 40)  # the second frame in a row under half the average
+    assert monitor.average is None and monitor.frames == 0 and monitor.streak == 0 and monitor.cusum == 0.0
+    sudden = _tracking_monitor(smcl_cfg)
+    assert [sudden.lost(0.29, 40), sudden.lost(0.29, 40)] == [False, True]  # S = 2 (ln(0.6 / 0.29) − 0.4) < 1
+    held = _tracking_monitor(smcl_cfg)
+    fits = [0.3] * 5  # at half the average, not under it: S grows by ln(2) − 0.4 = 0.29 a frame
+    assert [held.lost(fit, 40) for fit in fits] == [False, False, False, True, False]
+    near = _tracking_monitor(smcl_cfg)
+    assert not any(near.lost(0.42, 40) for _ in range(50))  # 0.7 of the average, above e^−0.4: never adds up
+    recovers = _tracking_monitor(smcl_cfg)
+    assert not any(recovers.lost(fit, 40) for fit in (0.2, 0.6, 0.6, 0.6, 0.6, 0.2, 0.6))  # good frames pay it back
     spread = LostMonitor(_lost_cfg(smcl_cfg))
-    assert not any(spread.lost(fit, 40) for fit in (0.1,) * 12 + (0.01,) * 4)  # never armed: never lost
+    assert not any(spread.lost(fit, 40) for fit in (0.1,) * 12 + (0.01,) * 4)  # never reached 0.35: never lost
     assert not LostMonitor(_lost_cfg(smcl_cfg)).lost(None, 0)
 
 
