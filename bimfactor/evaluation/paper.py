@@ -126,7 +126,7 @@ def pose_guess(true_pose: np.ndarray, offset_m: float, offset_deg: float, rng: n
 
 def scenario_run(
     prior_dir: str | Path, cfg: Config, trajectory: int, repeat: int
-) -> tuple[BimPrior, SequenceMeta, list[Frame], Config, slice]:
+) -> tuple[BimPrior, SequenceMeta, list[Frame], Config, slice | None]:
     """What one run of the protocol localizes under `evaluation.scenario`: the prior, the sequence, the config (with
     `guess`, its initial pose) and the steps scored when they do not depend on the run (None: `scoring_window`)."""
     from bimfactor.sim.simulate import kidnap
@@ -198,8 +198,12 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
     tracks = {"smcl": run.filter, **{online: r.graph for online, r in forward.items() if r.graph is not None}}
     if "refine" in variants:
         tracks["refine"] = refine_run(forward["smcl+graph"], prior, cfg, matcher).estimate
-    # Every variant of the run is scored over the same steps; where they begin depends on the filter's own flag only.
-    scored = window or scoring_window(run.converged, ev.trajectory_length, ev.score_from, ev.warmup_steps)
+    # Every variant of the run is scored over the same steps: the scenario's, or from the filter's own flag.
+    scored = (
+        window
+        if window is not None
+        else scoring_window(run.converged, ev.trajectory_length, ev.score_from, ev.warmup_steps)
+    )
     gt_poses, gt_rooms = run.gt_poses[scored], run.gt_rooms[scored]
     gt_storeys = np.asarray([f.gt_storey or 0 for f in frames])[scored]
     results = []
