@@ -33,14 +33,14 @@ def replay(bench_dir: str, trajectory: int, repeat: int, radius_m: float, yaw_de
     keyframe; in a worker process."""
     from bimfactor.config import load_config
     from bimfactor.evaluation.metrics import translation_errors_m
-    from bimfactor.evaluation.paper import run_seed, simulate_route
+    from bimfactor.evaluation.paper import run_seed, simulate_routes
     from bimfactor.localization.smcl import near_pose
     from bimfactor.pipeline import localize_sequence
 
     cfg = load_config(Path(bench_dir) / "config.yaml")
     cfg = cfg.model_copy(update={"localization": cfg.localization.model_copy(update={"variant": "smcl"})})
     prior_dir = Path(bench_dir) / "prior"
-    sim, prior = simulate_route(prior_dir, cfg, trajectory)
+    (sim,), prior = simulate_routes(prior_dir, cfg, [(trajectory, None)])
     steps = range(len(sim.frames))
     run = localize_sequence(
         prior, sim.meta, sim.frames, cfg, run_seed(cfg.seed, trajectory, repeat), steps, show_progress=False

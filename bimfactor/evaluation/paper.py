@@ -94,19 +94,23 @@ def scoring_window(converged: np.ndarray, steps: int, score_from: str, warmup_ma
     return slice(first, first + steps)
 
 
-def simulate_route(
-    prior_dir: str | Path, cfg: Config, trajectory: int, length: int | None = None
-) -> tuple[SimResult, BimPrior]:
-    """Trajectory `trajectory` of the config seed on the prior's building, `length` keyframes long (default: as the
-    protocol simulates it, with `filter_converged` `warmup_max_steps` keyframes longer); returns it with the loaded
-    prior."""
-    from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
+def simulate_routes(
+    prior_dir: str | Path, cfg: Config, routes: list[tuple[int, int | None]]
+) -> tuple[list[SimResult], BimPrior]:
+    """Trajectories of the config seed on the prior's building, each (trajectory, length in keyframes; None: as the
+    protocol simulates it, with `filter_converged` `warmup_max_steps` keyframes longer), in one world: the prior,
+    the IFC model and the world are loaded and built once. Returns them with the loaded prior."""
+    from bimfactor.sim.simulate import build_world, load_world_inputs, simulate_sequence
 
     ev = cfg.evaluation
     prior, model = load_world_inputs(prior_dir, cfg)
-    length = ev.trajectory_length + ev.warmup_steps if length is None else length
-    sim_cfg = cfg.model_copy(update={"evaluation": ev.model_copy(update={"trajectory_length": length})})
-    return simulate_sequence(prior, model, sim_cfg, trajectory, cfg.seed, progress=False), prior
+    world = build_world(prior, model, cfg, cfg.seed)
+    sims = []
+    for trajectory, length in routes:
+        steps = ev.trajectory_length + ev.warmup_steps if length is None else length
+        sim_cfg = cfg.model_copy(update={"evaluation": ev.model_copy(update={"trajectory_length": steps})})
+        sims.append(simulate_sequence(prior, model, sim_cfg, trajectory, cfg.seed, progress=False, world=world))
+    return sims, prior
 
 
 def kidnap_route(trajectory: int, num_trajectories: int) -> int:
@@ -133,13 +137,14 @@ def scenario_run(
 
     ev = cfg.evaluation
     if ev.scenario == "kidnap":
-        sim, prior = simulate_route(prior_dir, cfg, trajectory, max(ev.kidnap_at, ev.trajectory_length))
-        other, _ = simulate_route(
-            prior_dir, cfg, kidnap_route(trajectory, ev.num_trajectories), ev.kidnap_resume_at + ev.trajectory_length
-        )
+        routes = [
+            (trajectory, max(ev.kidnap_at, ev.trajectory_length)),
+            (kidnap_route(trajectory, ev.num_trajectories), ev.kidnap_resume_at + ev.trajectory_length),
+        ]
+        (sim, other), prior = simulate_routes(prior_dir, cfg, routes)
         frames = kidnap(sim.frames, other.frames, ev.kidnap_at, ev.kidnap_resume_at)
         return prior, sim.meta, frames, cfg, slice(ev.kidnap_at, ev.kidnap_at + ev.trajectory_length)
-    sim, prior = simulate_route(prior_dir, cfg, trajectory)
+    (sim,), prior = simulate_routes(prior_dir, cfg, [(trajectory, None)])
     if ev.scenario == "guess":
         first = sim.frames[0]
         rng = np.random.default_rng([run_seed(cfg.seed, trajectory, repeat), GUESS_STREAM])

@@ -138,7 +138,7 @@ def kidnap(first: list[Frame], second: list[Frame], at: int, resume_at: int) -> 
     odom_from, odom_to = np.asarray(tail[0].odom_pose, float), np.asarray(head[-1].odom_pose, float)
     interval = float(np.median(np.diff([f.timestamp_s for f in first]))) if len(first) > 1 else 1.0
     shift = head[-1].timestamp_s + interval - tail[0].timestamp_s
-    frames = [replace(f) for f in head]
+    frames = list(head)
     for i, f in enumerate(tail):
         frames.append(
             replace(
