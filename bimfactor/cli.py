@@ -3,7 +3,7 @@
 Heavy libraries (ifcopenshell, torch, open3d) are imported inside the commands so that `--help` stays fast.
 Every error bimfactor raises on purpose becomes one line `error: <message>` on stderr and the error's exit
 code (2 for bad input or configuration); anything else is `error: internal: ...` with exit code 1, and
-`--debug` (or BIMFACTOR_DEBUG=1) adds the traceback.
+`--debug` (or BIMFACTOR_DEBUG=1) adds the traceback. A closed stdout (`| head`) ends the command quietly with 141.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import contextlib
 import json
 import logging
 import math
+import os
 import sys
 import time
 import traceback
@@ -52,6 +53,7 @@ app.add_typer(bench_app, name="bench")
 DEFAULT_DEMO_OUT = Path("runs/demo")
 DEFAULT_BENCH_PRIOR_OUT = Path("runs/bench-prior")
 DEFAULT_PRIOR_ROOT = Path("runs/prior")
+SIGPIPE_EXIT = 141  # 128 + SIGPIPE, what a shell reports for `yes | head`
 
 # ------------------------------------------------------------------------------------------ common options
 
@@ -116,6 +118,12 @@ def _cli_errors(debug: bool) -> Iterator[None]:
         raise _fail(str(exc), exc.exit_code) from None
     except KeyboardInterrupt:
         raise _fail("interrupted", 130) from None
+    except BrokenPipeError:
+        # The reader of stdout went away (`bimfactor ... | head`): files are already written atomically, so stop
+        # quietly with the shell's SIGPIPE status, and point stdout at /dev/null so the exit flush cannot fail again.
+        with contextlib.suppress(OSError, ValueError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        raise typer.Exit(SIGPIPE_EXIT) from None
     except Exception as exc:
         if debug:
             traceback.print_exc(file=sys.stderr)

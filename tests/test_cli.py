@@ -205,6 +205,22 @@ def test_error_in_a_real_process_is_one_line(tmp_path: Path) -> None:
     ]
 
 
+def test_closed_stdout_stops_quietly_after_writing(tmp_path: Path) -> None:
+    """`bimfactor ... | head`: the reader is gone before the summary is printed; the file is written, no error shows."""
+    out = tmp_path / "x.ifc"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bimfactor", "synth", "-o", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # long before the child has imported anything
+    stderr = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141
+    assert stderr == ""
+    assert out.stat().st_size > 0
+
+
 def test_version() -> None:
     result = invoke("--version")
     assert result.exit_code == 0
