@@ -958,6 +958,7 @@ def bench_paper(
     ifc: Annotated[
         Path | None, typer.Option("--ifc", metavar="PATH", help="Another building (default: the paper-floor preset).")
     ] = None,
+    prior_dir: BenchPriorOption = None,
     variants: Annotated[
         list[str] | None,
         typer.Option(
@@ -985,7 +986,8 @@ def bench_paper(
     variant and writes OUT/results.json (per variant: trans_err_m, orient_err_deg, room_acc, step_ms_median,
     steps_to_converge, trans_err_conv_m, orient_err_conv_deg, ellipse_coverage; the average also the 95 %
     bootstrap intervals over runs trans_err_ci95_m, orient_err_ci95_deg, room_acc_ci95 and the mean error per
-    step; full also icp_accepted_share and icp_rejections), OUT/error_by_step.png and OUT/config.yaml. With
+    step; full also icp_accepted_share and icp_rejections), OUT/error_by_step.png and OUT/config.yaml. The
+    building's prior is built into OUT/prior, or with --prior a saved one is used (as a rerun's OUT/prior). With
     --scenario kidnap the scored steps follow the kidnapping, and the average also holds
     tracking_before_kidnap_runs and steps_to_recover_median.
 
@@ -995,6 +997,7 @@ def bench_paper(
       bimfactor bench paper --variant smcl --variant refine -o runs/bench-paper-refine
       bimfactor bench paper --variant smcl+graph --variant full -o runs/bench-paper-full
       bimfactor bench paper --ifc ../shared/data/ifc/duplex.ifc -o runs/bench-paper-duplex
+      bimfactor bench paper --prior runs/bench-paper-duplex/prior -o runs/bench-paper-duplex-kidnap --scenario kidnap
       bimfactor bench paper --scenario kidnap --variant smcl --variant smcl+graph -o runs/bench-paper-kidnap
     """
     with _cli_errors(debug):
@@ -1008,15 +1011,21 @@ def bench_paper(
         from bimfactor.bim.prior import build_prior
         from bimfactor.bim.synth import write_building
         from bimfactor.evaluation.paper import check_protocol, format_tables, run_paper_bench
+        from bimfactor.sim.simulate import load_world_inputs
 
         check_protocol(cfg)
+        if prior_dir is not None and ifc is not None:
+            raise ConfigError("--ifc builds a prior, --prior names a saved one: give one of them")
+        if prior_dir is not None:
+            load_world_inputs(prior_dir, cfg)  # the prior and its IFC file, checked before OUT is made
 
         output.mkdir(parents=True, exist_ok=True)
-        if ifc is None:
-            ifc = output / "paper-floor.ifc"
-            write_building("paper-floor", cfg.seed, ifc)
-        prior_dir = output / "prior"
-        build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
+        if prior_dir is None:
+            if ifc is None:
+                ifc = output / "paper-floor.ifc"
+                write_building("paper-floor", cfg.seed, ifc)
+            prior_dir = output / "prior"
+            build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
         report = run_paper_bench(prior_dir, cfg, output, workers=workers)
         typer.echo(format_tables(report))
         typer.echo(f"results: {output / 'results.json'}")
@@ -1065,11 +1074,14 @@ def _bench_world(prior_dir: Path | None, output: Path, cfg: Config) -> tuple[Bim
     from bimfactor.bim.synth import write_building
     from bimfactor.sim.simulate import load_world_inputs
 
+    if prior_dir is not None:  # checked before OUT is made: a bad --prior leaves nothing behind
+        inputs = load_world_inputs(prior_dir, cfg)
+        output.mkdir(parents=True, exist_ok=True)
+        return inputs
     output.mkdir(parents=True, exist_ok=True)
-    if prior_dir is None:
-        prior_dir = output / "prior"
-        write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
-        build_prior(output / "paper-floor.ifc", cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
+    prior_dir = output / "prior"
+    write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
+    build_prior(output / "paper-floor.ifc", cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
     return load_world_inputs(prior_dir, cfg)
 
 

@@ -583,7 +583,7 @@ def test_refine_fails_cleanly_on_bad_input(demo_prior: Path, short_sequence: Pat
     assert not out.exists()
 
 
-def test_bench_paper_scores_every_variant(tmp_path: Path, cli_config_args: list[str]) -> None:
+def test_bench_paper_scores_every_variant(demo_prior: Path, tmp_path: Path, cli_config_args: list[str]) -> None:
     out = tmp_path / "bench"
     tiny = ["evaluation.num_trajectories=1", "evaluation.repeats=1", "evaluation.trajectory_length=5"]
     result = invoke("bench", "paper", "-o", out, "--workers", "1", *[a for t in tiny for a in ("--set", t)],
@@ -609,8 +609,9 @@ def test_bench_paper_scores_every_variant(tmp_path: Path, cli_config_args: list[
     assert report["protocol"]["score_from"] == "start" and report["smcl"]["average"]["scored_from_steps"] == [0]
     # The full variant, scored from where the filter reports itself converged (at most two steps in).
     warmup = ["evaluation.score_from=filter_converged", "evaluation.warmup_max_steps=2"]
-    full = invoke("bench", "paper", "-o", tmp_path / "full", "--workers", "1", "--variant", "smcl+graph", "--variant",
-                  "full", *[a for t in tiny + warmup for a in ("--set", t)], *cli_config_args)  # fmt: skip
+    full = invoke("bench", "paper", "-o", tmp_path / "full", "--prior", demo_prior, "--workers", "1", "--variant",
+                  "smcl+graph", "--variant", "full", *[a for t in tiny + warmup for a in ("--set", t)],
+                  *cli_config_args)  # fmt: skip
     assert full.exit_code == 0, full.output
     report = json.loads((tmp_path / "full" / "results.json").read_text())
     assert report["variants"] == ["smcl+graph", "full"]
@@ -620,10 +621,12 @@ def test_bench_paper_scores_every_variant(tmp_path: Path, cli_config_args: list[
     assert 0 <= first <= 2 and len(report["full"]["average"]["trans_err_by_step_m"]) == 5
 
 
-def test_bench_paper_runs_the_kidnap_and_pose_guess_scenarios(tmp_path: Path, cli_config_args: list[str]) -> None:
+def test_bench_paper_runs_the_kidnap_and_pose_guess_scenarios(
+    demo_prior: Path, tmp_path: Path, cli_config_args: list[str]
+) -> None:
     tiny = ["evaluation.num_trajectories=2", "evaluation.repeats=1", "evaluation.trajectory_length=4",
             "evaluation.kidnap_at=3", "evaluation.kidnap_resume_at=2"]  # fmt: skip
-    sets = [a for t in tiny for a in ("--set", t)]
+    sets = ["--prior", demo_prior, *[a for t in tiny for a in ("--set", t)]]
     kidnap = invoke("bench", "paper", "-o", tmp_path / "kidnap", "--workers", "1", "--scenario", "kidnap",
                     "--variant", "smcl", *sets, *cli_config_args)  # fmt: skip
     assert kidnap.exit_code == 0, kidnap.output
@@ -639,7 +642,19 @@ def test_bench_paper_runs_the_kidnap_and_pose_guess_scenarios(tmp_path: Path, cl
     report = json.loads((tmp_path / "guess" / "results.json").read_text())
     assert report["protocol"]["guess_offset_m"] == 1.0 and report["protocol"]["guess_offset_deg"] == 20.0
     assert report["smcl"]["average"]["trans_err_by_step_m"][0] < 2.0  # about the guess, not over the whole floor
+    # Two worker processes give the same runs as this process alone.
+    pooled = invoke("bench", "paper", "-o", tmp_path / "guess2", "--workers", "2", "--scenario", "guess",
+                    "--variant", "smcl", *sets, *cli_config_args)  # fmt: skip
+    assert pooled.exit_code == 0, pooled.output
+    again = json.loads((tmp_path / "guess2" / "results.json").read_text())
+    for k, row in report["smcl"]["per_trajectory"].items():
+        untimed = {key: value for key, value in row.items() if "_ms" not in key}
+        assert {key: value for key, value in again["smcl"]["per_trajectory"][k].items() if "_ms" not in key} == untimed
     assert_one_line_error(invoke("bench", "paper", "-o", tmp_path / "x", "--scenario", "teleport"), contains="scenario")
+    both = invoke("bench", "paper", "-o", tmp_path / "x", "--prior", demo_prior, "--ifc", tmp_path / "b.ifc")
+    assert_one_line_error(both, contains="give one of them")
+    missing = invoke("bench", "paper", "-o", tmp_path / "x", "--prior", tmp_path / "nowhere")
+    assert missing.exit_code == 2
     assert not (tmp_path / "x").exists()
 
 

@@ -166,7 +166,7 @@ def run_seed(seed: int, trajectory: int, repeat: int) -> int:
 
 def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion]) -> list[RunResult]:
     """Simulate trajectory k (config seed), localize it with seed (config seed, repeat), score every variant (also
-    up to the building's `twins`, when it has any); in a worker process."""
+    up to the building's `twins`, when it has any); in a worker process, or in this one with one worker."""
     from bimfactor.config import Config
     from bimfactor.evaluation.metrics import (
         errors_up_to_twin,
@@ -360,11 +360,16 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
     cfg_json = cfg.model_dump_json()
     twins = twin_motions(BimPrior.load(prior_dir))  # once here, not in every run
     results: list[RunResult] = []
-    # spawn, not fork: the parent already runs torch / Open3D threads, and a forked child can deadlock on their locks
-    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(_run_one, str(prior_dir), cfg_json, k, r, twins) for k, r in jobs]
-        for future in progress(futures, desc=f"bench paper ({', '.join(ev.variants)})", unit="run"):
-            results.extend(future.result())
+    desc = f"bench paper ({', '.join(ev.variants)})"
+    if workers == 1:  # in this process: no worker start-up (imports, the sentence encoder) to pay for
+        for k, r in progress(jobs, desc=desc, unit="run"):
+            results.extend(_run_one(str(prior_dir), cfg_json, k, r, twins))
+    else:
+        # spawn, not fork: the parent already runs torch / Open3D threads, and a forked child can deadlock on them
+        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(_run_one, str(prior_dir), cfg_json, k, r, twins) for k, r in jobs]
+            for future in progress(futures, desc=desc, unit="run"):
+                results.extend(future.result())
     report: dict = {
         "benchmark": "paper",
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
