@@ -78,6 +78,10 @@ class LostMonitor:
     No single frame says lost (a passer-by filling the view). Frames that start or continue either test stay out
     of the average. Frames with fewer than `lost_min_endpoints` scan endpoints (facing a wall at arm's length)
     leave it as it is.
+
+    When it says lost, it also says since when: the frames of the excursion that led there, from the frame at which
+    S (or the streak) last left zero. That is Page's estimate of the change point, where a kidnapped recording's
+    continuous stretches part (`LocalizationRun.segments`).
     """
 
     def __init__(self, cfg: SmclConfig) -> None:
@@ -86,28 +90,35 @@ class LostMonitor:
         self.frames = 0  # frames in the average
         self.streak = 0  # consecutive frames below lost_fit_ratio × the average
         self.cusum = 0.0
+        self.excursion = 0  # frames, with a scan or not, since S or the streak last left zero (0: at zero)
 
     def reset(self) -> None:
-        self.average, self.frames, self.streak, self.cusum = None, 0, 0, 0.0
+        self.average, self.frames, self.streak, self.cusum, self.excursion = None, 0, 0, 0.0, 0
 
-    def lost(self, fit: float | None, n_endpoints: int) -> bool:
-        """Feed one frame's fit (None: no scan); True when the belief is lost (the monitor then starts over)."""
+    def lost(self, fit: float | None, n_endpoints: int) -> int:
+        """Feed one frame's fit (None: no scan). When the belief is lost, the number of frames (this one included)
+        since it stopped explaining the scans, and the monitor starts over; otherwise 0."""
         cfg = self.cfg
+        if self.excursion:
+            self.excursion += 1
         if fit is None or n_endpoints < cfg.lost_min_endpoints:
-            return False
+            return 0
         average = self.average
         if average is not None and average >= cfg.lost_min_fit and self.frames * cfg.lost_fit_alpha >= 1:
             self.streak = self.streak + 1 if fit < cfg.lost_fit_ratio * average else 0
             surprise = min(float(np.log(average / max(fit, 1e-3))), cfg.lost_cusum_threshold)
             self.cusum = max(0.0, self.cusum + surprise - cfg.lost_cusum_drift)
-            if self.streak >= cfg.lost_frames or self.cusum > cfg.lost_cusum_threshold:
-                self.reset()
-                return True
             if self.streak or self.cusum > 0.0:
-                return False
+                self.excursion = self.excursion or 1
+                if self.streak >= cfg.lost_frames or self.cusum > cfg.lost_cusum_threshold:
+                    since = self.excursion
+                    self.reset()
+                    return since
+                return 0
+            self.excursion = 0
         self.frames += 1
         self.average = fit if average is None else average + cfg.lost_fit_alpha * (fit - average)
-        return False
+        return 0
 
 
 @dataclass
@@ -123,6 +134,7 @@ class StepResult:
     n_particles: int = 0
     scan_fit: float | None = None  # the belief's predicted scan fit before the update (`SemanticMCL.scan_fit`)
     relocalized: bool = False  # the particles were spread over the building again at this step
+    lost_frames: int = 0  # relocalized: the frames, this one included, since the belief stopped explaining the scans
 
     @property
     def pose(self) -> np.ndarray:
@@ -586,8 +598,8 @@ class SemanticMCL:
         n_obs = 0 if observations is None else len(observations)
         self.update(observations, scan)
         fit = self.scan_fit
-        relocalized = self.cfg.relocalize and self.lost_monitor.lost(fit, 0 if scan is None else len(scan))
-        if relocalized:  # the kidnapped robot: start over from the whole building, weighed by this frame
+        lost_frames = self.lost_monitor.lost(fit, 0 if scan is None else len(scan)) if self.cfg.relocalize else 0
+        if lost_frames:  # the kidnapped robot: start over from the whole building, weighed by this frame
             log.info("the belief no longer explains the scans (fit %.2f): particles spread over the building", fit)
             self.initialize()
             self.update(observations, scan)
@@ -597,7 +609,9 @@ class SemanticMCL:
         lap("resample")
         estimate = self.estimate()
         lap("estimate")
-        return StepResult(estimate, ess, resampled, injected, n_obs, timings, self.num_particles, fit, relocalized)
+        return StepResult(
+            estimate, ess, resampled, injected, n_obs, timings, self.num_particles, fit, lost_frames > 0, lost_frames
+        )
 
     # -------------------------------------------------------------------------------- helpers
 

@@ -210,13 +210,15 @@ def test_the_lost_monitor_calls_a_sudden_or_a_held_drop_of_the_scan_fit_below_it
     assert monitor.streak == 1 and monitor.cusum == pytest.approx(1.0 - 0.4)  # S takes at most h − drift a frame
     assert monitor.average == pytest.approx(0.6)  # the poor frame stayed out of the average
     assert not monitor.lost(0.05, 3)  # too few endpoints: counts for nothing
-    assert monitor.lost(0.2, 40)  # the second frame in a row under half the average
+    assert monitor.lost(0.2, 40) == 3  # the second frame in a row under half the average, lost for three frames
     assert monitor.average is None and monitor.frames == 0 and monitor.streak == 0 and monitor.cusum == 0.0
     sudden = _tracking_monitor(smcl_cfg)
-    assert [sudden.lost(0.29, 40), sudden.lost(0.29, 40)] == [False, True]  # S = 2 (ln(0.6 / 0.29) − 0.4) < 1
+    assert [sudden.lost(0.29, 40), sudden.lost(0.29, 40)] == [0, 2]  # S = 2 (ln(0.6 / 0.29) − 0.4) < 1
     held = _tracking_monitor(smcl_cfg)
     fits = [0.3] * 5  # at half the average, not under it: S grows by ln(2) − 0.4 = 0.29 a frame
-    assert [held.lost(fit, 40) for fit in fits] == [False, False, False, True, False]
+    assert [held.lost(fit, 40) for fit in fits] == [0, 0, 0, 4, 0]
+    late = _tracking_monitor(smcl_cfg)  # a dip paid back, then the held drop: counted from where S left zero again
+    assert [late.lost(fit, 40) for fit in (0.3, 0.6, 0.6, 0.3, 0.3, None, 0.3, 0.3)] == [0, 0, 0, 0, 0, 0, 0, 5]
     near = _tracking_monitor(smcl_cfg)
     assert not any(near.lost(0.42, 40) for _ in range(50))  # 0.7 of the average, above e^−0.4: never adds up
     recovers = _tracking_monitor(smcl_cfg)
