@@ -896,6 +896,9 @@ def refine(
         typer.echo(
             f"wrote {output}: {len(sequence)} steps, {len(refined.modes)} modes refined in {refined.refine_ms:.0f} ms"
         )
+        if len(refined.segments) > 1:
+            stretches = ", ".join(f"{steps.start}–{steps.stop - 1}" for steps in refined.segments)
+            typer.echo(f"the filter relocalized: steps {stretches} refined apart (steps.csv: segment)")
         forward = run_metrics(run)
         if forward is not None:
             refined_metrics = track_metrics(refined.estimate, run.gt_poses, run.gt_rooms)

@@ -492,6 +492,17 @@ class BackendConfig(_Strict):
         description="Offline refine: modes pruned in the forward pass after this many keyframes are refined too "
         "(tracked to the end by odometry and scan matching) and compete by their fit to the whole sequence.",
     )
+    refine_seam_window: int = Field(
+        ge=0,
+        description="Offline refine of a relocalized run: the seam between two stretches is searched this many "
+        "keyframes either side of the lost monitor's change point, where the two stretches' refined trajectories "
+        "explain the frames best (0: the monitor's point).",
+    )
+    refine_seam_min_log_ratio: float = Field(
+        ge=0.0,
+        description="Offline refine: the searched seam replaces the monitor's only when the frames' log-likelihood "
+        "is higher there by this much (1: e ≈ 2.7 times as likely).",
+    )
     scan_factor: bool = Field(
         description="Each mode's graph also gets a pose factor from correlative matching of the keyframe's 2-D scan "
         "against the likelihood field (registration.correlative; beyond the paper)."

@@ -22,7 +22,7 @@ import logging
 import re
 import time
 from collections import Counter, deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Self
@@ -35,9 +35,10 @@ from bimfactor.backend.posegraph import (
     ModeEstimate,
     ModeHistory,
     MultiHypothesisBackend,
+    PoseFactorFn,
     semantic_associator,
 )
-from bimfactor.backend.refine import RefinedMode, refine_mode
+from bimfactor.backend.refine import RefinedMode, refine_mode, track_from
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.symmetry import Motion, twin_motions
 from bimfactor.bim.visibility import VisibilityTable
@@ -168,7 +169,7 @@ class LocalizationRun:
     perception_ms: np.ndarray
     n_particles: np.ndarray
     scan_fit: np.ndarray  # (T,) the belief's predicted scan fit before each update; NaN without a scan
-    relocalized: np.ndarray  # (T,) bool: the filter spread its particles over the building again at this step
+    lost_frames: np.ndarray  # (T,) int: where the filter spread its particles again, the frames it had been lost
     odom_increments: np.ndarray
     observations: list[Observations]
     scans: list[np.ndarray | None] = field(default_factory=list)
@@ -186,6 +187,22 @@ class LocalizationRun:
     @property
     def output(self) -> Track:
         return self.graph if self.graph is not None else self.filter
+
+    @property
+    def relocalized(self) -> np.ndarray:
+        """(T,) bool: the filter spread its particles over the building again at this step (`smcl.relocalize`)."""
+        return self.lost_frames > 0
+
+    def segments(self) -> list[range]:
+        """The run's continuous stretches, in order and covering every step: a relocalization at step k after the
+        belief had been lost for n frames parts them before step k − n + 1, where the scans stopped fitting (the
+        lost monitor's change point). A robot carried off, or whose wheels slipped away, is on another stretch of
+        odometry there; a single trajectory cannot be smoothed across the seam."""
+        T = len(self.timestamps_s)
+        seams = [0]
+        for k in np.flatnonzero(self.lost_frames):
+            seams.append(max(int(k - self.lost_frames[k] + 1), seams[-1] + 1))
+        return [range(a, b) for a, b in zip(seams, [*seams[1:], T], strict=True)]
 
     @property
     def poses(self) -> np.ndarray:
@@ -482,7 +499,7 @@ def localize_sequence(
         perception_ms=np.asarray([r.perception_ms for r in rows]),
         n_particles=np.asarray([r.filtered.n_particles for r in rows], np.int64),
         scan_fit=np.asarray([np.nan if r.filtered.scan_fit is None else r.filtered.scan_fit for r in rows], float),
-        relocalized=np.asarray([r.filtered.relocalized for r in rows], bool),
+        lost_frames=np.asarray([r.filtered.lost_frames for r in rows], np.int64),
         odom_increments=np.asarray([r.odom_increment for r in rows[1:]], float).reshape(-1, 3),
         observations=[r.observations for r in rows],
         scans=[r.scan for r in rows],
@@ -506,27 +523,42 @@ def localize_sequence(
 
 @dataclass
 class RefinedRun:
-    """The offline pass over a localized run: every candidate mode refined, best fit first, with its fit
-    (`fits`, the filter's measurement log-likelihood summed along the refined trajectory), and the estimate, the
-    best fit's refined trajectory; its `step_ms` is the forward pass's step time plus the refinement's time shared
-    over the steps."""
+    """The offline pass over a localized run, one continuous stretch at a time (`segments`,
+    `LocalizationRun.segments`: one unless the filter relocalized): every candidate mode refined, by stretch and
+    best fit first within one, with its fit (`fits`, the filter's measurement log-likelihood summed along the refined
+    trajectory); `best`, per stretch, its best fit (None: no mode was born there, and the stretch keeps the forward
+    pass's estimate); and the estimate, the stretches' best fits joined. Its `step_ms` is the forward pass's step
+    time plus the refinement's time shared over the steps."""
 
     forward: LocalizationRun
     modes: list[RefinedMode]
     estimate: Track
     refine_ms: float
     fits: list[float] = field(default_factory=list)
+    segments: list[range] = field(default_factory=list)
+    best: list[RefinedMode | None] = field(default_factory=list)
+
+    def best_at(self, step: int) -> RefinedMode | None:
+        """The refined mode the estimate reports at `step` (None: the forward pass's estimate there)."""
+        for steps, mode in zip(self.segments, self.best, strict=True):
+            if step in steps:
+                return mode
+        return None
 
 
 def refine_run(
     run: LocalizationRun, prior: BimPrior, cfg: Config, matcher: CorrelativeMatcher | None = None
 ) -> RefinedRun:
-    """Batch Levenberg–Marquardt smoothing of the whole trajectory of every candidate mode of the forward pass.
+    """Batch Levenberg–Marquardt smoothing of every candidate mode of the forward pass over its stretch.
 
-    Candidates are the modes alive at the end and those pruned after `backend.refine_retired_min_keyframes`
-    keyframes (a mode that lost to a late rival in the forward pass may still explain the whole sequence best).
-    Each is refined over all keyframes (`refine_mode`) and scored by the filter's measurement model, semantic and
-    scan terms, summed over its refined trajectory; the best fit is the estimate.
+    A run the filter never relocalized is one stretch; where it did, the stretches part at the lost monitor's change
+    point (`LocalizationRun.segments`): across it the odometry does not tell where the robot went, so each stretch
+    is smoothed on its own. A stretch's candidates are the modes born in it, alive at the end or pruned after
+    `backend.refine_retired_min_keyframes` keyframes (a mode that lost to a late rival in the forward pass may still
+    explain the stretch best), each cut at the stretch's end. Each is refined over all the stretch's keyframes
+    (`refine_mode`) and scored by the filter's measurement model, semantic and scan terms, summed over its refined
+    trajectory; the best fit is the stretch's estimate. A stretch in which no mode was born keeps the forward
+    pass's estimate.
 
     With `backend.scan_factor` and the run's scans, every keyframe's scan is matched anew from each mode's
     hindsight trajectory, by `matcher` (the forward pass's, or one built now). After a full forward pass, the fine
@@ -536,7 +568,8 @@ def refine_run(
     """
     if run.graph is None:
         raise ValueError(f"refinement needs a pose-graph variant ({', '.join(GRAPH_VARIANTS)}), not {run.variant}")
-    if not run.final_modes:
+    candidates = [*run.final_modes, *run.retired_modes]
+    if not candidates:
         log.warning("no mode formed in the forward pass: nothing to refine")
         return RefinedRun(run, [], run.graph, 0.0)
     started = time.perf_counter()
@@ -544,46 +577,150 @@ def refine_run(
     associate_fns = [semantic_associator(likelihood, obs) for obs in run.observations]
     landmarks = Landmarks.from_prior(prior)
     has_scans = any(scan is not None for scan in run.scans)
-    measure_fns = None
+    measure_fns: list[PoseFactorFn | None] | None = None
     if cfg.backend.scan_factor and has_scans:
         matcher = matcher or CorrelativeMatcher(prior, cfg.backend)
         measure_fns = [None if scan is None else matcher.factor_fn(scan) for scan in run.scans]
-    refined = [
-        refine_mode(mode, run.odom_increments, run.observations, associate_fns, landmarks, cfg.backend, measure_fns)
-        for mode in [*run.final_modes, *run.retired_modes]
-    ]
     scan_likelihood = ScanLikelihood(prior, cfg.smcl) if has_scans else None
-    fits = [_measurement_fit(m.poses, m.storey, run, likelihood, scan_likelihood) for m in refined]
-    order = sorted(range(len(refined)), key=lambda k: -fits[k])
-    refined, fits = [refined[k] for k in order], [fits[k] for k in order]
+
+    def frame_fits(poses: np.ndarray, storey: int, steps: range) -> np.ndarray:
+        own = slice(steps.start, steps.stop)
+        return _frame_fits(poses, storey, run.observations[own], run.scans[own], likelihood, scan_likelihood)
+
+    def refine_stretches(segments: list[range]) -> tuple[list[list[RefinedMode]], list[list[float]]]:
+        """Per stretch, its candidates refined over it, best fit first, and their fits."""
+        by_stretch, fits_by_stretch = [], []
+        for index, steps in enumerate(segments):
+            own = slice(steps.start, steps.stop)
+            refined = [
+                refine_mode(
+                    mode.within(steps),
+                    run.odom_increments[steps.start : steps.stop - 1],
+                    run.observations[own],
+                    associate_fns[own],
+                    landmarks,
+                    cfg.backend,
+                    None if measure_fns is None else measure_fns[own],
+                )
+                for mode in candidates
+                if mode.first_index in steps
+            ]
+            refined = [
+                dataclasses.replace(m, first_index=m.first_index + steps.start, start=steps.start, segment=index)
+                for m in refined
+            ]
+            scored = [float(frame_fits(m.poses, m.storey, steps).sum()) for m in refined]
+            order = sorted(range(len(refined)), key=lambda k: -scored[k])
+            by_stretch.append([refined[k] for k in order])
+            fits_by_stretch.append([scored[k] for k in order])
+        return by_stretch, fits_by_stretch
+
+    segments = run.segments()
+    by_stretch, fits_by_stretch = refine_stretches(segments)
+    if len(segments) > 1 and cfg.backend.refine_seam_window > 0:
+        seams = [steps.start for steps in segments]
+        lost_at = np.flatnonzero(run.relocalized)
+        for j in range(1, len(segments)):
+            before, after = by_stretch[j - 1], by_stretch[j]
+            if before and after:
+                window = cfg.backend.refine_seam_window
+                lo = max(seams[j - 1] + 1, seams[j] - window)
+                hi = min(int(lost_at[j - 1]), seams[j] + window)
+                seams[j] = _hindsight_seam(
+                    seams[j],
+                    lo,
+                    hi,
+                    before[0],
+                    after[0],
+                    run,
+                    measure_fns,
+                    frame_fits,
+                    cfg.backend.refine_seam_min_log_ratio,
+                )
+        moved = [range(a, b) for a, b in zip(seams, [*seams[1:], len(run.timestamps_s)], strict=True)]
+        if moved != segments:
+            log.info("seams moved in hindsight: %s → %s", [s.start for s in segments[1:]], seams[1:])
+            segments = moved
+            by_stretch, fits_by_stretch = refine_stretches(segments)
+    modes = [m for stretch in by_stretch for m in stretch]
+    fits = [f for stretch in fits_by_stretch for f in stretch]
+    best = [stretch[0] if stretch else None for stretch in by_stretch]
     refine_ms = (time.perf_counter() - started) * 1000
-    best = refined[0]
-    T = len(best.poses)
+    parts = [
+        run.graph.window(slice(steps.start, steps.stop))
+        if mode is None
+        else Track(
+            poses=mode.poses,
+            covariances=mode.covariances,
+            storeys=np.full(len(steps), mode.storey),
+            rooms=prior.room_at(mode.poses[:, :2], mode.storey),
+            step_ms=np.zeros(len(steps)),
+        )
+        for steps, mode in zip(segments, best, strict=True)
+    ]
+    T = len(run.timestamps_s)
     estimate = Track(
-        poses=best.poses,
-        covariances=best.covariances,
-        storeys=np.full(T, best.storey),
-        rooms=prior.room_at(best.poses[:, :2], best.storey),
+        poses=np.concatenate([p.poses for p in parts]),
+        covariances=np.concatenate([p.covariances for p in parts]),
+        storeys=np.concatenate([p.storeys for p in parts]),
+        rooms=np.concatenate([p.rooms for p in parts]),
         step_ms=run.graph.step_ms + refine_ms / T,
     )
-    log.info("refined %d modes in %.0f ms; best fit: mode %d", len(refined), refine_ms, best.mode_id)
-    return RefinedRun(run, refined, estimate, refine_ms, fits)
+    log.info(
+        "refined %d modes over %d stretch(es) in %.0f ms; best fits: %s",
+        len(modes),
+        len(segments),
+        refine_ms,
+        ", ".join("-" if m is None else f"mode {m.mode_id}" for m in best),
+    )
+    return RefinedRun(run, modes, estimate, refine_ms, fits, segments, best)
 
 
-def _measurement_fit(
+def _hindsight_seam(
+    seam: int,
+    lo: int,
+    hi: int,
+    before: RefinedMode,
+    after: RefinedMode,
+    run: LocalizationRun,
+    measure_fns: Sequence[PoseFactorFn | None] | None,
+    frame_fits: Callable[[np.ndarray, int, range], np.ndarray],
+    min_log_ratio: float,
+) -> int:
+    """Where, in hindsight, the stretch ending with `before`'s trajectory gives way to the one starting with
+    `after`'s (their seam now at `seam`): the step s in lo … hi that maximises the measurement log-likelihood of
+    keyframes lo … s − 1 along `before` and s … hi along `after`, each trajectory carried across the present seam
+    by odometry and scan matching (`track_from`). A change point by likelihood, with the frames themselves; it
+    replaces the present seam only when its log-likelihood is higher by `min_log_ratio`."""
+    scans = [None] * len(run.timestamps_s) if measure_fns is None else list(measure_fns)
+    odom = run.odom_increments
+    ahead = track_from(before.poses[-1], odom[seam - 1 : hi], scans[seam : hi + 1], before.storey, backwards=False)
+    behind = track_from(after.poses[0], odom[lo:seam], scans[lo:seam], after.storey, backwards=True)
+    first = np.concatenate([before.poses[lo - before.start :], ahead])
+    second = np.concatenate([behind, after.poses[: hi + 1 - seam]])
+    steps = range(lo, hi + 1)
+    on_first = np.concatenate([[0.0], np.cumsum(frame_fits(first, before.storey, steps))])
+    on_second = np.concatenate([[0.0], np.cumsum(frame_fits(second, after.storey, steps))])
+    score = on_first + (on_second[-1] - on_second)  # score[s − lo]: lo … s − 1 on the first, s … hi on the second
+    best = lo + int(np.argmax(score[: hi - lo + 1]))  # s ≤ hi: the later stretch keeps a keyframe of the window
+    return best if score[best - lo] - score[seam - lo] >= min_log_ratio else seam
+
+
+def _frame_fits(
     poses: np.ndarray,
     storey: int,
-    run: LocalizationRun,
+    observations: Sequence[Observations],
+    scans: Sequence[np.ndarray | None],
     likelihood: SemanticLikelihood,
     scan_likelihood: ScanLikelihood | None,
-) -> float:
-    """Σ_t log P(z_t | x_t) of the filter's measurement model (semantic and, with scans, scan terms) along (T, 3)
-    poses on one storey."""
+) -> np.ndarray:
+    """(T,) log P(z_t | x_t) of the filter's measurement model (semantic and, with scans, scan terms) at (T, 3)
+    poses on one storey, with the T keyframes' observations and scans."""
     storeys = np.array([storey])
-    total = 0.0
+    fits = np.zeros(len(poses))
     for t, pose in enumerate(poses):
-        if len(run.observations[t]):
-            total += float(likelihood.log_likelihood(pose[None], storeys, run.observations[t])[0])
-        if scan_likelihood is not None and run.scans[t] is not None and len(run.scans[t]):
-            total += float(scan_likelihood.log_likelihood(pose[None], storeys, run.scans[t])[0])
-    return total
+        if len(observations[t]):
+            fits[t] += float(likelihood.log_likelihood(pose[None], storeys, observations[t])[0])
+        if scan_likelihood is not None and scans[t] is not None and len(scans[t]):
+            fits[t] += float(scan_likelihood.log_likelihood(pose[None], storeys, scans[t])[0])
+    return fits

@@ -521,7 +521,11 @@ def test_refine_writes_the_refined_run(demo_prior: Path, short_sequence: Path, t
         assert (out / name).is_file(), name
     assert (out / "trajectory.png").stat().st_size > 5_000
     assert not [p.name for p in out.parent.iterdir() if p.name.startswith(".")]  # no temporary folder is left
-    modes = json.loads((out / "modes.json").read_text())["modes"]
+    summary = json.loads((out / "modes.json").read_text())
+    modes = summary["modes"]
+    assert summary["segments"] == [{"steps": [0, 19], "best_mode": modes[0]["mode_id"]}]  # not relocalized: one
+    assert "refined apart" not in result.stdout
+    assert all(m["segment"] == 0 and m["steps"] == [0, 19] for m in modes)
     assert modes and sorted(p.name for p in (out / "modes").iterdir()) == sorted(
         Path(m["trajectory"]).name for m in modes
     )
@@ -532,8 +536,10 @@ def test_refine_writes_the_refined_run(demo_prior: Path, short_sequence: Path, t
     assert metrics["variant"] == "refine" and metrics["forward"]["trans_err_m"] >= 0.0
     estimate = np.loadtxt(out / "estimate.txt")
     assert estimate.shape == (20, 8)
-    steps = (out / "steps.csv").read_text().splitlines()
-    assert len(steps) == 21 and "cov_yawyaw" in steps[0]
+    steps = list(csv.DictReader((out / "steps.csv").open()))
+    assert len(steps) == 20 and "cov_yawyaw" in steps[0]
+    assert {row["segment"] for row in steps} == {"0"}
+    assert {row["mode_id"] for row in steps} == {str(modes[0]["mode_id"])}
     assert load_config(out / "config.yaml").localization.variant == "smcl+graph"
 
 

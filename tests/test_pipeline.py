@@ -239,8 +239,51 @@ def test_a_kidnapped_robot_is_noticed_and_the_belief_spread_over_the_building_ag
         spread[relocalize] = run
     steps = np.flatnonzero(spread[True].relocalized)
     assert steps.tolist() == [13], steps  # the second poor frame
+    assert spread[True].lost_frames[13] == 2  # lost since keyframe 12, the first one at the new place
+    assert spread[True].segments() == [range(0, 12), range(12, 16)]
     assert spread[True].n_particles[steps[0]] == paper_floor.cfg.smcl.max_particles  # the whole building again
-    assert not spread[False].relocalized.any()
+    assert not spread[False].relocalized.any() and spread[False].segments() == [range(0, 16)]
+
+
+def test_a_kidnapped_recording_is_refined_one_stretch_at_a_time(
+    paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str]
+) -> None:
+    """Carried off after keyframe 11: each side of the seam is smoothed on its own, the seam found in hindsight."""
+    from bimfactor.sim.simulate import kidnap
+
+    other = simulate_sequence(paper_floor.prior, paper_floor.model, paper_floor.cfg, 3, 0, progress=False)
+    frames = kidnap(drive.frames, other.frames, at=12, resume_at=10)[:30]
+    truth = np.array([f.gt_pose for f in frames])
+    x, y, yaw = truth[0]
+    cfg = load_config(
+        None, [*config_overrides, "localization.variant=smcl+graph", f"smcl.initial_pose=[{x}, {y}, {np.degrees(yaw)}]"]
+    )
+    run = localize_sequence(
+        paper_floor.prior, drive.meta, frames, cfg, SEED, text_embedder=text_embedder, show_progress=False
+    )
+    assert run.relocalized.any()
+    refined = refine_run(run, paper_floor.prior, cfg)
+    assert [steps.start for steps in refined.segments] == [0, 12]
+    first, second = refined.best
+    assert first is not None and second is not None and second.start == 12 and second.first_index > 12
+    assert len(first.poses) == 12 and len(second.poses) == 18  # each over its own stretch
+    assert refined.best_at(11) is first and refined.best_at(12) is second
+    errors = translation_errors_m(refined.estimate.poses, truth)
+    assert errors.max() < 0.5, errors  # both sides, the keyframes before the new place's mode was born included
+    # A change point the monitor put late or early is moved to where the frames say, unless the search is off.
+    (k,) = np.flatnonzero(run.relocalized)
+    monitor_only = cfg.model_copy(update={"backend": cfg.backend.model_copy(update={"refine_seam_window": 0})})
+    unconvinced = cfg.model_copy(
+        update={"backend": cfg.backend.model_copy(update={"refine_seam_min_log_ratio": 1e6})}
+    )  # no gain of likelihood is enough to move it
+    for seam in (k, 9):
+        lost_frames = np.zeros_like(run.lost_frames)
+        lost_frames[k] = k - seam + 1
+        misplaced = dataclasses.replace(run, lost_frames=lost_frames)
+        assert misplaced.segments()[1].start == seam
+        assert [steps.start for steps in refine_run(misplaced, paper_floor.prior, cfg).segments] == [0, 12]
+        for kept in (monitor_only, unconvinced):
+            assert [steps.start for steps in refine_run(misplaced, paper_floor.prior, kept).segments] == [0, seam]
 
 
 def test_an_operator_can_start_the_belief_over_from_a_pose_guess_or_the_whole_building(

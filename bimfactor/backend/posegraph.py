@@ -23,6 +23,7 @@ marginals leave out the bearings of landmarks the optimum puts on their pose (`D
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import statistics
 import time
@@ -328,6 +329,26 @@ class ModeHistory:
     associations: list[list[tuple[int, int]]]
     pose_factors: list[PoseFactor] = field(default_factory=list)
     scan_factors: list[PoseFactor] = field(default_factory=list)
+
+    def within(self, steps: range) -> ModeHistory:
+        """The mode over the keyframes `steps` (a stretch of the sequence that holds its birth), counted from the
+        stretch's first keyframe: what it tracked past the stretch's end is left out."""
+        i0 = self.first_index
+        if i0 not in steps:
+            raise ValueError(f"mode {self.mode_id} was born at keyframe {i0}, outside {steps.start}…{steps.stop - 1}")
+        n = min(len(self.poses), steps.stop - i0)
+
+        def kept(factors: list[PoseFactor]) -> list[PoseFactor]:
+            return [(t - steps.start, *rest) for t, *rest in factors if i0 <= t < i0 + n]
+
+        return dataclasses.replace(
+            self,
+            first_index=i0 - steps.start,
+            poses=self.poses[:n],
+            associations=self.associations[:n],
+            pose_factors=kept(self.pose_factors),
+            scan_factors=kept(self.scan_factors),
+        )
 
 
 @dataclass

@@ -45,7 +45,9 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class RefinedMode:
-    """One mode's refined trajectory: the batch result, its matches per keyframe, the forward-pass probability."""
+    """One mode's refined trajectory: the batch result, its matches per keyframe, the forward-pass probability.
+    The trajectory covers keyframes `start` … `start` + T − 1 (the stretch `segment` of a run the filter
+    relocalized; otherwise the whole run, from 0); the mode was born at keyframe `first_index`."""
 
     mode_id: int
     storey: int
@@ -54,6 +56,8 @@ class RefinedMode:
     batch: BatchResult
     associations: list[list[tuple[int, int]]]
     rounds: int
+    start: int = 0
+    segment: int = 0
 
     @property
     def poses(self) -> np.ndarray:
@@ -89,8 +93,8 @@ def refine_mode(
     if measure_fns is not None and len(measure_fns) != T:
         raise ValueError(f"mode {mode.mode_id}: {len(measure_fns)} scan matchers for {T} keyframes")
     scans = [None] * T if measure_fns is None else list(measure_fns)
-    before = _track(mode.poses[0], odom_increments[:i0], scans[:i0], mode.storey, backwards=True)
-    after = _track(mode.poses[-1], odom_increments[i1 - 1 :], scans[i1:], mode.storey, backwards=False)
+    before = track_from(mode.poses[0], odom_increments[:i0], scans[:i0], mode.storey, backwards=True)
+    after = track_from(mode.poses[-1], odom_increments[i1 - 1 :], scans[i1:], mode.storey, backwards=False)
     initial = np.concatenate([before, mode.poses, after])
     own = range(i0, i1)
     associations = [
@@ -143,7 +147,7 @@ def refine_mode(
     return RefinedMode(mode.mode_id, mode.storey, mode.probability, i0, batch, associations, done)
 
 
-def _track(
+def track_from(
     anchor: np.ndarray,
     increments: np.ndarray,
     measure_fns: Sequence[PoseFactorFn | None],

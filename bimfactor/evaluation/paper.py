@@ -332,17 +332,11 @@ def _by_step(runs: list[RunResult]) -> dict:
 
 
 def check_protocol(cfg: Config) -> None:
-    """ConfigError for settings the protocol cannot take: every run starts as its scenario says, and `refine`
-    smooths one continuous trajectory, which a kidnapped run is not."""
+    """ConfigError for settings the protocol cannot take: every run starts as its scenario says."""
     if cfg.smcl.initial_pose is not None:
         raise ConfigError(
             "bench paper starts every run as evaluation.scenario says (a pose guess per run with --scenario guess); "
             "smcl.initial_pose is one pose guess for one sequence (bimfactor localize --initial-pose)"
-        )
-    if cfg.evaluation.scenario == "kidnap" and "refine" in cfg.evaluation.variants:
-        raise ConfigError(
-            "the kidnap scenario cannot score refine, which smooths one continuous trajectory: pass --variant smcl, "
-            "smcl+graph or full"
         )
 
 

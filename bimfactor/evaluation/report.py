@@ -35,8 +35,8 @@ STEP_COLUMNS = [
 MODE_COLUMNS = [
     "step", "rank", "mode_id", "probability", "particle_weight", "normalised_residual", "n_matches", *POSE_COLUMNS,
 ]  # fmt: skip
-REFINED_COLUMNS = ["step", "timestamp_s", *POSE_COLUMNS, "n_matches", "forward_x", "forward_y", "forward_yaw",
-                   *GT_COLUMNS]  # fmt: skip
+REFINED_COLUMNS = ["step", "timestamp_s", *POSE_COLUMNS, "n_matches", "segment", "mode_id", "forward_x", "forward_y",
+                   "forward_yaw", *GT_COLUMNS]  # fmt: skip
 
 
 def ensure_run_destination(out_dir: str | Path) -> None:
@@ -191,25 +191,32 @@ def write_refined(
     refined: RefinedRun, prior: BimPrior, out_dir: str | Path, config_yaml: str, title: str
 ) -> list[Path]:
     """Write a refinement run as one folder, atomically: estimate.txt (refined, TUM), forward.txt (the forward
-    pass, TUM), steps.csv (refined pose and covariance per step), modes.json and modes/mode_<id>.txt (every refined
-    mode, best fit first, with its fit and forward probability: at the end, or when pruned), metrics.json (with
-    ground truth: the refined metrics and the forward pass's), config.yaml, trajectory.png.
+    pass, TUM), steps.csv (refined pose and covariance per step, with the stretch it lies on and the refined mode
+    that reports it, empty where the forward pass's estimate stands), modes.json (the stretches, and every refined
+    mode by stretch, best fit first, with its fit and forward probability: at the end, or when pruned) and
+    modes/mode_<id>.txt (each mode's refined trajectory over its stretch), metrics.json (with ground truth: the
+    refined metrics and the forward pass's), config.yaml, trajectory.png.
     """
     out_dir = Path(out_dir)
     ensure_run_destination(out_dir)
     run, est = refined.forward, refined.estimate
-    best = refined.modes[0] if refined.modes else None
+    segment_of = np.zeros(len(est.poses), np.int64)
+    for index, steps in enumerate(refined.segments):
+        segment_of[steps.start : steps.stop] = index
     rows = []
     for i in range(len(est.poses)):
+        mode = refined.best_at(i)
         rows.append(
             [i, _num(run.timestamps_s[i]), *_pose_cells(est.poses[i], est.storeys[i], est.rooms[i], est.covariances[i]),
-             len(best.associations[i]) if best else "", *map(_num, run.poses[i]),
-             *_gt_cells(run.gt_poses, run.gt_rooms, i)]
+             "" if mode is None else len(mode.associations[i - mode.start]), segment_of[i],
+             "" if mode is None else mode.mode_id, *map(_num, run.poses[i]), *_gt_cells(run.gt_poses, run.gt_rooms, i)]
         )  # fmt: skip
     alive = {m.mode_id for m in run.final_modes}
     modes = [
         {
             "mode_id": m.mode_id,
+            "segment": m.segment,
+            "steps": [m.start, m.start + len(m.poses) - 1],
             "storey": m.storey,
             "measurement_fit": fit,
             "alive_at_end": m.mode_id in alive,
@@ -229,9 +236,15 @@ def write_refined(
         write_tum_trajectory(tmp / "estimate.txt", run.timestamps_s, est.poses, comment="bimfactor refine")
         write_tum_trajectory(tmp / "forward.txt", run.timestamps_s, run.poses, comment=f"bimfactor {run.variant}")
         for m in refined.modes:
-            write_tum_trajectory(tmp / "modes" / f"mode_{m.mode_id}.txt", run.timestamps_s, m.poses)
+            stamps = run.timestamps_s[m.start : m.start + len(m.poses)]
+            write_tum_trajectory(tmp / "modes" / f"mode_{m.mode_id}.txt", stamps, m.poses)
         (tmp / "steps.csv").write_text(_csv(REFINED_COLUMNS, rows))
-        (tmp / "modes.json").write_text(json.dumps({"refine_ms": refined.refine_ms, "modes": modes}, indent=2))
+        segments = [
+            {"steps": [steps.start, steps.stop - 1], "best_mode": None if mode is None else mode.mode_id}
+            for steps, mode in zip(refined.segments, refined.best, strict=True)
+        ]
+        summary = {"refine_ms": refined.refine_ms, "segments": segments, "modes": modes}
+        (tmp / "modes.json").write_text(json.dumps(summary, indent=2))
         metrics = track_metrics(est, run.gt_poses, run.gt_rooms)
         forward = run_metrics(run)
         if metrics is not None and forward is not None:

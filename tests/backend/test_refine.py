@@ -206,3 +206,21 @@ def test_a_mode_pruned_early_is_tracked_forwards_to_the_end_through_its_scans():
     assert np.all(refined.covariances[:, 0, 0] > map_variance) and np.all(refined.covariances[:, 1, 1] > map_variance)
     without_scans = refine_mode(mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, PRECISE)
     assert np.any(without_scans.covariances[:, 0, 0] < map_variance)
+
+
+def test_a_mode_within_a_stretch_counts_its_keyframes_from_the_stretch_and_ends_with_it():
+    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    mode = _late_mode(sc, PRECISE)
+    pose = sc.true_poses[12]
+    last = len(sc.true_poses) - 1
+    mode.scan_factors = [(10, pose, np.eye(3)), (last, pose, np.eye(3))]
+    stretch = mode.within(range(5, 15))
+    assert stretch.first_index == BORN_AT - 5 and len(stretch.poses) == 15 - BORN_AT
+    np.testing.assert_array_equal(stretch.poses, mode.poses[: 15 - BORN_AT])
+    assert stretch.associations == mode.associations[: 15 - BORN_AT]
+    assert [t for t, *_ in stretch.scan_factors] == [10 - 5]  # the last keyframe lies past the stretch
+    whole = mode.within(range(0, len(sc.true_poses)))  # the whole run: the mode as it is
+    assert whole.first_index == BORN_AT and len(whole.scan_factors) == 2
+    np.testing.assert_array_equal(whole.poses, mode.poses)
+    with pytest.raises(ValueError, match="born at keyframe 8"):
+        mode.within(range(9, 20))

@@ -121,9 +121,7 @@ def test_a_scenario_other_than_the_papers_scores_from_its_own_start() -> None:
         load_config(None, ["evaluation.scenario=guess", "evaluation.score_from=filter_converged"])
     with pytest.raises(ConfigError, match=r"evaluation\.scenario"):
         load_config(None, ["evaluation.scenario=teleport"])
-    with pytest.raises(ConfigError, match="cannot score refine"):
-        check_protocol(load_config(None, ["evaluation.scenario=kidnap"]))  # the default variants include refine
-    check_protocol(load_config(None, ["evaluation.scenario=kidnap", "evaluation.variants=[smcl, smcl+graph]"]))
+    check_protocol(load_config(None, ["evaluation.scenario=kidnap"]))  # refine smooths each stretch on its own
     with pytest.raises(ConfigError, match="one pose guess for one sequence"):
         check_protocol(load_config(None, ["evaluation.scenario=guess", "smcl.initial_pose=[1, 2, 3]"]))
 
