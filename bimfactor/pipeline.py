@@ -42,7 +42,7 @@ from bimfactor.backend.refine import RefinedMode, refine_mode, track_from
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.symmetry import Motion, twin_motions
 from bimfactor.bim.visibility import VisibilityTable
-from bimfactor.config import Config
+from bimfactor.config import BackendConfig, Config
 from bimfactor.embed.text import TextEmbedder, make_text_embedder, text_model_name
 from bimfactor.errors import ConfigError, InputError
 from bimfactor.localization.field import ScanLikelihood, frame_endpoints
@@ -618,28 +618,10 @@ def refine_run(
     segments = run.segments()
     by_stretch, fits_by_stretch = refine_stretches(segments)
     if len(segments) > 1 and cfg.backend.refine_seam_window > 0:
-        seams = [steps.start for steps in segments]
-        lost_at = np.flatnonzero(run.relocalized)
-        for j in range(1, len(segments)):
-            before, after = by_stretch[j - 1], by_stretch[j]
-            if before and after:
-                window = cfg.backend.refine_seam_window
-                lo = max(seams[j - 1] + 1, seams[j] - window)
-                hi = min(int(lost_at[j - 1]), seams[j] + window)
-                seams[j] = _hindsight_seam(
-                    seams[j],
-                    lo,
-                    hi,
-                    before[0],
-                    after[0],
-                    run,
-                    measure_fns,
-                    frame_fits,
-                    cfg.backend.refine_seam_min_log_ratio,
-                )
-        moved = [range(a, b) for a, b in zip(seams, [*seams[1:], len(run.timestamps_s)], strict=True)]
+        best_fits = [stretch[0] if stretch else None for stretch in by_stretch]
+        moved = _hindsight_segments(segments, best_fits, run, measure_fns, frame_fits, cfg.backend)
         if moved != segments:
-            log.info("seams moved in hindsight: %s → %s", [s.start for s in segments[1:]], seams[1:])
+            log.info("seams moved in hindsight: %s → %s", [s.start for s in segments[1:]], [s.start for s in moved[1:]])
             segments = moved
             by_stretch, fits_by_stretch = refine_stretches(segments)
     modes = [m for stretch in by_stretch for m in stretch]
@@ -676,6 +658,31 @@ def refine_run(
     return RefinedRun(run, modes, estimate, refine_ms, fits, segments, best)
 
 
+def _hindsight_segments(
+    segments: list[range],
+    best: list[RefinedMode | None],
+    run: LocalizationRun,
+    measure_fns: Sequence[PoseFactorFn | None] | None,
+    frame_fits: Callable[[np.ndarray, int, range], np.ndarray],
+    cfg: BackendConfig,
+) -> list[range]:
+    """The run's stretches with each seam between two stretches that have a best fit (`best`) searched again
+    (`_hindsight_seam`): within `cfg.refine_seam_window` keyframes of it, after the previous seam and not after the
+    step at which the filter relocalized."""
+    seams = [steps.start for steps in segments]
+    lost_at = np.flatnonzero(run.relocalized)  # one relocalization per seam
+    for j in range(1, len(segments)):
+        before, after = best[j - 1], best[j]
+        if before is not None and after is not None:
+            lo = max(seams[j - 1] + 1, seams[j] - cfg.refine_seam_window)
+            hi = min(int(lost_at[j - 1]), seams[j] + cfg.refine_seam_window)
+            score = _hindsight_seam(seams[j], lo, hi, before, after, run, measure_fns, frame_fits)
+            best_seam = lo + int(np.argmax(score))
+            if score[best_seam - lo] - score[seams[j] - lo] >= cfg.refine_seam_min_log_ratio:
+                seams[j] = best_seam
+    return [range(a, b) for a, b in zip(seams, [*seams[1:], len(run.timestamps_s)], strict=True)]
+
+
 def _hindsight_seam(
     seam: int,
     lo: int,
@@ -685,13 +692,11 @@ def _hindsight_seam(
     run: LocalizationRun,
     measure_fns: Sequence[PoseFactorFn | None] | None,
     frame_fits: Callable[[np.ndarray, int, range], np.ndarray],
-    min_log_ratio: float,
-) -> int:
+) -> np.ndarray:
     """Where, in hindsight, the stretch ending with `before`'s trajectory gives way to the one starting with
-    `after`'s (their seam now at `seam`): the step s in lo … hi that maximises the measurement log-likelihood of
-    keyframes lo … s − 1 along `before` and s … hi along `after`, each trajectory carried across the present seam
-    by odometry and scan matching (`track_from`). A change point by likelihood, with the frames themselves; it
-    replaces the present seam only when its log-likelihood is higher by `min_log_ratio`."""
+    `after`'s (their seam now at `seam`): for each step s in lo … hi, the measurement log-likelihood of keyframes
+    lo … s − 1 along `before` and s … hi along `after`, each trajectory carried across the present seam by odometry
+    and scan matching (`track_from`). Its maximum is the change point by likelihood, with the frames themselves."""
     scans = [None] * len(run.timestamps_s) if measure_fns is None else list(measure_fns)
     odom = run.odom_increments
     ahead = track_from(before.poses[-1], odom[seam - 1 : hi], scans[seam : hi + 1], before.storey, backwards=False)
@@ -702,8 +707,7 @@ def _hindsight_seam(
     on_first = np.concatenate([[0.0], np.cumsum(frame_fits(first, before.storey, steps))])
     on_second = np.concatenate([[0.0], np.cumsum(frame_fits(second, after.storey, steps))])
     score = on_first + (on_second[-1] - on_second)  # score[s − lo]: lo … s − 1 on the first, s … hi on the second
-    best = lo + int(np.argmax(score[: hi - lo + 1]))  # s ≤ hi: the later stretch keeps a keyframe of the window
-    return best if score[best - lo] - score[seam - lo] >= min_log_ratio else seam
+    return score[: hi - lo + 1]  # s ≤ hi: the later stretch keeps a keyframe of the window
 
 
 def _frame_fits(
