@@ -74,6 +74,7 @@ class RunResult:
     tracking_before: bool | None = None  # kidnap: within 1 m and 15° of the truth at the last step before it
     trans_err_twin_m: np.ndarray | None = None  # up to the building's twin motion (`errors_up_to_twin`), if any
     orient_err_twin_deg: np.ndarray | None = None
+    trans_err_before_m: float | None = None  # kidnap: the mean translation error over the steps before it
 
 
 def forward_variants(variants: list[str]) -> list[str]:
@@ -218,7 +219,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
         fine = forward[variant].fine.window(scored) if variant in forward and forward[variant].fine else None
         metrics = track_metrics(track, gt_poses, gt_rooms)
         assert metrics is not None
-        tracking_before = None
+        tracking_before, trans_before = None, None
         if ev.scenario == "kidnap":
             before = slice(scored.start - 1, scored.start)
             tracking_before = (
@@ -228,6 +229,8 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
                 )
                 is not None
             )
+            ahead = slice(0, scored.start)
+            trans_before = float(translation_errors_m(tracks[variant].poses[ahead], run.gt_poses[ahead]).mean())
         results.append(
             RunResult(
                 variant,
@@ -245,6 +248,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
                 int(forward.get(variant, run).relocalized.sum()),
                 tracking_before,
                 *twin_errors,
+                trans_err_before_m=trans_before,
             )
         )
     return results
@@ -298,13 +302,15 @@ def _pooled(runs: list[RunResult]) -> dict:
 
 
 def _kidnap_counts(runs: list[RunResult]) -> dict:
-    """Kidnap scenario: how many runs were tracking when carried off, and the median steps to recover over the runs
-    that recovered (`steps_to_converge` of the scored steps after it)."""
+    """Kidnap scenario: how many runs were tracking when carried off, the translation error before it (over all
+    steps from the first), and the median steps to recover over the runs that recovered (`steps_to_converge` of the
+    scored steps after it)."""
     if not runs or any(r.tracking_before is None for r in runs):
         return {}
     recovered = [r.metrics["steps_to_converge"] for r in runs if r.metrics["steps_to_converge"] is not None]
     return {
         "tracking_before_kidnap_runs": sum(bool(r.tracking_before) for r in runs),
+        "trans_err_before_kidnap_m": float(np.mean([r.trans_err_before_m for r in runs])),
         "steps_to_recover_median": float(np.median(recovered)) if recovered else None,
     }
 
@@ -439,8 +445,8 @@ def format_table_one(report: dict, variant: str) -> str:
         median = average["steps_to_recover_median"]
         lines.append(
             f"kidnapped: {average['tracking_before_kidnap_runs']} of {average['runs']} runs were tracking when carried "
-            f"off; {average['converged_runs']} recovered (within 1 m and 15° to the end), in a median "
-            f"{'–' if median is None else f'{median:g}'} steps"
+            f"off ({average['trans_err_before_kidnap_m']:.2f} m on average before it); {average['converged_runs']} "
+            f"recovered (within 1 m and 15° to the end), in a median {'–' if median is None else f'{median:g}'} steps"
         )
     if average.get("relocalized_runs"):
         lines.append(f"the filter spread its particles over the building again in {average['relocalized_runs']} runs")

@@ -128,19 +128,21 @@ def test_a_scenario_other_than_the_papers_scores_from_its_own_start() -> None:
 
 def test_the_kidnap_table_says_how_many_runs_were_tracking_and_how_soon_they_recovered() -> None:
     runs = [_run(k, 0, 0.3, 1.0) for k in range(4)]
-    for run, before, recover, relocalized in zip(
-        runs, (True, True, True, False), (3, 9, None, 5), (1, 1, 0, 0), strict=True
+    for run, before, recover, relocalized, error in zip(
+        runs, (True, True, True, False), (3, 9, None, 5), (1, 1, 0, 0), (0.1, 0.2, 0.3, 4.2), strict=True
     ):
         run.tracking_before = before
+        run.trans_err_before_m = error
         run.metrics["steps_to_converge"] = recover
         run.relocalizations = relocalized
     average = _pooled(runs)
     assert average["tracking_before_kidnap_runs"] == 3 and average["steps_to_recover_median"] == 5.0
+    assert average["trans_err_before_kidnap_m"] == pytest.approx(1.2)  # equally long runs: the mean of the means
     assert average["converged_runs"] == 3 and average["relocalized_runs"] == 2
     text = format_table_one({"variants": ["smcl"], "smcl": {"average": average, "per_trajectory": {}}}, "smcl")
     assert text.splitlines()[-2:] == [
-        "kidnapped: 3 of 4 runs were tracking when carried off; 3 recovered (within 1 m and 15° to the end), in a "
-        "median 5 steps",
+        "kidnapped: 3 of 4 runs were tracking when carried off (1.20 m on average before it); 3 recovered (within 1 m "
+        "and 15° to the end), in a median 5 steps",
         "the filter spread its particles over the building again in 2 runs",
     ]
     assert "tracking_before_kidnap_runs" not in _pooled([_run(0, 0, 0.3, 1.0)])  # other scenarios: no such line
