@@ -898,7 +898,10 @@ def refine(
         )
         if len(refined.segments) > 1:
             stretches = ", ".join(f"{steps.start}–{steps.stop - 1}" for steps in refined.segments)
-            typer.echo(f"the filter relocalized: steps {stretches} refined apart (steps.csv: segment)")
+            why = ["the filter relocalized"] if len(refined.segments) > 1 + len(refined.offline_seams) else []
+            if refined.offline_seams:
+                why.append(f"parted offline at step {', '.join(map(str, refined.offline_seams))}")
+            typer.echo(f"steps {stretches} refined apart ({'; '.join(why)}; steps.csv: segment)")
         forward = run_metrics(run)
         if forward is not None:
             refined_metrics = track_metrics(refined.estimate, run.gt_poses, run.gt_rooms)

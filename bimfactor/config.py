@@ -503,6 +503,21 @@ class BackendConfig(_Strict):
         description="Offline refine: the searched seam replaces the monitor's only when the frames' log-likelihood "
         "is higher there by this much (1: e ≈ 2.7 times as likely).",
     )
+    refine_split: bool = Field(
+        description="Offline refine: a stretch is parted again where one refined mode explains the keyframes "
+        "before a step and another, born after it, those from it on, by far better than any one mode explains all "
+        "(a robot carried off while the filter kept tracking, never relocalized)."
+    )
+    refine_split_min_log_ratio: float = Field(
+        ge=0.0,
+        description="Offline refine: the two modes must explain the frames better than the stretch's best fit by "
+        "this much log-likelihood (10: e¹⁰ ≈ 22 000 times as likely) ...",
+    )
+    refine_split_min_keyframe_log_ratio: float = Field(
+        ge=0.0,
+        description="... each explaining its own part better than the other by this much per keyframe on average ...",
+    )
+    refine_split_min_keyframes: int = Field(ge=1, description="... and each part must hold this many keyframes.")
     scan_factor: bool = Field(
         description="Each mode's graph also gets a pose factor from correlative matching of the keyframe's 2-D scan "
         "against the likelihood field (registration.correlative; beyond the paper)."

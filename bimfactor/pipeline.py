@@ -202,7 +202,7 @@ class LocalizationRun:
         seams = [0]
         for k in np.flatnonzero(self.lost_frames):
             seams.append(max(int(k - self.lost_frames[k] + 1), seams[-1] + 1))
-        return [range(a, b) for a, b in zip(seams, [*seams[1:], T], strict=True)]
+        return _stretches(seams, T)
 
     @property
     def poses(self) -> np.ndarray:
@@ -523,9 +523,10 @@ def localize_sequence(
 
 @dataclass
 class RefinedRun:
-    """The offline pass over a localized run, one continuous stretch at a time (`segments`,
-    `LocalizationRun.segments`: one unless the filter relocalized): every candidate mode refined, by stretch and
-    best fit first within one, with its fit (`fits`, the filter's measurement log-likelihood summed along the refined
+    """The offline pass over a localized run, one continuous stretch at a time (`segments`: the filter's own,
+    `LocalizationRun.segments`, one unless it relocalized, their seams searched again in hindsight; and those parted
+    offline, whose first steps are `offline_seams`): every candidate mode refined, by stretch and best fit first
+    within one, with its fit (`fits`, the filter's measurement log-likelihood summed along the refined
     trajectory); `best`, per stretch, its best fit (None: no mode was born there, and the stretch keeps the forward
     pass's estimate); and the estimate, the stretches' best fits joined. Its `step_ms` is the forward pass's step
     time plus the refinement's time shared over the steps."""
@@ -537,6 +538,7 @@ class RefinedRun:
     fits: list[float] = field(default_factory=list)
     segments: list[range] = field(default_factory=list)
     best: list[RefinedMode | None] = field(default_factory=list)
+    offline_seams: list[int] = field(default_factory=list)
 
     def best_at(self, step: int) -> RefinedMode | None:
         """The refined mode the estimate reports at `step` (None: the forward pass's estimate there)."""
@@ -559,6 +561,11 @@ def refine_run(
     (`refine_mode`) and scored by the filter's measurement model, semantic and scan terms, summed over its refined
     trajectory; the best fit is the stretch's estimate. A stretch in which no mode was born keeps the forward
     pass's estimate.
+
+    The seams are then searched in hindsight (`backend.refine_seam_window`, `_hindsight_segments`), and, with
+    `backend.refine_split`, a stretch that one mode explains up to a step and another after it, by far better than
+    any one mode explains the whole, is parted there and both parts refined anew, until no stretch parts
+    (`_offline_split`): a robot carried off while the filter kept tracking is refined as if it had relocalized.
 
     With `backend.scan_factor` and the run's scans, every keyframe's scan is matched anew from each mode's
     hindsight trajectory, by `matcher` (the forward pass's, or one built now). After a full forward pass, the fine
@@ -587,10 +594,12 @@ def refine_run(
         own = slice(steps.start, steps.stop)
         return _frame_fits(poses, storey, run.observations[own], run.scans[own], likelihood, scan_likelihood)
 
-    def refine_stretches(segments: list[range]) -> tuple[list[list[RefinedMode]], list[list[float]]]:
-        """Per stretch, its candidates refined over it, best fit first, and their fits."""
-        by_stretch, fits_by_stretch = [], []
-        for index, steps in enumerate(segments):
+    refined_stretches: dict[tuple[int, int], tuple[list[RefinedMode], list[np.ndarray]]] = {}
+
+    def refine_stretch(steps: range) -> tuple[list[RefinedMode], list[np.ndarray]]:
+        """The candidates born in a stretch refined over it, best fit first, and their per-keyframe fits."""
+        key = (steps.start, steps.stop)
+        if key not in refined_stretches:
             own = slice(steps.start, steps.stop)
             refined = [
                 refine_mode(
@@ -606,26 +615,47 @@ def refine_run(
                 if mode.first_index in steps
             ]
             refined = [
-                dataclasses.replace(m, first_index=m.first_index + steps.start, start=steps.start, segment=index)
-                for m in refined
+                dataclasses.replace(m, first_index=m.first_index + steps.start, start=steps.start) for m in refined
             ]
-            scored = [float(frame_fits(m.poses, m.storey, steps).sum()) for m in refined]
-            order = sorted(range(len(refined)), key=lambda k: -scored[k])
-            by_stretch.append([refined[k] for k in order])
-            fits_by_stretch.append([scored[k] for k in order])
-        return by_stretch, fits_by_stretch
+            fits = [frame_fits(m.poses, m.storey, steps) for m in refined]
+            order = sorted(range(len(refined)), key=lambda k: -fits[k].sum())
+            refined_stretches[key] = [refined[k] for k in order], [fits[k] for k in order]
+        return refined_stretches[key]
 
-    segments = run.segments()
-    by_stretch, fits_by_stretch = refine_stretches(segments)
-    if len(segments) > 1 and cfg.backend.refine_seam_window > 0:
-        best_fits = [stretch[0] if stretch else None for stretch in by_stretch]
-        moved = _hindsight_segments(segments, best_fits, run, measure_fns, frame_fits, cfg.backend)
-        if moved != segments:
+    def searched(segments: list[range], limits: list[int | None]) -> list[range]:
+        """The seams searched again in hindsight, while one moves (each move gains likelihood; bounded)."""
+        for _ in range(len(run.timestamps_s)):
+            if len(segments) < 2 or cfg.backend.refine_seam_window == 0:
+                break
+            best_fits = [(refine_stretch(steps)[0] or [None])[0] for steps in segments]
+            moved = _hindsight_segments(segments, limits, best_fits, run, measure_fns, frame_fits, cfg.backend)
+            if moved == segments:
+                break
             log.info("seams moved in hindsight: %s → %s", [s.start for s in segments[1:]], [s.start for s in moved[1:]])
             segments = moved
-            by_stretch, fits_by_stretch = refine_stretches(segments)
+        return segments
+
+    segments = run.segments()
+    limits: list[int | None] = [int(k) for k in np.flatnonzero(run.relocalized)]  # None: a seam parted offline
+    segments = searched(segments, limits)
+    while cfg.backend.refine_split:  # every split adds a seam: it ends
+        parted = [_offline_split(steps, *refine_stretch(steps), cfg.backend) for steps in segments]
+        parted = [seam for seam in parted if seam is not None]
+        if not parted:
+            break
+        log.info("stretches parted offline at %s", parted)
+        seams = [(steps.start, limit) for steps, limit in zip(segments[1:], limits, strict=True)]
+        seams = sorted([*seams, *((seam, None) for seam in parted)])
+        limits = [limit for _, limit in seams]
+        segments = _stretches([0, *(seam for seam, _ in seams)], len(run.timestamps_s))
+        segments = searched(segments, limits)
+    offline_seams = [steps.start for steps, limit in zip(segments[1:], limits, strict=True) if limit is None]
+    by_stretch = [
+        [dataclasses.replace(m, segment=index) for m in refine_stretch(steps)[0]]
+        for index, steps in enumerate(segments)
+    ]
     modes = [m for stretch in by_stretch for m in stretch]
-    fits = [f for stretch in fits_by_stretch for f in stretch]
+    fits = [float(f.sum()) for steps in segments for f in refine_stretch(steps)[1]]
     best = [stretch[0] if stretch else None for stretch in by_stretch]
     refine_ms = (time.perf_counter() - started) * 1000
     parts = [
@@ -655,11 +685,48 @@ def refine_run(
         refine_ms,
         ", ".join("-" if m is None else f"mode {m.mode_id}" for m in best),
     )
-    return RefinedRun(run, modes, estimate, refine_ms, fits, segments, best)
+    return RefinedRun(run, modes, estimate, refine_ms, fits, segments, best, offline_seams)
+
+
+def _offline_split(steps: range, refined: list[RefinedMode], fits: list[np.ndarray], cfg: BackendConfig) -> int | None:
+    """Where a stretch parts again in hindsight (None: nowhere): the step s at which one refined candidate, born
+    before s, explaining the keyframes before s and another, born at s or later, explaining those from s on gain the
+    most measurement log-likelihood (`fits`, per keyframe) over the stretch's best fit (the first): at least
+    `cfg.refine_split_min_log_ratio`, with each mode explaining its own part better than the other by
+    `cfg.refine_split_min_keyframe_log_ratio` per keyframe on average, and each part at least
+    `cfg.refine_split_min_keyframes` keyframes long.
+
+    A robot carried off while the filter kept its belief leaves no relocalization; but the mode born at the new
+    place, tracked back across the jump, fits every frame before it badly, as the old place's mode fits those after.
+    Within one continuous stretch the true mode explains both parts; a wrong mode may still fit a part better than
+    a true one tracked a little off, but by little per keyframe."""
+    if len(refined) < 2:
+        return None
+    n, shortest = len(steps), cfg.refine_split_min_keyframes
+    cum = np.array([np.concatenate([[0.0], np.cumsum(f)]) for f in fits])  # cum[k, s]: keyframes 0 … s − 1
+    best_gain, best_seam = -np.inf, None
+    for a, earlier in enumerate(refined):
+        for b, later in enumerate(refined):
+            lo, hi = max(shortest, earlier.first_index - steps.start + 1), later.first_index - steps.start
+            s = np.arange(lo, min(n - shortest, hi) + 1)
+            if a == b or not len(s):
+                continue
+            ahead_before = (cum[a, s] - cum[b, s]) / s  # a's advantage per keyframe before s
+            ahead_after = ((cum[b, -1] - cum[b, s]) - (cum[a, -1] - cum[a, s])) / (n - s)  # b's, from s on
+            gain = cum[a, s] + cum[b, -1] - cum[b, s] - cum[0, -1]
+            gain[np.minimum(ahead_before, ahead_after) < cfg.refine_split_min_keyframe_log_ratio] = -np.inf
+            k = int(np.argmax(gain))
+            if gain[k] > best_gain:
+                best_gain, best_seam = float(gain[k]), steps.start + int(s[k])
+    if best_gain < cfg.refine_split_min_log_ratio:
+        return None
+    log.debug("stretch %d…%d parted at %d: %.1f nats", steps.start, steps.stop - 1, best_seam, best_gain)
+    return best_seam
 
 
 def _hindsight_segments(
     segments: list[range],
+    limits: list[int | None],
     best: list[RefinedMode | None],
     run: LocalizationRun,
     measure_fns: Sequence[PoseFactorFn | None] | None,
@@ -667,20 +734,27 @@ def _hindsight_segments(
     cfg: BackendConfig,
 ) -> list[range]:
     """The run's stretches with each seam between two stretches that have a best fit (`best`) searched again
-    (`_hindsight_seam`): within `cfg.refine_seam_window` keyframes of it, after the previous seam and not after the
-    step at which the filter relocalized."""
+    (`_hindsight_seam`): within `cfg.refine_seam_window` keyframes of it, after the previous seam, before the next
+    and not after its limit (`limits`, one per seam: the step at which the filter relocalized; None: a seam parted
+    offline)."""
+    T = len(run.timestamps_s)
     seams = [steps.start for steps in segments]
-    lost_at = np.flatnonzero(run.relocalized)  # one relocalization per seam
     for j in range(1, len(segments)):
         before, after = best[j - 1], best[j]
         if before is not None and after is not None:
             lo = max(seams[j - 1] + 1, seams[j] - cfg.refine_seam_window)
-            hi = min(int(lost_at[j - 1]), seams[j] + cfg.refine_seam_window)
+            hi = min(seams[j + 1] - 1 if j + 1 < len(seams) else T - 1, seams[j] + cfg.refine_seam_window)
+            hi = hi if limits[j - 1] is None else min(hi, limits[j - 1])
             score = _hindsight_seam(seams[j], lo, hi, before, after, run, measure_fns, frame_fits)
             best_seam = lo + int(np.argmax(score))
             if score[best_seam - lo] - score[seams[j] - lo] >= cfg.refine_seam_min_log_ratio:
                 seams[j] = best_seam
-    return [range(a, b) for a, b in zip(seams, [*seams[1:], len(run.timestamps_s)], strict=True)]
+    return _stretches(seams, T)
+
+
+def _stretches(seams: list[int], T: int) -> list[range]:
+    """The stretches of T steps that begin at `seams` (the first 0), in order."""
+    return [range(a, b) for a, b in zip(seams, [*seams[1:], T], strict=True)]
 
 
 def _hindsight_seam(

@@ -523,7 +523,7 @@ def test_refine_writes_the_refined_run(demo_prior: Path, short_sequence: Path, t
     assert not [p.name for p in out.parent.iterdir() if p.name.startswith(".")]  # no temporary folder is left
     summary = json.loads((out / "modes.json").read_text())
     modes = summary["modes"]
-    assert summary["segments"] == [{"steps": [0, 19], "best_mode": modes[0]["mode_id"]}]  # not relocalized: one
+    assert summary["segments"] == [{"steps": [0, 19], "best_mode": modes[0]["mode_id"], "begins": "start"}]  # one
     assert "refined apart" not in result.stdout
     assert all(m["segment"] == 0 and m["steps"] == [0, 19] for m in modes)
     assert modes and sorted(p.name for p in (out / "modes").iterdir()) == sorted(
@@ -641,6 +641,7 @@ def test_bench_paper_runs_the_kidnap_and_pose_guess_scenarios(
     average = report["smcl"]["average"]
     assert average["scored_from_steps"] == [3, 3] and len(average["trans_err_by_step_m"]) == 4
     assert 0 <= average["tracking_before_kidnap_runs"] <= 2 and "relocalized_runs" in average
+    assert average["trans_err_before_kidnap_m"] > 0.0  # the three steps before it, from a uniform start
     assert "\nkidnapped: " in kidnap.stdout and "scored from the step" not in kidnap.stdout
     guess = invoke("bench", "paper", "-o", tmp_path / "guess", "--workers", "1", "--scenario", "guess",
                    "--variant", "smcl", *sets, *cli_config_args)  # fmt: skip

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -25,6 +26,7 @@ from bimfactor.pipeline import (
     LocalizationRun,
     Localizer,
     RefinedRun,
+    _offline_split,
     localize_sequence,
     refine_run,
     rejection_kind,
@@ -245,25 +247,37 @@ def test_a_kidnapped_robot_is_noticed_and_the_belief_spread_over_the_building_ag
     assert not spread[False].relocalized.any() and spread[False].segments() == [range(0, 16)]
 
 
-def test_a_kidnapped_recording_is_refined_one_stretch_at_a_time(
+@pytest.fixture(scope="module")
+def kidnapped(
     paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str]
-) -> None:
-    """Carried off after keyframe 11: each side of the seam is smoothed on its own, the seam found in hindsight."""
+) -> tuple[LocalizationRun, Config]:
+    """smcl+graph tracking from a pose guess, carried off after keyframe 11 (30 keyframes), and its config."""
     from bimfactor.sim.simulate import kidnap
 
     other = simulate_sequence(paper_floor.prior, paper_floor.model, paper_floor.cfg, 3, 0, progress=False)
     frames = kidnap(drive.frames, other.frames, at=12, resume_at=10)[:30]
-    truth = np.array([f.gt_pose for f in frames])
-    x, y, yaw = truth[0]
+    x, y, yaw = frames[0].gt_pose
     cfg = load_config(
         None, [*config_overrides, "localization.variant=smcl+graph", f"smcl.initial_pose=[{x}, {y}, {np.degrees(yaw)}]"]
     )
     run = localize_sequence(
         paper_floor.prior, drive.meta, frames, cfg, SEED, text_embedder=text_embedder, show_progress=False
     )
+    return run, cfg
+
+
+def test_a_kidnapped_recording_is_refined_one_stretch_at_a_time(
+    paper_floor: Building, kidnapped: tuple[LocalizationRun, Config], tmp_path
+) -> None:
+    """Carried off after keyframe 11: each side of the seam is smoothed on its own, the seam found in hindsight."""
+    run, cfg = kidnapped
+    truth = run.gt_poses
     assert run.relocalized.any()
     refined = refine_run(run, paper_floor.prior, cfg)
-    assert [steps.start for steps in refined.segments] == [0, 12]
+    assert [steps.start for steps in refined.segments] == [0, 12] and not refined.offline_seams
+    report.write_refined(refined, paper_floor.prior, tmp_path / "refined", cfg.dump_yaml(), title="kidnapped")
+    stretches = json.loads((tmp_path / "refined" / "modes.json").read_text())["segments"]
+    assert [(s["steps"], s["begins"]) for s in stretches] == [([0, 11], "start"), ([12, 29], "relocalized")]
     first, second = refined.best
     assert first is not None and second is not None and second.start == 12 and second.first_index > 12
     assert len(first.poses) == 12 and len(second.poses) == 18  # each over its own stretch
@@ -284,6 +298,53 @@ def test_a_kidnapped_recording_is_refined_one_stretch_at_a_time(
         assert [steps.start for steps in refine_run(misplaced, paper_floor.prior, cfg).segments] == [0, 12]
         for kept in (monitor_only, unconvinced):
             assert [steps.start for steps in refine_run(misplaced, paper_floor.prior, kept).segments] == [0, seam]
+
+
+def test_a_recording_carried_off_unnoticed_is_parted_offline(
+    paper_floor: Building, kidnapped: tuple[LocalizationRun, Config], tmp_path
+) -> None:
+    """The same recording as if the filter had never relocalized (one stretch): the mode born at the new place and
+    the old place's mode each explain their side, and refine parts the stretch where they meet."""
+    run, cfg = kidnapped
+    unnoticed = dataclasses.replace(run, lost_frames=np.zeros_like(run.lost_frames))
+    assert unnoticed.segments() == [range(0, 30)]
+    refined = refine_run(unnoticed, paper_floor.prior, cfg)
+    assert refined.offline_seams == [12] and [steps.start for steps in refined.segments] == [0, 12]
+    assert translation_errors_m(refined.estimate.poses, run.gt_poses).max() < 0.5
+    report.write_refined(refined, paper_floor.prior, tmp_path / "refined", cfg.dump_yaml(), title="carried off")
+    stretches = json.loads((tmp_path / "refined" / "modes.json").read_text())["segments"]
+    assert [(s["steps"], s["begins"]) for s in stretches] == [([0, 11], "start"), ([12, 29], "offline")]
+    # Without the split, one trajectory is smoothed across the jump, and one side is metres off.
+    kept = cfg.model_copy(update={"backend": cfg.backend.model_copy(update={"refine_split": False})})
+    whole = refine_run(unnoticed, paper_floor.prior, kept)
+    assert [steps.start for steps in whole.segments] == [0] and not whole.offline_seams
+    assert translation_errors_m(whole.estimate.poses, run.gt_poses).max() > 2.0
+
+
+def test_a_stretch_is_parted_where_two_modes_each_explain_their_own_side_by_far_best() -> None:
+    """`_offline_split` on per-keyframe fits: steps 10 … 39, carried off before step 24."""
+    from types import SimpleNamespace
+
+    steps, cfg = range(10, 40), load_config().backend
+    before = np.r_[np.full(14, 2.0), np.full(16, -3.0)]  # the old place's mode: right up to step 23
+    after = np.r_[np.full(14, -3.0), np.full(16, 2.0)]  # the new place's, born at 25, tracked back across the jump
+    old, new = SimpleNamespace(first_index=11), SimpleNamespace(first_index=25)
+    assert _offline_split(steps, [new, old], [after, before], cfg) == 24  # 70 nats over the best single mode
+    assert _offline_split(steps, [new, old], [after, before], cfg.model_copy(update={"refine_split_min_keyframes": 15}))
+    assert (
+        _offline_split(steps, [new, old], [after, before], cfg.model_copy(update={"refine_split_min_keyframes": 16}))
+        is None
+    )
+    born_early = SimpleNamespace(first_index=20)  # the later part begins at its mode's birth at the latest
+    assert _offline_split(steps, [born_early, old], [after, before], cfg) == 20
+    # A wrong mode that fits the first 25 keyframes a little better than the true one (0.5 per keyframe, 12.5 in all)
+    # does not part the stretch; with no per-keyframe bar it would.
+    true, wrong = np.full(30, 1.0), np.r_[np.full(25, 1.5), np.zeros(5)]
+    early, late = SimpleNamespace(first_index=10), SimpleNamespace(first_index=36)
+    assert _offline_split(steps, [late, early], [true, wrong], cfg) is None
+    lax = cfg.model_copy(update={"refine_split_min_keyframe_log_ratio": 0.0})
+    assert _offline_split(steps, [late, early], [true, wrong], lax) == 35
+    assert _offline_split(steps, [late], [true], lax) is None  # one mode: nothing to part
 
 
 def test_an_operator_can_start_the_belief_over_from_a_pose_guess_or_the_whole_building(

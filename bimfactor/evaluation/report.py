@@ -192,7 +192,8 @@ def write_refined(
 ) -> list[Path]:
     """Write a refinement run as one folder, atomically: estimate.txt (refined, TUM), forward.txt (the forward
     pass, TUM), steps.csv (refined pose and covariance per step, with the stretch it lies on and the refined mode
-    that reports it, empty where the forward pass's estimate stands), modes.json (the stretches, and every refined
+    that reports it, empty where the forward pass's estimate stands), modes.json (the stretches, each with how it
+    begins: at the start, where the filter relocalized or where refine parted a stretch offline; and every refined
     mode by stretch, best fit first, with its fit and forward probability: at the end, or when pruned) and
     modes/mode_<id>.txt (each mode's refined trajectory over its stretch), metrics.json (with ground truth: the
     refined metrics and the forward pass's), config.yaml, trajectory.png.
@@ -239,8 +240,13 @@ def write_refined(
             stamps = run.timestamps_s[m.start : m.start + len(m.poses)]
             write_tum_trajectory(tmp / "modes" / f"mode_{m.mode_id}.txt", stamps, m.poses)
         (tmp / "steps.csv").write_text(_csv(REFINED_COLUMNS, rows))
+        begins = {0: "start", **dict.fromkeys(refined.offline_seams, "offline")}
         segments = [
-            {"steps": [steps.start, steps.stop - 1], "best_mode": None if mode is None else mode.mode_id}
+            {
+                "steps": [steps.start, steps.stop - 1],
+                "best_mode": None if mode is None else mode.mode_id,
+                "begins": begins.get(steps.start, "relocalized"),
+            }
             for steps, mode in zip(refined.segments, refined.best, strict=True)
         ]
         summary = {"refine_ms": refined.refine_ms, "segments": segments, "modes": modes}
