@@ -890,7 +890,7 @@ def refine(
             prior_dir=prior_dir,
             matcher=matcher,
         )
-        refined = refine_run(run, prior, cfg, matcher)
+        refined = refine_run(run, prior, cfg, matcher, show_progress=True)
         title = f"{sequence.meta.name} refined against {prior_dir}"
         write_refined(refined, prior, output, cfg.dump_yaml(), title=title)
         typer.echo(

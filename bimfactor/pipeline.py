@@ -549,7 +549,11 @@ class RefinedRun:
 
 
 def refine_run(
-    run: LocalizationRun, prior: BimPrior, cfg: Config, matcher: CorrelativeMatcher | None = None
+    run: LocalizationRun,
+    prior: BimPrior,
+    cfg: Config,
+    matcher: CorrelativeMatcher | None = None,
+    show_progress: bool = False,
 ) -> RefinedRun:
     """Batch Levenberg–Marquardt smoothing of every candidate mode of the forward pass over its stretch.
 
@@ -569,7 +573,8 @@ def refine_run(
 
     With `backend.scan_factor` and the run's scans, every keyframe's scan is matched anew from each mode's
     hindsight trajectory, by `matcher` (the forward pass's, or one built now). After a full forward pass, the fine
-    stage's accepted pose factors of each mode enter its batch graph. The run must come from a graph variant
+    stage's accepted pose factors of each mode enter its batch graph. `show_progress`: a bar per stretch over its
+    modes. The run must come from a graph variant
     (ValueError otherwise). A run in which the filter never formed a mode has nothing to refine: its `modes` are
     empty and the estimate is the forward pass's.
     """
@@ -601,6 +606,8 @@ def refine_run(
         key = (steps.start, steps.stop)
         if key not in refined_stretches:
             own = slice(steps.start, steps.stop)
+            born = [mode for mode in candidates if mode.first_index in steps]
+            desc = f"refine steps {steps.start}–{steps.stop - 1}"
             refined = [
                 refine_mode(
                     mode.within(steps),
@@ -611,8 +618,7 @@ def refine_run(
                     cfg.backend,
                     None if measure_fns is None else measure_fns[own],
                 )
-                for mode in candidates
-                if mode.first_index in steps
+                for mode in (progress(born, desc=desc, unit="mode") if show_progress else born)
             ]
             refined = [
                 dataclasses.replace(m, first_index=m.first_index + steps.start, start=steps.start) for m in refined
