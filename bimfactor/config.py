@@ -503,6 +503,11 @@ class BackendConfig(_Strict):
         description="Offline refine: the searched seam replaces the monitor's only when the frames' log-likelihood "
         "is higher there by this much (1: e ≈ 2.7 times as likely).",
     )
+    refine_join: bool = Field(
+        description="Offline refine: two stretches of a relocalized run are refined as one where no mode born in "
+        "them, refined over both, gives way to another (as refine_split judges it): the relocalization was a false "
+        "alarm."
+    )
     refine_split: bool = Field(
         description="Offline refine: a stretch is parted again where one refined mode explains the keyframes "
         "before a step and another, born after it, those from it on, by far better than any one mode explains all "

@@ -566,6 +566,9 @@ def refine_run(
     trajectory; the best fit is the stretch's estimate. A stretch in which no mode was born keeps the forward
     pass's estimate.
 
+    With `backend.refine_join`, two stretches the frames do not bear out are joined first: where the modes of both,
+    refined over both, give no offline split (`_offline_split`), the relocalization was a false alarm (the scans
+    stopped fitting for a while, the robot did not move), and the odometry links the stretches after all.
     The seams are then searched in hindsight (`backend.refine_seam_window`, `_hindsight_segments`), and, with
     `backend.refine_split`, a stretch that one mode explains up to a step and another after it, by far better than
     any one mode explains the whole, is parted there and both parts refined anew, until no stretch parts
@@ -643,6 +646,15 @@ def refine_run(
 
     segments = run.segments()
     limits: list[int | None] = [int(k) for k in np.flatnonzero(run.relocalized)]  # None: a seam parted offline
+    j = 1
+    while cfg.backend.refine_join and j < len(segments):  # a relocalization the frames do not bear out: joined
+        both = range(segments[j - 1].start, segments[j].stop)
+        if _offline_split(both, *refine_stretch(both), cfg.backend) is None:
+            log.info("the relocalization at step %d was a false alarm: steps %d–%d refined as one", limits[j - 1],
+                     both.start, both.stop - 1)  # fmt: skip
+            segments, limits = [*segments[: j - 1], both, *segments[j + 1 :]], [*limits[: j - 1], *limits[j:]]
+        else:
+            j += 1
     segments = searched(segments, limits)
     while cfg.backend.refine_split:  # every split adds a seam: it ends
         parted = [_offline_split(steps, *refine_stretch(steps), cfg.backend) for steps in segments]

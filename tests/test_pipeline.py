@@ -457,6 +457,26 @@ def test_refine_improves_or_matches_the_forward_pass(
     assert np.all(estimate.step_ms > run.graph.step_ms)
 
 
+def test_a_relocalization_the_frames_do_not_bear_out_is_joined_again(
+    paper_floor: Building, runs: dict[str, LocalizationRun], config_overrides: list[str]
+) -> None:
+    """A false alarm of the lost monitor at keyframe 30 of an uneventful drive: refine sees no mode give way to
+    another there and refines the drive as one stretch, as if the monitor had never fired."""
+    run = runs["smcl+graph"]
+    assert not run.relocalized.any()
+    lost_frames = np.zeros_like(run.lost_frames)
+    lost_frames[31] = 2  # relocalized at 31, lost since 30
+    false_alarm = dataclasses.replace(run, lost_frames=lost_frames)
+    assert false_alarm.segments() == [range(0, 30), range(30, 50)]
+    refined, cfg = _refined(paper_floor, false_alarm, config_overrides)
+    assert refined.segments == [range(0, 50)] and not refined.offline_seams
+    np.testing.assert_array_equal(
+        refined.estimate.poses, _refined(paper_floor, run, config_overrides)[0].estimate.poses
+    )
+    kept = cfg.model_copy(update={"backend": cfg.backend.model_copy(update={"refine_join": False})})
+    assert refine_run(false_alarm, paper_floor.prior, kept).segments == [range(0, 30), range(30, 50)]
+
+
 def test_refine_needs_a_graph_run(paper_floor: Building, runs: dict[str, LocalizationRun], test_config) -> None:
     with pytest.raises(ValueError, match="pose-graph variant"):
         refine_run(runs["smcl"], paper_floor.prior, test_config)
