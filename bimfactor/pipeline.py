@@ -524,12 +524,12 @@ def localize_sequence(
 @dataclass
 class RefinedRun:
     """The offline pass over a localized run, one continuous stretch at a time (`segments`: the filter's own,
-    `LocalizationRun.segments`, one unless it relocalized, their seams searched again in hindsight; and those parted
-    offline, whose first steps are `offline_seams`): every candidate mode refined, by stretch and best fit first
-    within one, with its fit (`fits`, the filter's measurement log-likelihood summed along the refined
-    trajectory); `best`, per stretch, its best fit (None: no mode was born there, and the stretch keeps the forward
-    pass's estimate); and the estimate, the stretches' best fits joined. Its `step_ms` is the forward pass's step
-    time plus the refinement's time shared over the steps."""
+    `LocalizationRun.segments`, one unless it relocalized, less its false alarms, their seams searched again in
+    hindsight; and those parted offline, whose first steps are `offline_seams`): every candidate mode refined, by
+    stretch and best fit first within one, with its fit (`fits`, the filter's measurement log-likelihood summed along
+    the refined trajectory); `best`, per stretch, its best fit (None: no mode was born there, and the stretch keeps
+    the forward pass's estimate); and the estimate, the stretches' best fits joined. Its `step_ms` is the forward
+    pass's step time plus the refinement's time shared over the steps."""
 
     forward: LocalizationRun
     modes: list[RefinedMode]
