@@ -898,7 +898,7 @@ def refine(
         )
         if len(refined.segments) > 1:
             stretches = ", ".join(f"{steps.start}–{steps.stop - 1}" for steps in refined.segments)
-            why = ["the filter relocalized"] if len(refined.segments) > 1 + len(refined.offline_seams) else []
+            why = ["the filter relocalized"] if "relocalized" in refined.begins else []
             if refined.offline_seams:
                 why.append(f"parted offline at step {', '.join(map(str, refined.offline_seams))}")
             typer.echo(f"steps {stretches} refined apart ({'; '.join(why)}; steps.csv: segment)")

@@ -540,6 +540,13 @@ class RefinedRun:
     best: list[RefinedMode | None] = field(default_factory=list)
     offline_seams: list[int] = field(default_factory=list)
 
+    @property
+    def begins(self) -> list[str]:
+        """How each stretch begins: at the `start`, where the filter `relocalized`, or where refine parted one
+        `offline`."""
+        kinds = {0: "start", **dict.fromkeys(self.offline_seams, "offline")}
+        return [kinds.get(steps.start, "relocalized") for steps in self.segments]
+
     def best_at(self, step: int) -> RefinedMode | None:
         """The refined mode the estimate reports at `step` (None: the forward pass's estimate there)."""
         for steps, mode in zip(self.segments, self.best, strict=True):

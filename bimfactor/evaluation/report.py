@@ -240,14 +240,13 @@ def write_refined(
             stamps = run.timestamps_s[m.start : m.start + len(m.poses)]
             write_tum_trajectory(tmp / "modes" / f"mode_{m.mode_id}.txt", stamps, m.poses)
         (tmp / "steps.csv").write_text(_csv(REFINED_COLUMNS, rows))
-        begins = {0: "start", **dict.fromkeys(refined.offline_seams, "offline")}
         segments = [
             {
                 "steps": [steps.start, steps.stop - 1],
                 "best_mode": None if mode is None else mode.mode_id,
-                "begins": begins.get(steps.start, "relocalized"),
+                "begins": begins,
             }
-            for steps, mode in zip(refined.segments, refined.best, strict=True)
+            for steps, mode, begins in zip(refined.segments, refined.best, refined.begins, strict=True)
         ]
         summary = {"refine_ms": refined.refine_ms, "segments": segments, "modes": modes}
         (tmp / "modes.json").write_text(json.dumps(summary, indent=2))
