@@ -191,6 +191,10 @@ class SmclConfig(_Strict):
         "about it (AMCL's initial pose); null: uniform over all navigable space (global localization, the paper)."
     )
     initial_storey: int = Field(ge=0, description="The storey index of `initial_pose`.")
+    global_storeys: Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=1)] | None = Field(
+        description="Without a pose guess: the storeys the uniform start covers (a robot that knows its floor, as "
+        "an elevator tells it); null: every storey. A relocalization still spreads over the whole building.",
+    )
     initial_sigma_xy_m: float = Field(gt=0.0, description="Standard deviation of the start in x and y.")
     initial_sigma_yaw_deg: float = Field(gt=0.0, description="Standard deviation of the start in yaw.")
     kld_epsilon: float = Field(gt=0.0, lt=1.0, description="KLD-sampling: bound ε on the KL divergence.")
@@ -603,6 +607,10 @@ class EvaluationConfig(_Strict):
         "pose guess `guess_offset_m` / `guess_offset_deg` off the first frame's truth, AMCL's initial pose), or "
         "kidnap (from the uniform belief; after `kidnap_at` keyframes the robot is carried, unseen by odometry, to "
         "keyframe `kidnap_resume_at` of the route three further on, and the T steps from there are scored)."
+    )
+    known_storey: bool = Field(
+        description="global and kidnap: the robot knows the storey it starts on (the uniform start covers the first "
+        "frame's true storey only, `smcl.global_storeys`); false: every storey (the paper's single floor has one)."
     )
     guess_offset_m: float = Field(ge=0.0, description="guess: the guess's distance from the true first position.")
     guess_offset_deg: float = Field(ge=0.0, le=180.0, description="guess: its heading error (seeded sign).")

@@ -280,9 +280,9 @@ class Localizer:
 
     def _start_belief(self, pose: np.ndarray | list[float] | None, storey: int) -> None:
         """The filter's particles: about a (3,) pose guess on a storey (AMCL's initial pose, `smcl.initial_sigma_*`),
-        or without one uniform over the whole building."""
+        or without one uniform over the building (over `smcl.global_storeys` when the robot knows its floor)."""
         if pose is None:
-            self.filter.initialize()
+            self.filter.initialize(self.cfg.smcl.global_storeys)
         else:
             self.filter.initialize_around(
                 np.asarray(pose, float),
@@ -293,9 +293,10 @@ class Localizer:
 
     def reset(self, pose: np.ndarray | list[float] | None = None, storey: int = 0) -> None:
         """Start the belief over, as an operator does mid-run: from a (3,) pose guess x, y, yaw (the BIM's world
-        frame, metres and radians; AMCL's initial pose) on `storey`, or without one over the whole building (AMCL's
-        global localization). The back end's modes and the fine stage's submap start over too; the odometry and
-        the online scene graph carry on. InputError for a guess with no navigable space about it."""
+        frame, metres and radians; AMCL's initial pose) on `storey`, or without one over the building (AMCL's global
+        localization; over `smcl.global_storeys` when set). The back end's modes and the fine stage's submap start
+        over too; the odometry and the online scene graph carry on. InputError for a guess with no navigable space
+        about it."""
         self._start_belief(pose, storey)
         if self.backend is not None:
             self.backend = MultiHypothesisBackend.from_prior(self.prior, self.cfg.backend)

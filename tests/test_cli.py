@@ -559,10 +559,10 @@ def test_localize_from_an_initial_pose(demo_prior: Path, short_sequence: Path, t
     x, y, yaw = read_sequence(short_sequence)[0].gt_pose
     guess = f"{x + 0.5},{y - 0.5},{np.degrees(yaw) + 10}"
     run = tmp_path / "run"
-    result = invoke("localize", demo_prior, short_sequence, "-o", run, "--initial-pose", guess)
+    result = invoke("localize", demo_prior, short_sequence, "-o", run, "--initial-pose", guess, "--storey", "0")
     assert result.exit_code == 0, result.output
     resolved = (run / "config.yaml").read_text()
-    assert f"initial_pose:\n  - {x + 0.5}" in resolved
+    assert f"initial_pose:\n  - {x + 0.5}" in resolved and "global_storeys:\n  - 0\n" in resolved
     rows = list(csv.DictReader((run / "steps.csv").read_text().splitlines()))
     assert np.hypot(float(rows[0]["x"]) - x, float(rows[0]["y"]) - y) < 1.0  # about the guess from the first step
     for bad, message in (("1,2", "expected X,Y,YAW_DEG"), ("a,b,c", "expected X,Y,YAW_DEG"),
@@ -571,6 +571,10 @@ def test_localize_from_an_initial_pose(demo_prior: Path, short_sequence: Path, t
         out = tmp_path / "bad"
         result = invoke("localize", demo_prior, short_sequence, "-o", out, "--initial-pose", bad)
         assert_one_line_error(result, contains=message)
+        assert not out.exists()
+    for variant in ("smcl", "smcl+graph"):  # a known storey the building does not have
+        result = invoke("localize", demo_prior, short_sequence, "-o", out, "--storey", "3", "--variant", variant)
+        assert_one_line_error(result, contains="storeys [3] do not exist: the prior has storey 0")
         assert not out.exists()
 
 

@@ -395,7 +395,11 @@ class SemanticMCL:
 
     def initialize(self, storeys: list[int] | None = None) -> None:
         """M (KLD-sampling: `max_particles`) particles uniform over the navigable space of the given storeys (None:
-        all), equal weights."""
+        all), equal weights. InputError for a storey the prior does not have."""
+        n = self.navigable.shape[0]
+        missing = sorted(set(storeys or []) - set(range(n)))
+        if missing:
+            raise InputError(f"storeys {missing} do not exist: the prior has storey{'s 0 …' if n > 1 else ''} {n - 1}")
         self.particles, self.storeys = self.sample_free_space(self.max_particles, storeys)
         self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
         self.fresh = np.zeros(self.max_particles, bool)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from bimfactor.errors import ConfigError
 from bimfactor.evaluation.paper import (
     RunResult,
     _confidence_intervals,
+    _known_storey,
     _pooled,
     check_protocol,
     format_table_one,
@@ -146,3 +149,22 @@ def test_the_kidnap_table_says_how_many_runs_were_tracking_and_how_soon_they_rec
         "the filter spread its particles over the building again in 2 runs",
     ]
     assert "tracking_before_kidnap_runs" not in _pooled([_run(0, 0, 0.3, 1.0)])  # other scenarios: no such line
+
+
+def test_a_known_storey_confines_the_uniform_start_to_the_storey_the_route_starts_on() -> None:
+    frames = [SimpleNamespace(gt_storey=2), SimpleNamespace(gt_storey=0)]
+    assert _known_storey(load_config(None, ["evaluation.known_storey=true"]), frames).smcl.global_storeys == [2]
+    assert _known_storey(load_config(None, []), frames).smcl.global_storeys is None
+    with pytest.raises(ConfigError, match=r"evaluation\.known_storey"):
+        check_protocol(load_config(None, ["smcl.global_storeys=[1]"]))  # one sequence's storey, not every run's
+
+
+def test_the_share_of_steps_on_the_true_storey_is_printed_for_a_building_of_several() -> None:
+    runs = [_run(k, 0, 1.0, 0.5) for k in range(3)]
+    for run, hits in zip(runs, (10, 5, 0), strict=True):
+        run.storey_hit = (np.arange(10) < hits).astype(float)
+    average = _pooled(runs)
+    assert average["storey_acc"] == pytest.approx(0.5)
+    report = {"variants": ["smcl"], "smcl": {"average": average, "per_trajectory": {}}, "storeys": 5}
+    assert "\non the true storey: 50.0 % of the steps" in format_table_one(report, "smcl")
+    assert "true storey" not in format_table_one({**report, "storeys": 1}, "smcl")

@@ -144,6 +144,8 @@ def test_initialize_spreads_particles_over_navigable_space_of_all_storeys(smcl_c
     np.testing.assert_allclose(mcl.weights.sum(), 1.0)
     mcl.initialize(storeys=[1])
     assert np.all(mcl.storeys == 1)
+    with pytest.raises(InputError, match=r"storeys \[2, 5\] do not exist: the prior has storeys 0 … 1$"):
+        mcl.initialize(storeys=[1, 5, 2])
 
 
 def test_initialize_around_a_pose_guess_draws_a_gaussian_on_navigable_space(smcl_cfg: SmclConfig):
