@@ -759,16 +759,17 @@ def _hindsight_segments(
     frame_fits: Callable[[np.ndarray, int, range], np.ndarray],
     cfg: BackendConfig,
 ) -> list[range]:
-    """The run's stretches with each seam between two stretches that have a best fit (`best`) searched again
-    (`_hindsight_seam`): within `cfg.refine_seam_window` keyframes of it, after the previous seam, before the next
-    and not after its limit (`limits`, one per seam: the step at which the filter relocalized; None: a seam parted
-    offline)."""
+    """The run's stretches with each seam between two stretches that have a best fit (`best`, refined over
+    `segments`) searched again (`_hindsight_seam`): within `cfg.refine_seam_window` keyframes of it, after the
+    previous seam (as searched: seams move in order) and the start of the earlier fit's stretch, before the next
+    seam, and not after its limit (`limits`, one per seam: the step at which the filter relocalized; None: a seam
+    parted offline)."""
     T = len(run.timestamps_s)
     seams = [steps.start for steps in segments]
     for j in range(1, len(segments)):
         before, after = best[j - 1], best[j]
         if before is not None and after is not None:
-            lo = max(seams[j - 1] + 1, seams[j] - cfg.refine_seam_window)
+            lo = max(seams[j - 1] + 1, segments[j - 1].start + 1, seams[j] - cfg.refine_seam_window)
             hi = min(seams[j + 1] - 1 if j + 1 < len(seams) else T - 1, seams[j] + cfg.refine_seam_window)
             hi = hi if limits[j - 1] is None else min(hi, limits[j - 1])
             score = _hindsight_seam(seams[j], lo, hi, before, after, run, measure_fns, frame_fits)

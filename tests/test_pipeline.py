@@ -26,6 +26,7 @@ from bimfactor.pipeline import (
     LocalizationRun,
     Localizer,
     RefinedRun,
+    _hindsight_segments,
     _offline_split,
     localize_sequence,
     refine_run,
@@ -345,6 +346,27 @@ def test_a_stretch_is_parted_where_two_modes_each_explain_their_own_side_by_far_
     lax = cfg.model_copy(update={"refine_split_min_keyframe_log_ratio": 0.0})
     assert _offline_split(steps, [late, early], [true, wrong], lax) == 35
     assert _offline_split(steps, [late], [true], lax) is None  # one mode: nothing to part
+
+
+def test_two_seams_searched_in_one_pass_each_stay_within_the_stretches_their_fits_cover() -> None:
+    """A robot standing still at x = 0, 10, 20 (steps 0–7, 8–12, 13–29), its stretches parted late at 10 and 15:
+    both seams move back, the second within the stretch its earlier fit was refined over (from step 10), even
+    after the first seam has moved before it."""
+    from types import SimpleNamespace
+
+    T, truth = 30, np.r_[np.zeros(8), np.full(5, 10.0), np.full(17, 20.0)]
+    segments = [range(0, 10), range(10, 15), range(15, 30)]
+    best = [SimpleNamespace(poses=np.tile([x, 0.0, 0.0], (len(steps), 1)), start=steps.start, storey=0)
+            for x, steps in zip((0.0, 10.0, 20.0), segments, strict=True)]  # fmt: skip
+    run = SimpleNamespace(timestamps_s=np.arange(T, dtype=float), odom_increments=np.zeros((T - 1, 3)))
+
+    def frame_fits(poses: np.ndarray, storey: int, steps: range) -> np.ndarray:
+        assert len(poses) == len(steps)
+        return -np.abs(poses[:, 0] - truth[steps.start : steps.stop])
+
+    cfg = load_config().backend.model_copy(update={"refine_seam_window": 10, "refine_seam_min_log_ratio": 1.0})
+    moved = _hindsight_segments(segments, [None, None], best, run, None, frame_fits, cfg)
+    assert [steps.start for steps in moved] == [0, 8, 13]
 
 
 def test_an_operator_can_start_the_belief_over_from_a_pose_guess_or_the_whole_building(
