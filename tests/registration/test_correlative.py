@@ -106,3 +106,21 @@ def test_the_factor_function_returns_body_frame_information_of_accepted_matches(
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # body → world
     np.testing.assert_allclose(np.linalg.inv(information), R.T @ match.covariance @ R, atol=1e-12)
     assert matcher.factor_fn(cast_scan(box, truth)[:5])(truth, 0) is None
+
+
+def test_the_factor_function_matches_each_start_pose_once(box, cfg, monkeypatch):
+    matcher = CorrelativeMatcher(box, cfg)
+    truth = np.array([4.0, 4.0, np.deg2rad(30.0)])
+    calls = []
+    match = matcher.match
+    monkeypatch.setattr(matcher, "match", lambda *args: calls.append(args) or match(*args))
+    measure = matcher.factor_fn(cast_scan(box, truth))
+    start = truth + np.array([0.1, 0.1, 0.02])
+    pose, information = measure(start, 0)
+    pose[:] = 0.0  # what a caller does with the result does not reach the next one
+    again, information_again = measure(start.copy(), 0)
+    assert len(calls) == 1
+    np.testing.assert_allclose(again[:2], truth[:2], atol=0.05)
+    np.testing.assert_array_equal(information_again, information)
+    measure(start + np.array([1e-6, 0.0, 0.0]), 0)  # another start pose is matched anew
+    assert len(calls) == 2
