@@ -701,10 +701,12 @@ def _variant_overrides(name: str, variants: list[str] | str | None) -> list[str]
     return [f"{name}={json.dumps(variants)}"]
 
 
-def _initial_pose_overrides(text: str | None) -> list[str]:
-    """`--initial-pose X,Y,YAW_DEG[,STOREY]` as the overrides of smcl.initial_pose (and initial_storey)."""
+def _start_overrides(text: str | None, storey: int | None) -> list[str]:
+    """`--initial-pose X,Y,YAW_DEG[,STOREY]` as the overrides of smcl.initial_pose (and initial_storey), and
+    `--storey N` as smcl.global_storeys."""
+    known = [] if storey is None else [f"smcl.global_storeys=[{storey}]"]
     if text is None:
-        return []
+        return known
     parts = [p.strip() for p in text.split(",")]
     try:
         values = [float(p) for p in parts]
@@ -712,8 +714,8 @@ def _initial_pose_overrides(text: str | None) -> list[str]:
         values = []
     if len(values) not in (3, 4) or (len(values) == 4 and not values[3].is_integer()):
         raise InputError(f"--initial-pose '{text}': expected X,Y,YAW_DEG or X,Y,YAW_DEG,STOREY (metres, degrees)")
-    storey = [f"smcl.initial_storey={int(values[3])}"] if len(values) == 4 else []
-    return [f"smcl.initial_pose={json.dumps(values[:3])}", *storey]
+    on = [f"smcl.initial_storey={int(values[3])}"] if len(values) == 4 else []
+    return [f"smcl.initial_pose={json.dumps(values[:3])}", *on, *known]
 
 
 def _write_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) -> Path:
@@ -799,8 +801,7 @@ def localize(
             [
                 *(overrides or []),
                 *_variant_overrides("localization.variant", variant),
-                *_initial_pose_overrides(initial_pose),
-                *([] if storey is None else [f"smcl.global_storeys=[{storey}]"]),
+                *_start_overrides(initial_pose, storey),
             ],
             verbose,
         )
@@ -877,8 +878,7 @@ def refine(
             [
                 *(overrides or []),
                 *_variant_overrides("localization.variant", variant),
-                *_initial_pose_overrides(initial_pose),
-                *([] if storey is None else [f"smcl.global_storeys=[{storey}]"]),
+                *_start_overrides(initial_pose, storey),
             ],
             verbose,
         )
