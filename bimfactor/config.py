@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, PositiveFloat, ValidationError, model_validator
 
 from bimfactor.errors import ConfigError
 
@@ -144,6 +144,20 @@ class VlmConfig(_Strict):
     sam_weights: str = Field(description="SAM checkpoint matching `sam_model_type`; '' when absent.")
 
 
+class TextReadingConfig(_Strict):
+    """Reading door plates (room numbers) in the colour image; beyond the paper, off by default."""
+
+    enabled: bool = Field(
+        description="Read text each frame (sim backend: the simulator's door plates; vlm backend: RapidOCR)."
+    )
+    min_score: float = Field(ge=0.0, le=1.0, description="OCR: readings below this confidence are dropped.")
+    sim_min_height_px: int = Field(ge=1, description="Sim: a plate fewer pixels high than this is not legible.")
+    sim_read_probability: float = Field(ge=0.0, le=1.0, description="Sim: chance that a legible plate is read.")
+    sim_char_error_rate: float = Field(
+        ge=0.0, le=1.0, description="Sim: chance that each character of a reading is replaced by another."
+    )
+
+
 class PerceptionConfig(_Strict):
     backend: Literal["sim", "vlm"] = Field(
         description="sim: the simulator's instance buffer with an error model; vlm: YOLO-World + SAM + CLIP."
@@ -177,6 +191,7 @@ class PerceptionConfig(_Strict):
         "detected in this frame (the paper's 'whenever new observations arrive')."
     )
     edge_distance_m: float = Field(gt=0.0, description="Nodes whose centroids are closer than this are joined.")
+    text: TextReadingConfig
 
 
 class SmclConfig(_Strict):
@@ -253,6 +268,15 @@ class SmclConfig(_Strict):
     )
     off_map_weight: float = Field(
         ge=0.0, le=1.0, description="Weight factor for a particle outside navigable space after a prediction."
+    )
+    text_edit_cost: float = Field(
+        gt=0.0, description="Door-plate readings: a reading n edits from a plate's text matches it by exp(−n · this)."
+    )
+    text_unexplained: float = Field(
+        gt=0.0,
+        lt=1.0,
+        description="Door-plate readings: ε in P(reading | x) = ε + (1 − ε) · best plate match; the chance that a "
+        "reading is a misread or a plate the BIM does not know, which bounds what one reading can say.",
     )
     scan_likelihood: bool = Field(
         description="Also weigh particles by the depth scan against the BIM's likelihood field (beyond the paper)."
@@ -365,6 +389,17 @@ class AsBuiltConfig(_Strict):
     clutter_count: int = Field(ge=0, description="Objects in the world that the BIM does not contain.")
 
 
+class DoorPlateSimConfig(_Strict):
+    """Door plates in the simulated world (`bim.plates`): a room number beside each door into a numbered room."""
+
+    enabled: bool = Field(description="Hang the plates (off: the world is the IFC model's elements alone).")
+    size_m: Annotated[list[PositiveFloat], Field(min_length=2, max_length=2)] = Field(
+        description="Plate width and height."
+    )
+    height_m: float = Field(gt=0.0, description="Plate centre above the storey's floor.")
+    beside_m: float = Field(ge=0.0, description="Gap between the door opening and the plate's near edge.")
+
+
 class SimConfig(_Strict):
     camera: CameraSimConfig
     depth_noise: DepthNoiseConfig
@@ -373,6 +408,7 @@ class SimConfig(_Strict):
     robot: RobotConfig
     trajectory: TrajectorySimConfig
     as_built: AsBuiltConfig
+    door_plates: DoorPlateSimConfig
 
 
 class RosbagConfig(_Strict):

@@ -267,6 +267,11 @@ class Localizer:
         embedder = text_embedder or make_text_embedder(cfg.embed)
         self.perception = make_perception(cfg, meta, embedder, seed=seed)
         self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
+        if cfg.perception.text.enabled and not len(self.filter.likelihood.plates):
+            log.warning(
+                "perception.text reads door plates, but the prior has none (no IfcSpace numbers, or a prior built "
+                "before they were kept: rebuild it with `bimfactor prior`); the text read will weigh nothing"
+            )
         start = cfg.smcl.initial_pose
         self._start_belief(
             None if start is None else [start[0], start[1], np.deg2rad(start[2])], cfg.smcl.initial_storey
@@ -819,12 +824,12 @@ def _frame_fits(
     likelihood: SemanticLikelihood,
     scan_likelihood: ScanLikelihood | None,
 ) -> np.ndarray:
-    """(T,) log P(z_t | x_t) of the filter's measurement model (semantic and, with scans, scan terms) at (T, 3)
+    """(T,) log P(z_t | x_t) of the filter's measurement model (semantic, door-plate and scan terms) at (T, 3)
     poses on one storey, with the T keyframes' observations and scans."""
     storeys = np.array([storey])
     fits = np.zeros(len(poses))
     for t, pose in enumerate(poses):
-        if len(observations[t]):
+        if len(observations[t]) or observations[t].n_texts:
             fits[t] += float(likelihood.log_likelihood(pose[None], storeys, observations[t])[0])
         if scan_likelihood is not None and scans[t] is not None and len(scans[t]):
             fits[t] += float(scan_likelihood.log_likelihood(pose[None], storeys, scans[t])[0])

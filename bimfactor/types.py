@@ -126,6 +126,21 @@ class SequenceMeta:
 
 
 @dataclass
+class TextObservations:
+    """Text read at one step (door plates), placed in the robot base frame like `Observations`' nodes.
+
+    `texts` as read; `range_m` (K,) and `bearing_rad` (K,) where each was read (bearing counter-clockwise from x).
+    """
+
+    texts: list[str]
+    range_m: np.ndarray
+    bearing_rad: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.texts)
+
+
+@dataclass
 class Observations:
     """What the robot sees at one step, as the localizer consumes it: K object nodes in view.
 
@@ -133,7 +148,7 @@ class Observations:
     `range_m` (K,) and `bearing_rad` (K,) place each node in the robot base frame (bearing counter-clockwise
     from the robot's forward x axis); `labels` are the open-vocabulary label texts; `node_ids` (K,) the online
     scene-graph node ids (or detection ids); `confidence` (K,) each node's highest detector box score (None:
-    unknown, every observation taken as certain).
+    unknown, every observation taken as certain). `texts` is the door-plate text read at this step, if any.
     """
 
     embeddings: np.ndarray
@@ -142,6 +157,11 @@ class Observations:
     labels: list[str] = field(default_factory=list)
     node_ids: np.ndarray | None = None
     confidence: np.ndarray | None = None
+    texts: TextObservations | None = None
 
     def __len__(self) -> int:
         return len(self.range_m)
+
+    @property
+    def n_texts(self) -> int:
+        return 0 if self.texts is None else len(self.texts)

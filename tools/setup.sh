@@ -6,13 +6,16 @@
 # 1. system library libusb-1.0 (Open3D's native library links against it), via apt-get when missing
 # 2. .venv with python3 (PYTHON=/path/to/python3.11 to choose another interpreter)
 # 3. pip upgraded, torch 2.13.0 installed FIRST (the CPU wheel; an unpinned torch pulls GBs of CUDA
-#    packages), then bimfactor itself in editable mode with its dev extras (pytest, ruff).
+#    packages), then bimfactor itself in editable mode with its dev and ocr extras (pytest, ruff; ONNX
+#    Runtime for the door-plate reader), then RapidOCR without its declared dependencies: it asks for the GUI
+#    build of OpenCV, which would replace the headless one bimfactor uses (and needs libGL).
 set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 PYTHON="${PYTHON:-python3}"
 VENV=".venv"
 TORCH_VERSION="2.13.0"
+RAPIDOCR_VERSION="1.4.4"
 
 say() { printf '[setup] %s\n' "$*"; }
 
@@ -69,8 +72,10 @@ say "upgrading pip"
 "${PIP[@]}" install --upgrade pip
 say "installing torch==$TORCH_VERSION (CPU wheel)"
 "${PIP[@]}" install --progress-bar off "torch==$TORCH_VERSION"
-say "installing bimfactor (editable) with dev extras"
-"${PIP[@]}" install --progress-bar off -e '.[dev]'
+say "installing bimfactor (editable) with dev and ocr extras"
+"${PIP[@]}" install --progress-bar off -e '.[dev,ocr]'
+say "installing rapidocr-onnxruntime $RAPIDOCR_VERSION (door-plate OCR; its models ship in the wheel)"
+"${PIP[@]}" install --progress-bar off --no-deps "rapidocr-onnxruntime==$RAPIDOCR_VERSION"
 
 if "$VENV/bin/python" -m pip list --format=freeze 2>/dev/null | grep -qi '^nvidia-'; then
     say "warning: CUDA packages (nvidia-*) are installed in $VENV; a CPU-only torch was intended" >&2

@@ -71,6 +71,7 @@ class Room:
     category_score: float
     sentence: str
     object_ids: list[int]
+    space_number: str = ""  # the IfcSpace Name where a LongName names the room: the number on its door plate
 
 
 @dataclass
@@ -442,6 +443,7 @@ def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_ro
                 centroid_xy=(float(centroid[0]), float(centroid[1])),
                 space_guid=region.space_guid,
                 space_name=region.space_name,
+                space_number=region.space_number,
                 category="unknown",
                 category_score=0.0,
                 sentence="",

@@ -50,6 +50,7 @@ class RoomRegion:
     source: str  # "floodfill" or "ifcspace"
     space_guid: str | None = None
     space_name: str = ""
+    space_number: str = ""
 
 
 def door_geometry(door: IfcElement, z_lo: float, z_hi: float) -> DoorGeometry | None:
@@ -157,7 +158,9 @@ def space_rooms(spaces: list[IfcElement], spec: GridSpec, free: np.ndarray) -> l
     for space in spaces:
         mask = footprint_mask(space, spec) & free
         if mask.any():
-            regions.append(RoomRegion(mask, "ifcspace", space.guid, space.long_name or space.name))
+            # IfcSpace Name is the room number ("101") where a LongName ("Buero Meier") names the room.
+            number = space.name if space.long_name else ""
+            regions.append(RoomRegion(mask, "ifcspace", space.guid, space.long_name or space.name, number))
     return regions
 
 

@@ -18,6 +18,7 @@ from bimfactor.evaluation.plots import save_estimate_plot, save_particle_snapsho
 from bimfactor.io.atomic import atomic_dir
 from bimfactor.io.tum import write_tum_trajectory
 from bimfactor.pipeline import LocalizationRun, RefinedRun, Track
+from bimfactor.types import Observations
 
 RUN_FILES = ("config.yaml", "estimate.txt")
 """Every run folder (localize, refine) holds these; a folder without them is not a run and is never overwritten."""
@@ -27,8 +28,8 @@ POSE_COLUMNS = [
 ]  # fmt: skip
 GT_COLUMNS = ["gt_x", "gt_y", "gt_yaw", "gt_room"]
 STEP_COLUMNS = [
-    "step", "timestamp_s", *POSE_COLUMNS, "converged", "ess", "n_particles", "n_observations", "scan_fit",
-    "relocalized", "filter_ms",
+    "step", "timestamp_s", *POSE_COLUMNS, "converged", "ess", "n_particles", "n_observations", "texts_read",
+    "scan_fit", "relocalized", "filter_ms",
     "perception_ms", "n_modes", "mode_id", "mode_probability", "graph_ms", "icp_accepted", "icp_ms", "twin_x",
     "twin_y", "twin_yaw", "twin_share", *GT_COLUMNS,
 ]  # fmt: skip
@@ -124,7 +125,8 @@ def _write_run_files(run: LocalizationRun, prior: BimPrior, out_dir: Path, confi
         rows.append(
             [i, _num(run.timestamps_s[i]), *_pose_cells(out.poses[i], out.storeys[i], out.rooms[i], out.covariances[i]),
              int(run.converged[i]), _num(run.ess[i]), int(run.n_particles[i]), int(run.n_observations[i]),
-             "" if np.isnan(run.scan_fit[i]) else f"{run.scan_fit[i]:.4f}", int(run.relocalized[i]),
+             _texts_read(run.observations[i]), "" if np.isnan(run.scan_fit[i]) else f"{run.scan_fit[i]:.4f}",
+             int(run.relocalized[i]),
              f"{run.filter.step_ms[i]:.3f}", f"{run.perception_ms[i]:.3f}", "" if modes is None else len(modes), *best,
              "" if modes is None else f"{graph_ms[i]:.3f}", *icp, *twin,
              *_gt_cells(run.gt_poses, run.gt_rooms, i)]
@@ -172,6 +174,11 @@ def twin_summary(run: LocalizationRun) -> str | None:
         f"the belief held ≥ {100 * TWIN_NOTICE_SHARE:.0f} % there at {split} steps (steps.csv: twin_x, twin_y, "
         "twin_yaw, twin_share)"
     )
+
+
+def _texts_read(observations: Observations) -> str:
+    """The door-plate text read at a step, '|'-separated ('' when none)."""
+    return "|".join(observations.texts.texts) if observations.n_texts else ""
 
 
 def _mode_rows(run: LocalizationRun, prior: BimPrior) -> list[list[object]]:

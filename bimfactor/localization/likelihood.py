@@ -207,6 +207,9 @@ class SemanticLikelihood:
         self.object_lo, self.object_hi = self.object_xy - sizes / 2, self.object_xy + sizes / 2
         self.object_radius_m = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1]) if cfg.fov_extent else np.zeros(len(sizes))
         self.last_stats = ScoreStats()
+        from bimfactor.localization.text import PlateLikelihood  # it builds on this module's φ_dist and φ_ang
+
+        self.plates = PlateLikelihood(prior, cfg)
 
     def semantic(self, observations: Observations, objects: np.ndarray | None = None) -> np.ndarray:
         """(K, N) φ_sem of K observations against the BIM objects `objects` (default: all) (`smcl.semantic`).
@@ -366,6 +369,13 @@ class SemanticLikelihood:
         return semantic, missed * np.log1p(-p_d)
 
     def log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, observations: Observations) -> np.ndarray:
-        """(M,) log P(z|x): score / T, plus the missed-detection term when `detection_probability` > 0."""
+        """(M,) log P(z|x): score / T, plus the missed-detection term when `detection_probability` > 0, plus the
+        door-plate term (`localization.text`) for the text read at this step."""
         semantic, missed = self.log_likelihood_terms(particles, storeys, observations)
-        return semantic + missed
+        return semantic + missed + self.text_log_likelihood(particles, storeys, observations)
+
+    def text_log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, observations: Observations) -> np.ndarray:
+        """(M,) the door-plate term of the text in `observations` (0 when none was read)."""
+        if not observations.n_texts:
+            return np.zeros(len(np.asarray(particles).reshape(-1, 3)))
+        return self.plates.log_likelihood(particles, storeys, observations.texts)

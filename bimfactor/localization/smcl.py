@@ -452,8 +452,9 @@ class SemanticMCL:
     def update(self, observations: Observations | None, scan: np.ndarray | None = None) -> None:
         """Weight ×= P(z|x) for every particle and normalise; nothing to weigh by leaves the weights as they are.
 
-        P(z|x) is the semantic term for the observations and, with `scan_likelihood`, the scan term for the (N, 2)
-        base-frame `scan` endpoints (`field.scan_endpoints`); either may be empty or None. With the missed-detection
+        P(z|x) is the semantic term for the observations (with the door-plate term for text read) and, with
+        `scan_likelihood`, the scan term for the (N, 2) base-frame `scan` endpoints (`field.scan_endpoints`); either
+        may be empty or None. With the missed-detection
         term (`detection_probability` > 0) an empty `observations` (a frame that detected nothing) still weighs.
         With a scan, `scan_fit` becomes the belief's predicted scan score Σ w_i s_i (weights before the update).
         """
@@ -463,7 +464,8 @@ class SemanticMCL:
         # With the missed-detection term a frame that detected nothing still says which places it did not see.
         weighs_misses = observations is not None and self.cfg.detection_probability > 0.0
         has_scan = self.scan_likelihood is not None and scan is not None and len(scan) > 0
-        if not (has_observations or has_scan or weighs_misses):
+        has_texts = observations is not None and observations.n_texts > 0
+        if not (has_observations or has_scan or weighs_misses or has_texts):
             return
         if not np.all(self.weights >= 0) or self.weights.sum() <= 0:
             self.weights = np.full(self.num_particles, 1.0 / self.num_particles)
@@ -480,6 +482,8 @@ class SemanticMCL:
             rate_slow, rate_fast = self.cfg.alpha_slow, self.cfg.alpha_fast
             self.w_slow = w_avg if self.w_slow is None else self.w_slow + rate_slow * (w_avg - self.w_slow)
             self.w_fast = w_avg if self.w_fast is None else self.w_fast + rate_fast * (w_avg - self.w_fast)
+        if has_texts:
+            log_likelihood += self.likelihood.text_log_likelihood(self.particles, self.storeys, observations)
         if has_scan:
             scores = self.scan_likelihood.scores(self.particles, self.storeys, scan)
             self.scan_fit = float(np.dot(self.weights, scores) / self.weights.sum())

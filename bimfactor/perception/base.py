@@ -62,6 +62,29 @@ class Embedder(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class TextReading:
+    """One piece of text read in a colour image, e.g. a door plate's room number.
+
+    `text` as read (not normalised), `box_xyxy` (4,) float pixels (x0, y0, x1, y1), x1/y1 exclusive, `score`
+    the reader's confidence in [0, 1]. `gt_instance_id` is simulation ground truth (the plate it came from).
+    """
+
+    text: str
+    box_xyxy: np.ndarray
+    score: float
+    gt_instance_id: int | None = None
+
+
+@runtime_checkable
+class TextReader(Protocol):
+    """Image → the text it shows, with where (a scene-text reader: OCR)."""
+
+    def read(self, frame: Frame) -> list[TextReading]:
+        """The readings of one frame whose score passes the reader's threshold."""
+        ...
+
+
 def passes_thresholds(detection: Detection, box_threshold: float, text_threshold: float) -> bool:
     """δ_box and δ_text of the paper: a detection is kept only when both scores reach their threshold."""
     return detection.box_score >= box_threshold and detection.text_score >= text_threshold

@@ -16,16 +16,17 @@ import numpy as np
 from bimfactor.bim.vocabulary import Vocabulary
 from bimfactor.config import Config, config_file
 from bimfactor.embed.text import TextEmbedder
-from bimfactor.perception.base import Detection, Detector, Embedder, Segmenter
+from bimfactor.perception.base import Detection, Detector, Embedder, Segmenter, TextReader, TextReading
 from bimfactor.perception.scene_graph import OnlineSceneGraph, UpdateStats
 from bimfactor.perception.sim import LabelConfusion, SimDetector, SimEmbedder, SimSegmenter, load_sim_errors
+from bimfactor.perception.text import SimTextReader, locate_readings
 from bimfactor.progress import progress
 from bimfactor.types import Frame, Observations, SequenceMeta
 
 log = logging.getLogger(__name__)
 
 # Independent random streams of the sim backend within one (seed, sequence).
-DETECTOR_STREAM, SEGMENTER_STREAM, EMBEDDER_STREAM = 0xDE7, 0x5E6, 0xE3B
+DETECTOR_STREAM, SEGMENTER_STREAM, EMBEDDER_STREAM, READER_STREAM = 0xDE7, 0x5E6, 0xE3B, 0x7E7
 
 
 def household_vocabulary(cfg: Config) -> list[str]:
@@ -35,23 +36,33 @@ def household_vocabulary(cfg: Config) -> list[str]:
 
 @dataclass
 class FrameResult:
-    """One frame through perception: the detections, masks (N, H, W), embeddings (N, D), graph stats, view."""
+    """One frame through perception: the detections, masks (N, H, W), embeddings (N, D), graph stats, view
+    (with the text read, placed in the robot frame), and the text readings as the reader gave them."""
 
     detections: list[Detection]
     masks: np.ndarray
     embeddings: np.ndarray
     stats: UpdateStats
     observations: Observations
+    readings: list[TextReading]
 
 
 class Perception:
-    """Detector, segmenter and visual embedder feeding one online scene graph."""
+    """Detector, segmenter and visual embedder feeding one online scene graph; optionally a text reader."""
 
-    def __init__(self, detector: Detector, segmenter: Segmenter, embedder: Embedder, graph: OnlineSceneGraph) -> None:
+    def __init__(
+        self,
+        detector: Detector,
+        segmenter: Segmenter,
+        embedder: Embedder,
+        graph: OnlineSceneGraph,
+        reader: TextReader | None = None,
+    ) -> None:
         self.detector = detector
         self.segmenter = segmenter
         self.embedder = embedder
         self.graph = graph
+        self.reader = reader
 
     def perceive(self, frame: Frame) -> tuple[list[Detection], np.ndarray, np.ndarray]:
         """The 2D front end alone: detections, (N, H, W) masks, (N, D) embeddings."""
@@ -67,7 +78,13 @@ class Perception:
         view = self.graph.view(frame.depth_m, frame.odom_pose)
         since = frame.index if self.graph.cfg.observation_nodes == "detected" else None
         observations = self.graph.observations(frame.odom_pose, view=view, since_frame=since)
-        return FrameResult(detections, masks, embeddings, stats, observations)
+        readings = self.reader.read(frame) if self.reader is not None else []
+        if readings:
+            g = self.graph
+            observations.texts = locate_readings(
+                readings, frame.depth_m, g.intrinsics, g.T_base_camera, g.cfg.max_depth_m
+            )
+        return FrameResult(detections, masks, embeddings, stats, observations, readings)
 
     def run(self, frames: Iterable[Frame], show_progress: bool = False) -> list[FrameResult]:
         """`step` over a sequence of frames."""
@@ -100,7 +117,12 @@ def make_perception(
         from bimfactor.perception.vlm import make_vlm_backends
 
         vlm = make_vlm_backends(cfg, vocabulary, text_embedder)
-        return Perception(vlm.detector, vlm.segmenter, vlm.embedder, graph)
+        reader = None
+        if p.text.enabled:
+            from bimfactor.perception.ocr import RapidOcrReader
+
+            reader = RapidOcrReader(p.text.min_score)
+        return Perception(vlm.detector, vlm.segmenter, vlm.embedder, graph, reader)
     errors = load_sim_errors(p, sim_preset)
     confusion = LabelConfusion(vocabulary, text_embedder, errors.confusion_temperature)
     detector = SimDetector(
@@ -108,4 +130,5 @@ def make_perception(
     )
     segmenter = SimSegmenter(errors, sim_rng(seed, meta, SEGMENTER_STREAM))
     embedder = SimEmbedder(meta, text_embedder, vocabulary, errors, seed, sim_rng(seed, meta, EMBEDDER_STREAM))
-    return Perception(detector, segmenter, embedder, graph)
+    reader = SimTextReader(meta, p.text, sim_rng(seed, meta, READER_STREAM)) if p.text.enabled else None
+    return Perception(detector, segmenter, embedder, graph, reader)

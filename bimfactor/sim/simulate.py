@@ -53,7 +53,7 @@ def build_world(prior: BimPrior, model: IfcModel, cfg: Config, seed: int) -> Sim
             f"IFC model {Path(model.source_path).name} (sha256 {model.sha256[:12]}…) is not the one the prior "
             f"was built from (sha256 {prior.source_sha256[:12]}…)"
         )
-    return SimWorld.from_model(model, prior, cfg.sim.as_built, world_rng(seed))
+    return SimWorld.from_model(model, prior, cfg.sim.as_built, world_rng(seed), cfg.sim.door_plates)
 
 
 def simulate_sequence(

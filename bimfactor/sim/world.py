@@ -4,13 +4,14 @@ Doors are left out (they stand open, so the robot can see and drive through door
 annotations and other non-physical products are left out too. Slabs and coverings are kept so the camera
 sees floors; a storey with no floor (or no ceiling) under its rooms gets a synthetic plane. Optional as-built
 deviations move or remove BIM objects and add clutter boxes the BIM does not contain; `SimWorld.changes`
-records them as ground truth.
+records them as ground truth. Door plates (`sim.door_plates`, `bim.plates`) can be hung beside the doors.
 """
 
 from __future__ import annotations
 
 import hashlib
 import logging
+import zlib
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -19,9 +20,10 @@ import open3d as o3d
 
 from bimfactor.bim.grid import GridSpec, band_polygons, rasterise_polygons
 from bimfactor.bim.ifc import IfcElement, IfcModel, Mesh
+from bimfactor.bim.plates import door_plates
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.rooms import OUTSIDE
-from bimfactor.config import AsBuiltConfig
+from bimfactor.config import AsBuiltConfig, DoorPlateSimConfig
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +46,10 @@ FIXED_OBJECT_CLASSES = ("IfcDoor", "IfcWindow")
 
 # Synthetic instances carry no IFC class and no guid; their label says what they are.
 FLOOR_LABEL, CEILING_LABEL, CLUTTER_LABEL = "floor", "ceiling", "clutter"
+DOOR_PLATE_LABEL = "door plate"  # its instance record also has the plate's "text"
 NO_OBJECT = -1
+PLATE_PROBE_M = 0.6  # a plate's wall is looked for this far in front of the door's face (and as far behind)
+PLATE_THICKNESS_M = 0.01
 
 _STRUCTURE_LABELS = (  # IFC class (or supertype) → label of a structural instance, first match wins
     ("IfcWall", "wall"),
@@ -151,9 +156,15 @@ class SimWorld:
 
     @classmethod
     def from_model(
-        cls, model: IfcModel, prior: BimPrior, as_built: AsBuiltConfig, rng: np.random.Generator
+        cls,
+        model: IfcModel,
+        prior: BimPrior,
+        as_built: AsBuiltConfig,
+        rng: np.random.Generator,
+        door_plates: DoorPlateSimConfig | None = None,
     ) -> SimWorld:
-        """Build the world from the IFC model's physical elements, with the as-built deviations `as_built` asks for."""
+        """Build the world from the IFC model's physical elements, with the as-built deviations `as_built` asks for
+        and, when `door_plates` is enabled, the door plates of `bim.plates`."""
         object_by_guid = {o.guid: o for o in prior.objects}
         builder = _Builder()
         movable: list[int] = []
@@ -170,6 +181,8 @@ class SimWorld:
                 movable.append(iid)
         changes = _apply_as_built(builder, movable, prior, as_built, rng)
         _add_missing_floors_and_ceilings(builder, model, prior)
+        if door_plates is not None and door_plates.enabled:
+            _hang_door_plates(builder, prior, door_plates)
         world = builder.build(changes, [s.storey.elevation_m for s in prior.storeys])
         log.info(
             "sim world: %d instances, %d triangles, %d as-built changes",
@@ -215,9 +228,10 @@ class _Builder:
         self.meshes: list[Mesh] = []
         self.removed: set[int] = set()
 
-    def add(self, mesh: Mesh, guid: str, ifc_class: str, object_id: int, label: str) -> int:
+    def add(self, mesh: Mesh, guid: str, ifc_class: str, object_id: int, label: str, **extra: str) -> int:
         iid = len(self.instances)
-        self.instances.append({"id": iid, "guid": guid, "ifc_class": ifc_class, "object_id": object_id, "label": label})
+        record = {"id": iid, "guid": guid, "ifc_class": ifc_class, "object_id": object_id, "label": label, **extra}
+        self.instances.append(record)
         self.meshes.append(mesh)
         return iid
 
@@ -379,6 +393,35 @@ def _box_mesh(center_xy: np.ndarray, yaw: float, size: np.ndarray, z0: float) ->
         np.int32,
     )  # fmt: skip
     return Mesh(vertices, faces)
+
+
+# ------------------------------------------------------------------------------------------ door plates
+
+
+def _hang_door_plates(builder: _Builder, prior: BimPrior, cfg: DoorPlateSimConfig) -> None:
+    """A thin box per plate of `door_plates(prior)` on the wall beside its door, on the left or right as the door's
+    guid decides; its instance record carries the plate's `text`. A plate whose wall is not found is skipped."""
+    scene = builder.scene()
+    doors = {d.id: d for d in prior.doors}
+    width, height = cfg.size_m
+    hung = 0
+    for plate in door_plates(prior):
+        door = doors[plate.door_id]
+        side = 1.0 if zlib.crc32(door.guid.encode()) & 1 else -1.0
+        along = np.asarray(plate.axis_xy) * side * (plate.door_width_m / 2 + cfg.beside_m + width / 2)
+        out = np.asarray(plate.normal_xy)
+        z = prior.storeys[plate.storey_index].storey.elevation_m + cfg.height_m
+        origin = np.asarray(plate.xy) + along + out * PLATE_PROBE_M
+        ray = np.concatenate([origin, [z], -out, [0.0]])[None].astype(np.float32)
+        t_hit = scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0]
+        if not np.isfinite(t_hit) or t_hit > 2 * PLATE_PROBE_M:
+            continue
+        face = origin - out * (t_hit - PLATE_THICKNESS_M / 2 - 0.005)
+        size = np.array([width, PLATE_THICKNESS_M, height])
+        mesh = _box_mesh(face, float(np.arctan2(plate.axis_xy[1], plate.axis_xy[0])), size, z - height / 2)
+        builder.add(mesh, "", "DoorPlate", NO_OBJECT, DOOR_PLATE_LABEL, text=plate.text)
+        hung += 1
+    log.info("sim world: %d door plates", hung)
 
 
 # ------------------------------------------------------------------------------------------ floors and ceilings

@@ -1,0 +1,165 @@
+"""Door plates in the simulated world, read back by the sim text reader and placed in the robot frame."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from bimfactor.bim.plates import door_plates
+from bimfactor.localization.smcl import SemanticMCL
+from bimfactor.localization.text import PlateLikelihood
+from bimfactor.perception.text import SimTextReader, locate_readings
+from bimfactor.pipeline import visibility_of
+from bimfactor.sim.sensors import RgbdCamera
+from bimfactor.sim.simulate import build_world
+from bimfactor.sim.world import DOOR_PLATE_LABEL, SimWorld
+from bimfactor.types import Frame, Observations, SequenceMeta, TextObservations, se2_compose, wrap_angle
+
+from .conftest import NOISE_OFF, Building, config_with
+
+PLATES_ON = ["sim.door_plates.enabled=true", "perception.text.enabled=true", "perception.text.sim_char_error_rate=0"]
+
+
+@pytest.fixture(scope="module")
+def plated(duplex: Building, config_overrides: list[str]):
+    cfg = config_with(config_overrides, *NOISE_OFF, *PLATES_ON, "perception.text.sim_read_probability=1")
+    return cfg, build_world(duplex.prior, duplex.model, cfg, seed=0)
+
+
+def _plate_records(world: SimWorld) -> list[dict]:
+    return [rec for rec in world.instances if rec["label"] == DOOR_PLATE_LABEL]
+
+
+def test_plates_hang_only_when_asked(duplex: Building, plated) -> None:
+    plain = build_world(duplex.prior, duplex.model, duplex.cfg, seed=0)
+    assert _plate_records(plain) == []
+    _, world = plated
+    records = _plate_records(world)
+    numbers = {room.space_number for room in duplex.prior.rooms}
+    assert len(records) >= 15
+    assert all(rec["text"] in numbers and rec["object_id"] == -1 for rec in records)
+
+
+def test_a_plate_is_read_from_in_front_and_placed_where_it_hangs(duplex: Building, plated) -> None:
+    cfg, world = plated
+    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    meta = SequenceMeta("plates", "sim", camera.intrinsics, camera.T_base_camera, instances=world.instances)
+    reader = SimTextReader(meta, cfg.perception.text, np.random.default_rng(0))
+    read_any = 0
+    for plate in door_plates(duplex.prior)[:10]:
+        # 2 m in front of the door on the plate's side, facing the wall: the plate is beside the door, in view.
+        xy = np.asarray(plate.xy) + 2.0 * np.asarray(plate.normal_xy)
+        pose = np.array([*xy, np.arctan2(-plate.normal_xy[1], -plate.normal_xy[0])])
+        elevation = duplex.prior.storeys[plate.storey_index].storey.elevation_m
+        image = camera.render(pose, elevation)
+        frame = Frame(0, 0.0, image.rgb, image.depth_m, np.zeros(3), instance_ids=image.instance_ids)
+        readings = reader.read(frame)
+        mine = [r for r in readings if r.text == plate.text]
+        if not mine:
+            continue
+        read_any += 1
+        located = locate_readings(mine, image.depth_m, camera.intrinsics, camera.T_base_camera, 8.0)
+        r, b = located.range_m[0], located.bearing_rad[0]
+        seen_xy = se2_compose(pose, np.array([r * np.cos(b), r * np.sin(b), 0.0]))[:2]
+        # Beside its door: within the door's half width plus the plate's gap and width of the door's centre.
+        assert np.linalg.norm(seen_xy - np.asarray(plate.xy)) < plate.door_width_m / 2 + 0.5
+        assert abs(wrap_angle(located.bearing_rad[0])) < np.deg2rad(45)
+    assert read_any >= 5
+
+
+def test_character_errors_and_legibility(duplex: Building, plated) -> None:
+    cfg, world = plated
+    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    meta = SequenceMeta("plates", "sim", camera.intrinsics, camera.T_base_camera, instances=world.instances)
+    plate = door_plates(duplex.prior)[0]
+    frames = []
+    for distance in (1.8, 6.0):
+        xy = np.asarray(plate.xy) + distance * np.asarray(plate.normal_xy)
+        pose = np.array([*xy, np.arctan2(-plate.normal_xy[1], -plate.normal_xy[0])])
+        image = camera.render(pose, duplex.prior.storeys[plate.storey_index].storey.elevation_m)
+        frames.append(Frame(0, 0.0, image.rgb, image.depth_m, np.zeros(3), instance_ids=image.instance_ids))
+    exact = SimTextReader(meta, cfg.perception.text, np.random.default_rng(1))
+    assert plate.text in [r.text for r in exact.read(frames[0])]
+    assert exact.read(frames[1]) == []  # 6 m away a 15 cm plate is a few pixels high: not legible
+    garbled_cfg = cfg.perception.text.model_copy(update={"sim_char_error_rate": 1.0})
+    garbled = SimTextReader(meta, garbled_cfg, np.random.default_rng(1)).read(frames[0])
+    assert garbled and all(
+        len(r.text) == len(plate.text) and all(a != b for a, b in zip(r.text, plate.text, strict=True))
+        for r in garbled
+        if r.gt_instance_id in {rec["id"] for rec in _plate_records(world) if rec["text"] == plate.text}
+    )
+
+
+def _facing(plate, distance: float) -> np.ndarray:
+    """The pose `distance` in front of a plate's door, facing it."""
+    xy = np.asarray(plate.xy) + distance * np.asarray(plate.normal_xy)
+    return np.array([*xy, np.arctan2(-plate.normal_xy[1], -plate.normal_xy[0])])
+
+
+def test_plates_face_away_from_their_rooms(duplex: Building) -> None:
+    prior = duplex.prior
+    plates = door_plates(prior)
+    assert len(plates) >= 20 and {p.text[0] for p in plates} == {"A", "B"}  # the two units' numbers
+    areas = {room.id: room.area_m2 for room in prior.rooms}
+    for plate in plates:
+        xy, n = np.asarray(plate.xy), np.asarray(plate.normal_xy)
+        inside, outside = prior.room_at(np.array([xy - 0.5 * n, xy + 0.5 * n]), plate.storey_index)
+        assert inside == plate.room_id != outside
+        assert prior.rooms[plate.room_id].space_number == plate.text
+        door = prior.doors[plate.door_id]
+        other = door.room_b if door.room_a == plate.room_id else door.room_a
+        assert areas.get(other, np.inf) >= areas[plate.room_id]  # between two rooms, the smaller is named
+    assert len({p.door_id for p in plates}) == len(plates)
+    unnumbered = dataclasses.replace(prior, rooms=[dataclasses.replace(r, space_number="") for r in prior.rooms])
+    assert door_plates(unnumbered) == []
+
+
+def test_reading_likelihood_by_hand(duplex: Building) -> None:
+    cfg = duplex.cfg.smcl
+    plates = door_plates(duplex.prior)
+    plate = next(p for p in plates if p.text.startswith("A") and sum(q.text == p.text for q in plates) == 1)
+    twin = next(p for p in plates if p.text == "B" + plate.text[1:])
+    # Only these two rooms keep their numbers, so no third plate's near-miss text enters the values below.
+    rooms = [
+        r if r.id in (plate.room_id, twin.room_id) else dataclasses.replace(r, space_number="")
+        for r in duplex.prior.rooms
+    ]
+    model = PlateLikelihood(dataclasses.replace(duplex.prior, rooms=rooms), cfg)
+    eps, c = cfg.text_unexplained, cfg.text_edit_cost
+    at_plate, at_twin = _facing(plate, 2.0), _facing(twin, 2.0)
+    behind = np.array([*(np.asarray(plate.xy) - 2.0 * np.asarray(plate.normal_xy)), at_plate[2] + np.pi])
+    poses = np.stack([at_plate, at_twin, behind])
+    storeys = np.array([plate.storey_index, twin.storey_index, plate.storey_index])
+    reading = TextObservations([plate.text.lower()], np.array([2.0]), np.array([0.0]))
+    got = model.log_likelihood(poses, storeys, reading)
+    # In front of the plate, where it was read: q = 1. At the twin unit's plate one character differs: e^-c.
+    # Behind the wall nothing explains it: ε alone.
+    # (The other unit's plate, metres away and off the bearing, adds under 1e-3 to the last.)
+    np.testing.assert_allclose(got, np.log([1.0, eps + (1 - eps) * np.exp(-c), eps]), atol=1e-3)
+    # Read 1 m nearer than it is and 20° off: the paper's φ_dist and φ_ang.
+    off = TextObservations([plate.text], np.array([1.0]), np.array([np.deg2rad(20)]))
+    q = np.exp(-1.0 / cfg.sigma_d_m) * np.exp(cfg.kappa_alpha * (np.cos(np.deg2rad(20)) - 1))
+    np.testing.assert_allclose(model.log_likelihood(at_plate[None], storeys[:1], off), np.log(eps + (1 - eps) * q))
+    # A reading no plate matches moves no particle against another.
+    nothing = TextObservations(["EXIT"], np.array([2.0]), np.array([0.0]))
+    np.testing.assert_allclose(model.log_likelihood(poses, storeys, nothing), np.log(eps), rtol=1e-12)
+
+
+def test_the_filter_tells_the_twin_units_apart_by_a_plate(duplex: Building) -> None:
+    """The duplex's units are one turned by 180°: objects and walls cannot tell them apart, a plate can."""
+    cfg = duplex.cfg.smcl
+    plates = door_plates(duplex.prior)
+    plate = next(p for p in plates if p.text.startswith("A") and sum(q.text == p.text for q in plates) == 1)
+    twin = next(p for p in plates if p.text == "B" + plate.text[1:])
+    filt = SemanticMCL(duplex.prior, visibility_of(duplex.prior, duplex.cfg), cfg, np.random.default_rng(0))
+    filt.initialize_around(_facing(plate, 2.0), plate.storey_index, 0.3, np.deg2rad(5))
+    half = filt.num_particles // 2
+    filt.particles[half:] = _facing(twin, 2.0)
+    filt.storeys[half:] = twin.storey_index
+    filt.weights[:] = 1.0 / filt.num_particles
+    empty = Observations(np.zeros((0, duplex.prior.object_embeddings.shape[1]), np.float32), np.zeros(0), np.zeros(0))
+    empty.texts = TextObservations([plate.text], np.array([2.0]), np.array([0.0]))
+    filt.update(empty)
+    assert filt.weights[:half].sum() > 0.9
