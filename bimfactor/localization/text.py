@@ -48,15 +48,18 @@ class PlateLikelihood:
         self.xy = np.asarray([p.xy for p in plates], float).reshape(-1, 2)
         self.normal = np.asarray([p.normal_xy for p in plates], float).reshape(-1, 2)
         self.storey = np.asarray([p.storey_index for p in plates], np.int64)
+        self._matches: dict[str, np.ndarray] = {}  # text → `text_match`: refine weighs one reading at many poses
 
     def __len__(self) -> int:
         return len(self.texts)
 
     def text_match(self, text: str) -> np.ndarray:
-        """(P,) exp(−c · edits) of one reading against every plate's text."""
+        """(P,) exp(−c · edits) of one reading against every plate's text (0 for a reading with no letter or digit)."""
         t = normalise_text(text)
-        edits = np.asarray([edit_distance(t, s) for s in self.texts], float)
-        return np.exp(-self.cfg.text_edit_cost * edits)
+        if t not in self._matches:
+            edits = np.asarray([edit_distance(t, s) for s in self.texts], float)
+            self._matches[t] = np.exp(-self.cfg.text_edit_cost * edits) if t else np.zeros(len(self.texts))
+        return self._matches[t]
 
     def log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, texts: TextObservations) -> np.ndarray:
         """(M,) Σ_k log(ε + (1 − ε) · max_j q_j(x)) over the step's readings (see the module docstring)."""
@@ -67,7 +70,7 @@ class PlateLikelihood:
         if not len(self) or texts is None:
             return out
         for text, r, b in zip(texts.texts, texts.range_m, texts.bearing_rad, strict=True):
-            match = self.text_match(text) if normalise_text(text) else np.zeros(len(self))
+            match = self.text_match(text)
             candidates = np.flatnonzero(match >= MIN_TEXT_MATCH)
             best = np.zeros(len(particles))
             if len(candidates):
