@@ -165,3 +165,13 @@ class Observations:
     @property
     def n_texts(self) -> int:
         return 0 if self.texts is None else len(self.texts)
+
+    def measurements(self) -> tuple[np.ndarray, np.ndarray]:
+        """(K + T,) ranges and bearings of the K nodes, then of the T text readings: measurement k ≥ K is reading
+        k − K (how the pose graphs index what a step measured)."""
+        if not self.n_texts:
+            return np.asarray(self.range_m, np.float64), np.asarray(self.bearing_rad, np.float64)
+        assert self.texts is not None
+        ranges = np.concatenate([np.asarray(self.range_m, np.float64), np.asarray(self.texts.range_m, np.float64)])
+        bearings = np.concatenate([np.asarray(self.bearing_rad, np.float64), np.asarray(self.texts.bearing_rad)])
+        return ranges, bearings

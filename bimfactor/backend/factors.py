@@ -1,6 +1,8 @@
 """GTSAM factors and noise models of the per-mode pose graphs, built from config values.
 
-Keys: `X(i)` is the robot pose (gtsam.Pose2) at keyframe i, `L(j)` the BIM object with id j (gtsam.Point2).
+Keys: `X(i)` is the robot pose (gtsam.Pose2) at keyframe i, `L(j)` the BIM object with id j (gtsam.Point2); the
+door plates (`bim.plates`) follow the objects as landmarks N, N + 1, … of a prior with N objects, and a step's
+measurement k is its node k or, past its K nodes, its text reading k − K (`Observations.measurements`).
 GTSAM's Pose2 tangent space is body-frame (dx, dy, dθ); covariances the rest of bimfactor reads are world-frame
 (x, y, yaw), so `covariance_world_to_body` / `covariance_body_to_world` rotate between the two.
 """
@@ -15,6 +17,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
+from bimfactor.bim.plates import PLATE_REACH_M, door_plates
 from bimfactor.config import BackendConfig
 from bimfactor.localization.motion import odometry_covariance
 from bimfactor.types import Observations
@@ -36,7 +39,7 @@ __all__ = [
     "to_pose2",
 ]
 
-Association = Sequence[tuple[int, int]]  # (observation index, BIM object id) pairs
+Association = Sequence[tuple[int, int]]  # (measurement index, landmark id) pairs
 
 
 @dataclass(frozen=True)
@@ -56,8 +59,16 @@ class Landmarks:
 
     @classmethod
     def from_prior(cls, prior: Any) -> Landmarks:
-        """A BimPrior's objects: their footprint boxes' centres and sizes."""
-        return cls(prior.object_positions()[:, :2].copy(), prior.object_sizes()[:, :2].copy())
+        """A BimPrior's objects (their footprint boxes' centres and sizes), then its door plates in `door_plates`
+        order: each at its door's centre, as long along the wall as the door plus `PLATE_REACH_M` either side (where
+        the plate hangs beside the door is not in the model)."""
+        xy, size = prior.object_positions()[:, :2], prior.object_sizes()[:, :2]
+        plates = door_plates(prior)
+        if plates:
+            span = np.array([p.door_width_m + 2 * PLATE_REACH_M for p in plates])
+            xy = np.vstack([xy, [p.xy for p in plates]])
+            size = np.vstack([size, np.abs([p.axis_xy for p in plates]) * span[:, None]])
+        return cls(np.asarray(xy, np.float64).copy(), np.asarray(size, np.float64).copy())
 
 
 def to_pose2(pose: np.ndarray) -> gtsam.Pose2:
@@ -153,11 +164,10 @@ def landmark_prior_factor(object_id: int, landmarks: Landmarks, cfg: BackendConf
 def landmark_factors(
     i: int, observations: Observations, association: Association, noise: gtsam.noiseModel.Base
 ) -> list[gtsam.BearingRangeFactor2D]:
-    """One BearingRangeFactor2D X(i) → L(j) per (observation index, object id) pair."""
+    """One BearingRangeFactor2D X(i) → L(j) per (measurement index, landmark id) pair."""
+    ranges, bearings = observations.measurements()
     factors = []
     for k, object_id in association:
-        bearing = gtsam.Rot2(float(observations.bearing_rad[k]))
-        factors.append(
-            gtsam.BearingRangeFactor2D(X(i), L(int(object_id)), bearing, float(observations.range_m[k]), noise)
-        )
+        bearing = gtsam.Rot2(float(bearings[k]))
+        factors.append(gtsam.BearingRangeFactor2D(X(i), L(int(object_id)), bearing, float(ranges[k]), noise))
     return factors

@@ -5,6 +5,7 @@ Per mode k (a `ModeGraph`), keyed by keyframe index i and BIM object id j:
 2. BetweenFactorPose2 X(i−1) → X(i) per odometry increment;
 3. for every observation matched to object j: a robust BearingRangeFactor2D X(i) → L(j), and once per object a
    tight PriorFactorPoint2 holding L(j) at its BIM position (σ = `landmark_sigma_m`: as-built reality deviates);
+   a door-plate reading matched to a plate is one more, to the plate's landmark (`factors.Landmarks`);
 4. optionally PriorFactorPose2s: the keyframe's scan matched against the BIM's walls from the mode's predicted pose
    (`MultiHypothesisBackend.step`'s `pose_factor_fn`, kept apart as `scan_factors`) and a fine registrar's result
    (`add_pose_factor`).
@@ -12,8 +13,8 @@ Online, ISAM2 takes one update per keyframe (one more only when re-association c
 whose update GTSAM finds indeterminate restarts its graph from its particle cluster at that keyframe.
 
 Mode probability (`MultiHypothesisBackend.step`): with w_k the mode's particle-weight share and, over the K
-observations of the step, C_k = Σ_j min(χ²_kj, c_out) where χ²_kj = (Δbearing/σ_b)² + (Δrange/σ_r)² of a matched
-observation at the updated estimate and an unmatched observation costs c_out = `outlier_chi2`,
+measurements of the step (nodes and text readings), C_k = Σ_j min(χ²_kj, c_out) where χ²_kj = (Δbearing/σ_b)² +
+(Δrange/σ_r)² of a matched one at the updated estimate and an unmatched one costs c_out = `outlier_chi2`,
 
     p_k = w_k · exp(−C_k / (2τ)) / Σ_m w_m · exp(−C_m / (2τ)),   ν_k = C_k / (2K)  (normalised residual, ≈ 1 when
                                                                                     the matches fit their noise).
@@ -89,37 +90,43 @@ def observation_cost(
     association: Association,
     cfg: BackendConfig,
 ) -> float:
-    """C = Σ_j min(χ²_j, c_out) over the step's observations; unmatched ones cost c_out (see module docstring)."""
-    n_obs = len(observations)
-    cost = cfg.outlier_chi2 * (n_obs - len(association))
+    """C = Σ_j min(χ²_j, c_out) over the step's measurements (nodes and text readings); unmatched ones cost c_out
+    (see module docstring)."""
+    ranges, bearings = observations.measurements()
+    cost = cfg.outlier_chi2 * (len(ranges) - len(association))
     if not association:
         return float(cost)
     obs_idx = np.array([k for k, _ in association])
     points = np.array([landmark_xy[j] for _, j in association])
     d, alpha = polar_coordinates(pose, points)
-    db = wrap_angle(np.asarray(observations.bearing_rad)[obs_idx] - alpha) / np.deg2rad(cfg.bearing_sigma_deg)
-    dr = (np.asarray(observations.range_m)[obs_idx] - d) / cfg.range_sigma_m
+    db = wrap_angle(bearings[obs_idx] - alpha) / np.deg2rad(cfg.bearing_sigma_deg)
+    dr = (ranges[obs_idx] - d) / cfg.range_sigma_m
     return float(cost + np.minimum(db**2 + dr**2, cfg.outlier_chi2).sum())
 
 
 def semantic_associator(
     likelihood: SemanticLikelihood, observations: Observations, min_score: float = 0.05
 ) -> AssociateFn:
-    """An `AssociateFn` from the S-MCL score: the Hungarian assignment maximising φ = φ_sem·φ_dist·φ_ang at a pose.
+    """An `AssociateFn` from the S-MCL score: the Hungarian assignment maximising φ = φ_sem·φ_dist·φ_ang at a pose,
+    then each door-plate reading to the plate it fits best there (`PlateLikelihood.associate`; measurement K + r,
+    landmark `first_landmark_id` + p).
 
     Pairs scoring at most `min_score` are left unmatched (φ_dist is a loose gate: exp(−|Δd| / σ_d)).
     """
+    plates, K = likelihood.plates, len(observations)
 
     def associate(pose: np.ndarray, storey: int) -> list[tuple[int, int]]:
+        read = [(K + r, plates.first_landmark_id + p) for r, p in plates.associate(pose, storey, observations.texts)]
         phi, ids = likelihood.pair_scores(np.asarray(pose, np.float64)[None], np.array([storey]), observations)
         if phi.shape[2] == 0:
-            return []
+            return read
         rows, cols = linear_sum_assignment(phi[0], maximize=True)
-        return [
+        seen = [
             (int(k), int(ids[0, c]))
             for k, c in zip(rows, cols, strict=True)
             if phi[0, k, c] > min_score and ids[0, c] >= 0
         ]
+        return seen + read
 
     return associate
 
@@ -444,7 +451,8 @@ class MultiHypothesisBackend:
             graph = self.graphs.pop(mode_id)
             if len(graph.poses) >= self.cfg.refine_retired_min_keyframes:
                 self.retired.append(graph.history(retiring[mode_id]))
-        estimates = [self._estimate(mode, costs[mode.id], len(observations)) for mode in self.tracker.modes]
+        n_measured = len(observations) + observations.n_texts
+        estimates = [self._estimate(mode, costs[mode.id], n_measured) for mode in self.tracker.modes]
         estimates.sort(key=lambda e: -e.probability)
         t_end = time.perf_counter()
         timings = {

@@ -25,6 +25,7 @@ from bimfactor.localization.likelihood import bearing_similarity, distance_simil
 from bimfactor.types import TextObservations
 
 MIN_TEXT_MATCH = 1e-3  # plates whose text matches a reading less than this (3 edits at c = 3) are not weighed
+MIN_PLATE_ASSOCIATION = 0.1  # a reading enters a pose graph only for a plate it fits this well (q; one edit: e^−3)
 
 
 def edit_distance(a: str, b: str) -> int:
@@ -39,7 +40,11 @@ def edit_distance(a: str, b: str) -> int:
 
 
 class PlateLikelihood:
-    """log P(readings | x) of particles against the prior's door plates; 0 for a prior without plates."""
+    """log P(readings | x) of particles against the prior's door plates; 0 for a prior without plates.
+
+    The plates are also landmarks of the pose graphs: plate p is landmark `first_landmark_id + p`, after the prior's
+    objects (`backend.factors.Landmarks.from_prior` lists them in the same order).
+    """
 
     def __init__(self, prior: BimPrior, cfg: SmclConfig) -> None:
         self.cfg = cfg
@@ -48,6 +53,7 @@ class PlateLikelihood:
         self.xy = np.asarray([p.xy for p in plates], float).reshape(-1, 2)
         self.normal = np.asarray([p.normal_xy for p in plates], float).reshape(-1, 2)
         self.storey = np.asarray([p.storey_index for p in plates], np.int64)
+        self.first_landmark_id = len(prior.object_positions())
         self._matches: dict[str, np.ndarray] = {}  # text → `text_match`: refine weighs one reading at many poses
 
     def __len__(self) -> int:
@@ -61,25 +67,46 @@ class PlateLikelihood:
             self._matches[t] = np.exp(-self.cfg.text_edit_cost * edits) if t else np.zeros(len(self.texts))
         return self._matches[t]
 
+    def scores(
+        self, particles: np.ndarray, storeys: np.ndarray, text: str, range_m: float, bearing_rad: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """q (M, C) of one reading against the C plates whose text it matches at all (≥ `MIN_TEXT_MATCH`) at M
+        (3,) poses, and those plates' (C,) indices; q is 0 where a plate is behind x's wall or on another storey."""
+        particles = np.asarray(particles, np.float64).reshape(-1, 3)
+        storeys = np.broadcast_to(np.asarray(storeys, np.int64), len(particles))
+        match = self.text_match(text)
+        candidates = np.flatnonzero(match >= MIN_TEXT_MATCH)
+        if not len(candidates):
+            return np.zeros((len(particles), 0)), candidates
+        xy, normal = self.xy[candidates], self.normal[candidates]
+        d, alpha = polar_coordinates(particles[:, None, :], xy[None])
+        in_front = np.einsum("mcj,cj->mc", particles[:, None, :2] - xy[None], normal) > 0.0
+        here = storeys[:, None] == self.storey[candidates][None]
+        q = match[candidates] * distance_similarity(range_m, d, self.cfg.sigma_d_m)
+        q = q * bearing_similarity(bearing_rad, alpha, self.cfg.kappa_alpha) * (in_front & here)
+        return q, candidates
+
     def log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, texts: TextObservations) -> np.ndarray:
         """(M,) Σ_k log(ε + (1 − ε) · max_j q_j(x)) over the step's readings (see the module docstring)."""
         particles = np.asarray(particles, np.float64).reshape(-1, 3)
-        storeys = np.broadcast_to(np.asarray(storeys, np.int64), len(particles))
         eps = self.cfg.text_unexplained
         out = np.zeros(len(particles))
         if not len(self) or texts is None:
             return out
         for text, r, b in zip(texts.texts, texts.range_m, texts.bearing_rad, strict=True):
-            match = self.text_match(text)
-            candidates = np.flatnonzero(match >= MIN_TEXT_MATCH)
-            best = np.zeros(len(particles))
-            if len(candidates):
-                xy, normal = self.xy[candidates], self.normal[candidates]
-                d, alpha = polar_coordinates(particles[:, None, :], xy[None])
-                in_front = np.einsum("mcj,cj->mc", particles[:, None, :2] - xy[None], normal) > 0.0
-                here = storeys[:, None] == self.storey[candidates][None]
-                q = match[candidates] * distance_similarity(r, d, self.cfg.sigma_d_m)
-                q = q * bearing_similarity(b, alpha, self.cfg.kappa_alpha) * (in_front & here)
-                best = q.max(axis=1)
+            q, _ = self.scores(particles, storeys, text, float(r), float(b))
+            best = q.max(axis=1) if q.shape[1] else np.zeros(len(particles))
             out += np.log(eps + (1.0 - eps) * best)
         return out
+
+    def associate(self, pose: np.ndarray, storey: int, texts: TextObservations | None) -> list[tuple[int, int]]:
+        """(reading index, plate index) pairs at one (3,) pose: each reading's best plate there, if its q exceeds
+        `MIN_PLATE_ASSOCIATION` (the plate its text, distance and bearing point to; several readings may name one)."""
+        pairs: list[tuple[int, int]] = []
+        if not len(self) or texts is None:
+            return pairs
+        for k, (text, r, b) in enumerate(zip(texts.texts, texts.range_m, texts.bearing_rad, strict=True)):
+            q, candidates = self.scores(np.asarray(pose, np.float64)[None], storey, text, float(r), float(b))
+            if q.shape[1] and q[0].max() > MIN_PLATE_ASSOCIATION:
+                pairs.append((k, int(candidates[int(np.argmax(q[0]))])))
+        return pairs

@@ -7,7 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from bimfactor.bim.plates import door_plates
+from bimfactor.backend.factors import Landmarks
+from bimfactor.backend.posegraph import ModeGraph, observation_cost, semantic_associator
+from bimfactor.bim.plates import PLATE_REACH_M, door_plates
+from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.smcl import SemanticMCL
 from bimfactor.localization.text import PlateLikelihood
 from bimfactor.perception.text import SimTextReader, locate_readings
@@ -163,3 +166,46 @@ def test_the_filter_tells_the_twin_units_apart_by_a_plate(duplex: Building) -> N
     empty.texts = TextObservations([plate.text], np.array([2.0]), np.array([0.0]))
     filt.update(empty)
     assert filt.weights[:half].sum() > 0.9
+
+
+def test_the_pose_graphs_take_a_read_plate_as_a_landmark(duplex: Building) -> None:
+    """A plate read is a bearing-range factor to the plate's landmark at the pose that explains it, and a reading no
+    plate explains at a mode's pose costs that mode an outlier's χ²."""
+    prior, cfg = duplex.prior, duplex.cfg
+    plates = door_plates(prior)
+    plate_index = next(
+        k for k, p in enumerate(plates) if p.text.startswith("A") and sum(q.text == p.text for q in plates) == 1
+    )
+    plate = plates[plate_index]
+    twin = next(p for p in plates if p.text == "B" + plate.text[1:])
+    likelihood = SemanticLikelihood(prior, visibility_of(prior, cfg), cfg.smcl)
+    landmark = likelihood.plates.first_landmark_id + plate_index
+    landmarks = Landmarks.from_prior(prior)
+    assert len(landmarks.xy) == likelihood.plates.first_landmark_id + len(plates)
+    np.testing.assert_allclose(landmarks.xy[landmark], plate.xy)
+    # Along its wall the plate may hang anywhere beside its door; across the wall it is where the wall is.
+    along = float(np.abs(np.asarray(plate.axis_xy)) @ landmarks.size[landmark])
+    across = float(np.abs(np.asarray(plate.normal_xy)) @ landmarks.size[landmark])
+    assert along == pytest.approx(plate.door_width_m + 2 * PLATE_REACH_M) and across < 1e-9
+
+    observed = Observations(np.zeros((1, prior.object_embeddings.shape[1]), np.float32), np.ones(1), np.zeros(1))
+    observed.texts = TextObservations([plate.text], np.array([2.0]), np.array([0.0]))
+    associate = semantic_associator(likelihood, observed)
+    at_plate, at_twin = _facing(plate, 2.0), _facing(twin, 2.0)
+    assert (1, landmark) in associate(at_plate, plate.storey_index)  # measurement 1: past the one node
+    assert all(k != 1 for k, _ in associate(at_twin, twin.storey_index))  # one character off: no factor
+    bcfg = cfg.backend
+    xy = {landmark: landmarks.xy[landmark]}
+    cost_here = observation_cost(at_plate, xy, observed, [(1, landmark)], bcfg)
+    cost_twin = observation_cost(at_twin, xy, observed, [], bcfg)
+    assert cost_here == pytest.approx(bcfg.outlier_chi2)  # the unmatched node; the plate fits exactly
+    assert cost_twin == pytest.approx(2 * bcfg.outlier_chi2)
+
+    # A mode 0.6 m too near the door (a loose prior) is pushed back by the reading's range: the factor is in.
+    near = at_plate.copy()
+    near[:2] -= 0.6 * np.asarray(plate.normal_xy)
+    graph = ModeGraph(0, 0, near, np.diag([1.0, 1.0, 0.01]), landmarks, bcfg, plate.storey_index)
+    graph.add_keyframe(0, observed, [(1, landmark)])
+    before = float(np.hypot(*(near[:2] - plate.xy)))
+    after = float(np.hypot(*(graph.pose[:2] - graph.landmark_estimate(landmark))))
+    assert before == pytest.approx(1.4) and abs(after - 2.0) < 0.5 * abs(before - 2.0)
