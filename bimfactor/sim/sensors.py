@@ -75,6 +75,21 @@ class RgbdCamera:
         self._rgb_noise_levels = (special.ndtri(levels) * rgb_noise_std).astype(np.float32)
         self._rays = np.empty((len(self._dirs_camera), 6), np.float32)
 
+    def _print_plates(
+        self, rgb: np.ndarray, rays: np.ndarray, depth: np.ndarray, instance: np.ndarray, cos_incidence: np.ndarray
+    ) -> None:
+        """Paint the door plates' text (`sim.world.PlateTexture`) into the (H·W, 3) albedo of the pixels that hit
+        them; a pixel's footprint on the plate, depth / f widened by the incidence, picks the texture's level."""
+        on_plate = np.flatnonzero(np.isin(instance, np.fromiter(self.world.textures, np.int32)))
+        if not len(on_plate):
+            return
+        footprint = depth[on_plate] / self.intrinsics.fx / np.maximum(cos_incidence[on_plate], 0.2)
+        points = rays[on_plate, :3] + depth[on_plate, None] * rays[on_plate, 3:]
+        for iid in np.unique(instance[on_plate]):
+            mine = instance[on_plate] == iid
+            value = self.world.textures[int(iid)].sample(points[mine], footprint[mine])
+            rgb[on_plate[mine]] = value[:, None] * 255.0
+
     def rays(self, T_world_base: np.ndarray, storey_elevation_m: float = 0.0) -> np.ndarray:
         """(H·W, 6) float32 world rays (camera centre, direction with unit camera-z) for a base pose.
 
@@ -107,6 +122,8 @@ class RgbdCamera:
         cos_incidence = np.abs(_rowdot(normals, dirs)) / self._dir_norm
         shade = AMBIENT + np.abs(_rowdot(normals, self._shade_light))
         rgb = np.take(self._albedo_255, np.maximum(instance, 0), axis=0)
+        if self.world.textures:
+            self._print_plates(rgb, rays, depth, instance, cos_incidence)
         rgb *= shade[:, None]
         rgb[~hit] = BACKGROUND_RGB
         valid = hit & (depth >= self.camera.min_range_m) & (depth <= self.camera.max_range_m)

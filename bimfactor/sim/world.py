@@ -14,7 +14,9 @@ import logging
 import zlib
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Any
 
+import cv2
 import numpy as np
 import open3d as o3d
 
@@ -46,10 +48,12 @@ FIXED_OBJECT_CLASSES = ("IfcDoor", "IfcWindow")
 
 # Synthetic instances carry no IFC class and no guid; their label says what they are.
 FLOOR_LABEL, CEILING_LABEL, CLUTTER_LABEL = "floor", "ceiling", "clutter"
-DOOR_PLATE_LABEL = "door plate"  # its instance record also has the plate's "text"
+DOOR_PLATE_LABEL = "door plate"  # its instance record also has the plate's "text" and face (`PlateTexture`)
 NO_OBJECT = -1
 PLATE_PROBE_M = 0.6  # a plate's wall is looked for this far in front of the door's face (and as far behind)
 PLATE_THICKNESS_M = 0.01
+TEXTURE_HEIGHT_PX = 96  # a plate's printed text, drawn at this many texels high
+PLATE_PAPER, PLATE_INK = 0.92, 0.06  # reflectance of the plate and of its text
 
 _STRUCTURE_LABELS = (  # IFC class (or supertype) → label of a structural instance, first match wins
     ("IfcWall", "wall"),
@@ -153,6 +157,7 @@ class SimWorld:
     storey_elevations_m: list[float]
     scene: o3d.t.geometry.RaycastingScene = field(repr=False)
     geometry_to_instance: np.ndarray = field(repr=False)
+    textures: dict[int, PlateTexture] = field(default_factory=dict, repr=False)  # instance id → its printed face
 
     @classmethod
     def from_model(
@@ -228,7 +233,7 @@ class _Builder:
         self.meshes: list[Mesh] = []
         self.removed: set[int] = set()
 
-    def add(self, mesh: Mesh, guid: str, ifc_class: str, object_id: int, label: str, **extra: str) -> int:
+    def add(self, mesh: Mesh, guid: str, ifc_class: str, object_id: int, label: str, **extra: Any) -> int:
         iid = len(self.instances)
         record = {"id": iid, "guid": guid, "ifc_class": ifc_class, "object_id": object_id, "label": label, **extra}
         self.instances.append(record)
@@ -257,7 +262,8 @@ class _Builder:
         lookup = np.full(max(geometry_ids, default=-1) + 1, -1, np.int32)
         lookup[geometry_ids] = np.arange(len(meshes), dtype=np.int32)
         albedo = np.asarray([label_albedo(rec["label"]) for rec in instances], np.float32).reshape(-1, 3)
-        return SimWorld(instances, meshes, albedo, changes, elevations, scene, lookup)
+        textures = {rec["id"]: PlateTexture.of(rec) for rec in instances if "plate_face_m" in rec}
+        return SimWorld(instances, meshes, albedo, changes, elevations, scene, lookup, textures)
 
 
 def _add_mesh(scene: o3d.t.geometry.RaycastingScene, mesh: Mesh) -> int:
@@ -398,6 +404,65 @@ def _box_mesh(center_xy: np.ndarray, yaw: float, size: np.ndarray, z0: float) ->
 # ------------------------------------------------------------------------------------------ door plates
 
 
+@dataclass(frozen=True)
+class PlateTexture:
+    """What a door plate shows: its text in black on white, printed on its front face.
+
+    `face_m` is the face's centre (x, y, z), `right_xy` the unit vector along the wall to a reader's right,
+    `size_m` its width and height. The text is drawn once (`TEXTURE_HEIGHT_PX` high) into a mipmap pyramid; a
+    camera samples the level whose texel matches its pixel's footprint, as a real sensor averages over a pixel
+    rather than picking one point of the print (`sample`).
+    """
+
+    face_m: np.ndarray
+    right_xy: np.ndarray
+    size_m: np.ndarray
+    levels: tuple[np.ndarray, ...] = field(repr=False)
+
+    @classmethod
+    def of(cls, record: dict) -> PlateTexture:
+        """The texture of a plate's instance record (`_hang_door_plates`)."""
+        width, height = (float(v) for v in record["plate_size_m"])
+        image = _print_text(str(record["text"]), round(TEXTURE_HEIGHT_PX * width / height), TEXTURE_HEIGHT_PX)
+        levels = [image]
+        while min(levels[-1].shape) >= 4:
+            levels.append(cv2.pyrDown(levels[-1]))
+        return cls(
+            np.asarray(record["plate_face_m"], float),
+            np.asarray(record["plate_right_xy"], float),
+            np.array([width, height]),
+            tuple(levels),
+        )
+
+    def sample(self, points: np.ndarray, footprint_m: np.ndarray) -> np.ndarray:
+        """(n,) reflectance in [0, 1] at (n, 3) world points on the face, each seen by a pixel `footprint_m` wide."""
+        u = (points[:, :2] - self.face_m[:2]) @ self.right_xy / self.size_m[0] + 0.5
+        v = 0.5 - (points[:, 2] - self.face_m[2]) / self.size_m[1]
+        texel_m = self.size_m[1] / TEXTURE_HEIGHT_PX
+        level = np.clip(np.round(np.log2(np.maximum(footprint_m / texel_m, 1.0))), 0, len(self.levels) - 1)
+        out = np.empty(len(points), np.float32)
+        for k in np.unique(level).astype(int):
+            mine = level == k
+            image = self.levels[k]
+            rows = np.clip((v[mine] * image.shape[0]).astype(int), 0, image.shape[0] - 1)
+            cols = np.clip((u[mine] * image.shape[1]).astype(int), 0, image.shape[1] - 1)
+            out[mine] = image[rows, cols]
+        return out
+
+
+def _print_text(text: str, width: int, height: int) -> np.ndarray:
+    """(height, width) float32 reflectance: `text` centred in a sans-serif face, PLATE_INK on PLATE_PAPER."""
+    image = np.full((height, width), 255, np.uint8)
+    font, thickness = cv2.FONT_HERSHEY_SIMPLEX, max(1, height // 12)
+    (w, h), _ = cv2.getTextSize(text, font, 1.0, thickness)
+    scale = min(0.8 * width / max(w, 1), 0.55 * height / max(h, 1))
+    thickness = max(1, round(thickness * scale))
+    (w, h), _ = cv2.getTextSize(text, font, scale, thickness)
+    origin = ((width - w) // 2, (height + h) // 2)
+    cv2.putText(image, text, origin, font, scale, 0, thickness, cv2.LINE_AA)
+    return PLATE_INK + (PLATE_PAPER - PLATE_INK) * image.astype(np.float32) / 255.0
+
+
 def _hang_door_plates(builder: _Builder, prior: BimPrior, cfg: DoorPlateSimConfig) -> None:
     """A thin box per plate of `door_plates(prior)` on the wall beside its door, on the left or right as the door's
     guid decides; its instance record carries the plate's `text`. A plate whose wall is not found is skipped."""
@@ -419,7 +484,19 @@ def _hang_door_plates(builder: _Builder, prior: BimPrior, cfg: DoorPlateSimConfi
         face = origin - out * (t_hit - PLATE_THICKNESS_M / 2 - 0.005)
         size = np.array([width, PLATE_THICKNESS_M, height])
         mesh = _box_mesh(face, float(np.arctan2(plate.axis_xy[1], plate.axis_xy[0])), size, z - height / 2)
-        builder.add(mesh, "", "DoorPlate", NO_OBJECT, DOOR_PLATE_LABEL, text=plate.text)
+        front = face + out * PLATE_THICKNESS_M / 2
+        right = np.array([-out[1], out[0]])  # the reader's right, facing the plate
+        builder.add(
+            mesh,
+            "",
+            "DoorPlate",
+            NO_OBJECT,
+            DOOR_PLATE_LABEL,
+            text=plate.text,
+            plate_face_m=[float(front[0]), float(front[1]), float(z)],
+            plate_right_xy=[float(right[0]), float(right[1])],
+            plate_size_m=[float(width), float(height)],
+        )
         hung += 1
     log.info("sim world: %d door plates", hung)
 

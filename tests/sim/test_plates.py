@@ -209,3 +209,33 @@ def test_the_pose_graphs_take_a_read_plate_as_a_landmark(duplex: Building) -> No
     before = float(np.hypot(*(near[:2] - plate.xy)))
     after = float(np.hypot(*(graph.pose[:2] - graph.landmark_estimate(landmark))))
     assert before == pytest.approx(1.4) and abs(after - 2.0) < 0.5 * abs(before - 2.0)
+
+
+def test_rendered_plates_show_their_text_to_a_real_ocr_engine(duplex: Building, config_overrides: list[str]) -> None:
+    """The world prints each plate's number on its face (`PlateTexture`): RapidOCR reads it from a 640 × 480 frame
+    1.5 m in front of the plate, left to right, and a far pixel sees the print's average grey, not a texel of ink."""
+    RapidOcrReader = pytest.importorskip("bimfactor.perception.ocr").RapidOcrReader
+    pytest.importorskip("rapidocr_onnxruntime")
+    cfg = config_with(config_overrides, *NOISE_OFF, *PLATES_ON, "sim.camera.width=640", "sim.camera.height=480")
+    world = build_world(duplex.prior, duplex.model, cfg, seed=0)
+    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, 0.0)
+    ocr = RapidOcrReader(0.5)
+    read = []
+    for rec in [r for r in world.instances if r["label"] == DOOR_PLATE_LABEL][:3]:
+        face, right = np.asarray(rec["plate_face_m"]), np.asarray(rec["plate_right_xy"])
+        out = np.array([right[1], -right[0]])
+        pose = np.array([*(face[:2] + 1.5 * out), np.arctan2(-out[1], -out[0])])
+        elevation = max(s.storey.elevation_m for s in duplex.prior.storeys if s.storey.elevation_m <= face[2])
+        image = camera.render(pose, elevation)
+        on_plate = image.rgb[image.instance_ids == rec["id"]].mean(axis=1)
+        assert on_plate.min() < 60 and on_plate.max() > 150  # ink on paper
+        frame = Frame(0, 0.0, image.rgb, image.depth_m, np.zeros(3))
+        read.append(rec["text"] in [r.text for r in ocr.read(frame)])
+    assert sum(read) >= 2
+    texture = world.textures[rec["id"]]
+    # Along the text's middle line: sharp ink and paper texels up close; one grey from 20 m away (the coarsest level).
+    along = np.linspace(-0.1, 0.1, 41)[:, None] * texture.right_xy
+    line = np.column_stack([texture.face_m[:2] + along, np.full(41, texture.face_m[2])])
+    near, far = texture.sample(line, np.full(41, 1e-4)), texture.sample(line, np.full(41, 20 / 160))
+    assert near.min() < 0.3 and near.max() > 0.8
+    assert np.ptp(far) < 0.2
