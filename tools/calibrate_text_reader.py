@@ -84,7 +84,6 @@ def _measure(prior_dir: Path, ifc: Path, overrides: list[str]) -> tuple[list[dic
     meta = SequenceMeta("plates", "sim", camera.intrinsics, camera.T_base_camera, instances=world.instances)
     sim_reader = SimTextReader(meta, cfg.perception.text, np.random.default_rng(0))
     ocr = RapidOcrReader(cfg.perception.text.min_score)
-    storey_of = {rec["id"]: _storey(prior, rec["plate_face_m"][2]) for rec in world.instances if "plate_face_m" in rec}
     views = [(rec, d, a) for rec in world.instances if "plate_face_m" in rec for d in DISTANCES_M for a in ANGLES_DEG]
     rows, times = [], []
     for rec, distance, angle in progress(views, desc="plate views", unit="frame"):
@@ -94,7 +93,7 @@ def _measure(prior_dir: Path, ifc: Path, overrides: list[str]) -> tuple[list[dic
         look = c * normal + s * right  # from the plate to the camera
         xy = face[:2] + distance * look
         pose = np.array([*xy, np.arctan2(-look[1], -look[0])])
-        elevation = prior.storeys[storey_of[rec["id"]]].storey.elevation_m
+        elevation = prior.storeys[rec["storey_index"]].storey.elevation_m
         image = camera.render(pose, elevation)
         rows_px = np.nonzero(image.instance_ids == rec["id"])[0]
         if not len(rows_px):
@@ -127,13 +126,6 @@ def _measure(prior_dir: Path, ifc: Path, overrides: list[str]) -> tuple[list[dic
         "distances_m": list(DISTANCES_M),
         "angles_deg": list(ANGLES_DEG),
     }
-
-
-def _storey(prior, z: float) -> int:
-    """The storey whose elevation is the highest at or below height z."""
-    elevations = np.array([s.storey.elevation_m for s in prior.storeys])
-    below = np.flatnonzero(elevations <= z + 1e-6)
-    return int(below[np.argmax(elevations[below])]) if len(below) else 0
 
 
 def _table(rows: list[dict]) -> list[dict]:

@@ -493,6 +493,7 @@ def _hang_door_plates(builder: _Builder, prior: BimPrior, cfg: DoorPlateSimConfi
             NO_OBJECT,
             DOOR_PLATE_LABEL,
             text=plate.text,
+            storey_index=plate.storey_index,
             plate_face_m=[float(front[0]), float(front[1]), float(z)],
             plate_right_xy=[float(right[0]), float(right[1])],
             plate_size_m=[float(width), float(height)],

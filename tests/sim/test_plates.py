@@ -225,7 +225,7 @@ def test_rendered_plates_show_their_text_to_a_real_ocr_engine(duplex: Building, 
         face, right = np.asarray(rec["plate_face_m"]), np.asarray(rec["plate_right_xy"])
         out = np.array([right[1], -right[0]])
         pose = np.array([*(face[:2] + 1.5 * out), np.arctan2(-out[1], -out[0])])
-        elevation = max(s.storey.elevation_m for s in duplex.prior.storeys if s.storey.elevation_m <= face[2])
+        elevation = duplex.prior.storeys[rec["storey_index"]].storey.elevation_m
         image = camera.render(pose, elevation)
         on_plate = image.rgb[image.instance_ids == rec["id"]].mean(axis=1)
         assert on_plate.min() < 60 and on_plate.max() > 150  # ink on paper
