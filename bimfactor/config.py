@@ -150,12 +150,26 @@ class TextReadingConfig(_Strict):
     enabled: bool = Field(
         description="Read text each frame (sim backend: the simulator's door plates; vlm backend: RapidOCR)."
     )
+    reader: Literal["auto", "sim", "rapidocr"] = Field(
+        description="auto: the backend's own (sim: the simulator's plates and error model; vlm: RapidOCR); rapidocr: "
+        "RapidOCR on the colour frames whatever the backend (on simulated frames it reads the printed plates)."
+    )
     min_score: float = Field(ge=0.0, le=1.0, description="OCR: readings below this confidence are dropped.")
     sim_min_height_px: int = Field(ge=1, description="Sim: a plate fewer pixels high than this is not legible.")
     sim_read_probability: float = Field(ge=0.0, le=1.0, description="Sim: chance that a legible plate is read.")
-    sim_char_error_rate: float = Field(
-        ge=0.0, le=1.0, description="Sim: chance that each character of a reading is replaced by another."
+    sim_look_alike_rate: float = Field(
+        ge=0.0, le=1.0, description="Sim: chance that each character is read as one it looks like ('8' for 'B')."
     )
+    sim_char_error_rate: float = Field(
+        ge=0.0, le=1.0, description="Sim: chance that each character is read as any other letter or digit."
+    )
+    sim_drop_rate: float = Field(ge=0.0, le=1.0, description="Sim: chance that each character is not read at all.")
+
+    @model_validator(mode="after")
+    def _rates_sum_to_at_most_one(self) -> TextReadingConfig:
+        if self.sim_look_alike_rate + self.sim_char_error_rate + self.sim_drop_rate > 1.0:
+            raise ValueError("sim_look_alike_rate + sim_char_error_rate + sim_drop_rate must not exceed 1")
+        return self
 
 
 class PerceptionConfig(_Strict):
@@ -192,6 +206,12 @@ class PerceptionConfig(_Strict):
     )
     edge_distance_m: float = Field(gt=0.0, description="Nodes whose centroids are closer than this are joined.")
     text: TextReadingConfig
+
+    @model_validator(mode="after")
+    def _text_reader_fits_the_backend(self) -> PerceptionConfig:
+        if self.backend == "vlm" and self.text.reader == "sim":
+            raise ValueError("text.reader 'sim' reads the simulator's plates: with backend vlm use auto or rapidocr")
+        return self
 
 
 class SmclConfig(_Strict):
@@ -270,7 +290,14 @@ class SmclConfig(_Strict):
         ge=0.0, le=1.0, description="Weight factor for a particle outside navigable space after a prediction."
     )
     text_edit_cost: float = Field(
-        gt=0.0, description="Door-plate readings: a reading n edits from a plate's text matches it by exp(−n · this)."
+        gt=0.0,
+        description="Door-plate readings: each edit (substitution, insertion, deletion) between a reading and a "
+        "plate's text divides its match by exp(this).",
+    )
+    text_look_alike_cost: float = Field(
+        gt=0.0,
+        description="Door-plate readings: what a substitution of look-alike characters ('8' for 'B') costs instead "
+        "(OCR's common misreads; bim.plates.LOOK_ALIKE_GROUPS); text_edit_cost makes every edit cost the same.",
     )
     text_unexplained: float = Field(
         gt=0.0,

@@ -145,6 +145,8 @@ def test_inconsistent_particle_bounds_are_a_one_line_error(tmp_path: Path) -> No
     result = invoke("synth", "-o", tmp_path / "x.ifc", "--set", "smcl.max_particles=500")
     assert_one_line_error(result, contains="max_particles 500 is below num_particles 1000")
     assert not (tmp_path / "x.ifc").exists()
+    result = invoke("synth", "-o", tmp_path / "x.ifc", "--set", "perception.text.sim_drop_rate=0.9")
+    assert_one_line_error(result, contains="sim_drop_rate must not exceed 1")
 
 
 def test_unknown_config_key_in_preset_file(tmp_path: Path) -> None:

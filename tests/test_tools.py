@@ -42,3 +42,18 @@ def test_belief_at_truth_summary_splits_the_error_into_first_keyframes_and_late_
     assert s["share_of_error_of_those_after_step_10"] == pytest.approx(10.0 / total)
     assert s["mean_weight_at_truth_by_step"][0] == pytest.approx(0.4 / 3)
     assert s["trans_err_by_step_m"][-1] == pytest.approx((0.1 + 0.2 + 5.0) / 3)
+
+
+def test_text_reader_calibration_fits_the_sim_readers_rates() -> None:
+    reader_model = _load("calibrate_text_reader")._reader_model
+    rows = [
+        {"text": "B201", "read": ["8201"], "sim_legible": True},  # one look-alike
+        {"text": "A101", "read": ["T", "101"], "sim_legible": True},  # one lost; the best of two readings counts
+        {"text": "A102", "read": ["A1X2"], "sim_legible": True},  # one other ("X" does not look like "0")
+        {"text": "B104", "read": [], "sim_legible": True},  # not read
+        {"text": "B105", "read": ["XXXX"], "sim_legible": False},  # not legible to the sim reader: left out
+    ]
+    fit = reader_model(rows)
+    assert fit["legible_views"] == 4 and fit["read_probability"] == pytest.approx(0.75)
+    assert fit["characters"] == {"same": 9, "look_alike": 1, "other": 1, "dropped": 1, "inserted": 0}
+    assert fit["look_alike_rate"] == fit["char_error_rate"] == fit["drop_rate"] == pytest.approx(1 / 12)

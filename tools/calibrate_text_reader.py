@@ -6,7 +6,10 @@ viewing angles, renders the frame (no image noise), and runs `perception.ocr.Rap
 `perception.text.SimTextReader` (its legibility test alone: read probability 1, no character errors). Per bin of
 the plate's height in the image it prints how often RapidOCR reads the plate's text exactly, how often it reads
 something within one character of it, its character error rate over the plates it reads, and how often the sim
-reader calls the plate legible; writes `results.json` and `read_rate.png` to `-o`. Run from the repository root:
+reader calls the plate legible. Over the views the sim reader calls legible it then fits the sim reader's error
+model (`perception.text.sim_*`): how often RapidOCR reads anything, and per character of its best reading how often
+it reads a look-alike, another character, or nothing. Writes `results.json` and `read_rate.png` to `-o`. Run from
+the repository root:
 
     .venv/bin/python tools/calibrate_text_reader.py runs/bench-paper-duplex/prior ../shared/data/ifc/duplex.ifc \\
         -o runs/ocr-calibration
@@ -53,8 +56,16 @@ def main(argv: list[str] | None = None) -> int:
             f"{row['bin']:>10} {row['frames']:>7} {100 * row['exact']:>8.0f} {100 * row['near']:>10.0f} {cer:>6} "
             f"{100 * row['sim_legible']:>14.0f}"
         )
+    fit = _reader_model(rows)
+    print(
+        f"sim reader fit over {fit['legible_views']} legible views: "
+        f"sim_read_probability {fit['read_probability']:.2f}, "
+        f"sim_look_alike_rate {fit['look_alike_rate']:.3f}, sim_char_error_rate {fit['char_error_rate']:.3f}, "
+        f"sim_drop_rate {fit['drop_rate']:.3f} (characters inserted: {fit['insert_rate']:.3f}, not simulated)"
+    )
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps({**meta, "bins": table, "frames_read": rows}, indent=1))
+    out = {**meta, "bins": table, "reader_model": fit, "frames_read": rows}
+    (args.out / "results.json").write_text(json.dumps(out, indent=1))
     _plot(table, meta, args.out / "read_rate.png")
     print(f"results: {args.out / 'results.json'}\nfigure: {args.out / 'read_rate.png'}")
     return 0
@@ -75,7 +86,8 @@ def _measure(prior_dir: Path, ifc: Path, overrides: list[str]) -> tuple[list[dic
     from bimfactor.types import Frame, SequenceMeta
 
     cfg = load_config(None, [*overrides, "sim.door_plates.enabled=true", "perception.text.sim_read_probability=1",
-                             "perception.text.sim_char_error_rate=0"])  # fmt: skip
+                             "perception.text.sim_look_alike_rate=0", "perception.text.sim_char_error_rate=0",
+                             "perception.text.sim_drop_rate=0"])  # fmt: skip
     prior = BimPrior.load(prior_dir)
     world = build_world(prior, load_ifc(ifc, cfg.bim.ifc), cfg, seed=0)
     if not world.textures:
@@ -149,6 +161,35 @@ def _table(rows: list[dict]) -> list[dict]:
             }
         )
     return out
+
+
+def _reader_model(rows: list[dict]) -> dict:
+    """The sim reader's parameters that RapidOCR's reads of the sim-legible views imply: the share of views with any
+    reading, and per character of each view's best reading (its cheapest edit, look-alikes at half an edit) the
+    shares read as a look-alike, as another character, not at all, and inserted."""
+    from bimfactor.localization.text import edit_distance, edit_operations
+
+    legible = [r for r in rows if r["sim_legible"]]
+    counts = dict.fromkeys(("same", "look_alike", "other", "dropped", "inserted"), 0)
+    read = 0
+    for row in legible:
+        texts = [t for t in row["read"] if t]
+        if not texts:
+            continue
+        read += 1
+        best = min(texts, key=lambda t: edit_distance(row["text"], t, 0.5))
+        for key, n in edit_operations(row["text"], best, 0.5).items():
+            counts[key] += n
+    chars = max(counts["same"] + counts["look_alike"] + counts["other"] + counts["dropped"], 1)
+    return {
+        "legible_views": len(legible),
+        "read_probability": read / max(len(legible), 1),
+        "look_alike_rate": counts["look_alike"] / chars,
+        "char_error_rate": counts["other"] / chars,
+        "drop_rate": counts["dropped"] / chars,
+        "insert_rate": counts["inserted"] / chars,
+        "characters": counts,
+    }
 
 
 def _plot(table: list[dict], meta: dict, path: Path) -> None:

@@ -20,6 +20,11 @@ from bimfactor.bim.prior import BimPrior
 PROBE_M = 0.3  # how far beyond a door's faces the room on either side is looked up
 PLATE_REACH_M = 0.6  # how far beyond its door's edge the localizer lets a plate hang (pose-graph landmarks)
 
+# Characters that OCR mistakes for one another (the classic confusions of printed text; two characters are
+# look-alikes when a group holds both). RapidOCR on the simulator's plates reads "8" for "B", "L" or "I" for "1",
+# "O" for "0", "4" for "A" (tools/calibrate_text_reader.py; README).
+LOOK_ALIKE_GROUPS = ("0ODQ", "1IJLT7", "2Z", "5S", "6G", "8B3", "4A", "9G", "UV")
+
 
 @dataclass(frozen=True)
 class DoorPlate:
@@ -42,6 +47,11 @@ class DoorPlate:
 def normalise_text(text: str) -> str:
     """What a plate's text is compared by: upper case, letters and digits only ("b-101 " → "B101")."""
     return re.sub(r"[^0-9A-Z]", "", text.upper())
+
+
+def look_alikes(char: str) -> str:
+    """The characters OCR mistakes `char` for (`LOOK_ALIKE_GROUPS`), in a fixed order; "" for one with none."""
+    return "".join(sorted({c for g in LOOK_ALIKE_GROUPS if char in g for c in g} - {char}))
 
 
 def door_plates(prior: BimPrior) -> list[DoorPlate]:

@@ -3,11 +3,14 @@
 A reading t seen at range r and bearing b from pose x is explained by a plate j (`bim.plates`) on x's storey,
 in front of x (x is on the side its wall faces), whose text it matches:
 
-    q_j(x) = exp(−c · edits(t, s_j)) · φ_dist(r, d_j(x)) · φ_ang(b, α_j(x))
+    q_j(x) = exp(−cost(t, s_j)) · φ_dist(r, d_j(x)) · φ_ang(b, α_j(x))
     P(t | x) = ε + (1 − ε) · max_j q_j(x)
 
-with c = `smcl.text_edit_cost`, ε = `smcl.text_unexplained`, edits the Levenshtein distance of the normalised
-texts (`bim.plates.normalise_text`), and φ_dist, φ_ang the paper's terms with its σ_d and κ_α. The readings of a
+with ε = `smcl.text_unexplained`, φ_dist and φ_ang the paper's terms with its σ_d and κ_α, and cost the cheapest
+edit of the normalised texts (`bim.plates.normalise_text`) into each other: a substitution of look-alike characters
+(`bim.plates.look_alikes`: "8" for "B") costs `smcl.text_look_alike_cost`, any other substitution, insertion or
+deletion `smcl.text_edit_cost`. OCR misreads a character mostly as its look-alike, so "8204" where "B204" hangs is a
+likely misread and "A204" an unlikely one. The readings of a
 step are independent, log P(z_text | x) = Σ_k log P(t_k | x). ε is the chance that a reading is a misread or a
 plate the model does not know: one reading moves a particle's weight by at most 1/ε against another's, and a
 reading that no plate near any particle matches moves nothing. Plates repeat their room's number at every door
@@ -18,25 +21,57 @@ from __future__ import annotations
 
 import numpy as np
 
-from bimfactor.bim.plates import door_plates, normalise_text
+from bimfactor.bim.plates import door_plates, look_alikes, normalise_text
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import SmclConfig
 from bimfactor.localization.likelihood import bearing_similarity, distance_similarity, polar_coordinates
 from bimfactor.types import TextObservations
 
-MIN_TEXT_MATCH = 1e-3  # plates whose text matches a reading less than this (3 edits at c = 3) are not weighed
-MIN_PLATE_ASSOCIATION = 0.1  # a reading enters a pose graph only for a plate it fits this well (q; one edit: e^−3)
+MIN_TEXT_MATCH = 1e-3  # plates whose text matches a reading less than this (one edit at c = 6: e^−6) are not weighed
+MIN_PLATE_ASSOCIATION = 0.1  # a reading enters a pose graph only for a plate it fits this well (q; a look-alike: e^−3)
 
 
-def edit_distance(a: str, b: str) -> int:
-    """Levenshtein distance: the fewest insertions, deletions and substitutions that turn `a` into `b`."""
-    previous = list(range(len(b) + 1))
+def edit_distance(a: str, b: str, look_alike: float = 1.0) -> float:
+    """Levenshtein distance: the fewest insertions, deletions and substitutions that turn `a` into `b`, where a
+    substitution of look-alike characters (`bim.plates.look_alikes`) counts `look_alike` edits (1: plain)."""
+    return _edit_table(a, b, look_alike)[-1][-1]
+
+
+def edit_operations(truth: str, read: str, look_alike: float = 1.0) -> dict[str, int]:
+    """How a cheapest edit (`edit_distance`) turns `truth` into `read`: the counts of characters read right
+    ("same"), read as a look-alike ("look_alike"), as any other character ("other"), lost ("dropped"), and of
+    characters read that are not there ("inserted")."""
+    table = _edit_table(truth, read, look_alike)
+    counts = dict.fromkeys(("same", "look_alike", "other", "dropped", "inserted"), 0)
+    i, j = len(truth), len(read)
+    while i or j:
+        if i and j and table[i][j] == table[i - 1][j - 1] + _substitution(truth[i - 1], read[j - 1], look_alike):
+            a, b = truth[i - 1], read[j - 1]
+            counts["same" if a == b else "look_alike" if b in look_alikes(a) else "other"] += 1
+            i, j = i - 1, j - 1
+        elif i and table[i][j] == table[i - 1][j] + 1.0:
+            counts["dropped"] += 1
+            i -= 1
+        else:
+            counts["inserted"] += 1
+            j -= 1
+    return counts
+
+
+def _substitution(a: str, b: str, look_alike: float) -> float:
+    return 0.0 if a == b else look_alike if b in look_alikes(a) else 1.0
+
+
+def _edit_table(a: str, b: str, look_alike: float) -> list[list[float]]:
+    """The dynamic-programming table of `edit_distance`: entry [i][j] turns a[:i] into b[:j]."""
+    table = [[float(j) for j in range(len(b) + 1)]]
     for i, ca in enumerate(a, start=1):
-        current = [i]
+        previous, current = table[-1], [float(i)]
         for j, cb in enumerate(b, start=1):
-            current.append(min(previous[j] + 1, current[j - 1] + 1, previous[j - 1] + (ca != cb)))
-        previous = current
-    return previous[-1]
+            substituted = previous[j - 1] + _substitution(ca, cb, look_alike)
+            current.append(min(previous[j] + 1.0, current[j - 1] + 1.0, substituted))
+        table.append(current)
+    return table
 
 
 class PlateLikelihood:
@@ -60,11 +95,12 @@ class PlateLikelihood:
         return len(self.texts)
 
     def text_match(self, text: str) -> np.ndarray:
-        """(P,) exp(−c · edits) of one reading against every plate's text (0 for a reading with no letter or digit)."""
+        """(P,) exp(−cost) of one reading against every plate's text (0 for a reading with no letter or digit)."""
         t = normalise_text(text)
         if t not in self._matches:
-            edits = np.asarray([edit_distance(t, s) for s in self.texts], float)
-            self._matches[t] = np.exp(-self.cfg.text_edit_cost * edits) if t else np.zeros(len(self.texts))
+            c = self.cfg.text_edit_cost
+            edits = np.asarray([edit_distance(t, s, self.cfg.text_look_alike_cost / c) for s in self.texts], float)
+            self._matches[t] = np.exp(-c * edits) if t else np.zeros(len(self.texts))
         return self._matches[t]
 
     def scores(

@@ -113,15 +113,17 @@ def make_perception(
     seed = cfg.seed if seed is None else seed
     vocabulary = household_vocabulary(cfg)
     graph = OnlineSceneGraph(p, meta.intrinsics, meta.T_base_camera, embedding_dim=text_embedder.dim)
+    reader: TextReader | None = None
+    if p.text.enabled and (p.text.reader == "rapidocr" or (p.text.reader == "auto" and p.backend == "vlm")):
+        from bimfactor.perception.ocr import RapidOcrReader
+
+        reader = RapidOcrReader(p.text.min_score)
+    elif p.text.enabled:
+        reader = SimTextReader(meta, p.text, sim_rng(seed, meta, READER_STREAM))
     if p.backend == "vlm":
         from bimfactor.perception.vlm import make_vlm_backends
 
         vlm = make_vlm_backends(cfg, vocabulary, text_embedder)
-        reader = None
-        if p.text.enabled:
-            from bimfactor.perception.ocr import RapidOcrReader
-
-            reader = RapidOcrReader(p.text.min_score)
         return Perception(vlm.detector, vlm.segmenter, vlm.embedder, graph, reader)
     errors = load_sim_errors(p, sim_preset)
     confusion = LabelConfusion(vocabulary, text_embedder, errors.confusion_temperature)
@@ -130,5 +132,4 @@ def make_perception(
     )
     segmenter = SimSegmenter(errors, sim_rng(seed, meta, SEGMENTER_STREAM))
     embedder = SimEmbedder(meta, text_embedder, vocabulary, errors, seed, sim_rng(seed, meta, EMBEDDER_STREAM))
-    reader = SimTextReader(meta, p.text, sim_rng(seed, meta, READER_STREAM)) if p.text.enabled else None
     return Perception(detector, segmenter, embedder, graph, reader)

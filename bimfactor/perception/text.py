@@ -1,8 +1,10 @@
 """Door-plate text: the simulator's reader, and where a reading is in the robot frame.
 
 `SimTextReader` reads the door plates the simulator hung (`sim.door_plates`, `bim.plates`) from the instance
-buffer: a plate at least `sim_min_height_px` high and wide is legible, read with `sim_read_probability`, and each
-character is replaced by another letter or digit with `sim_char_error_rate`. Real images go through
+buffer: a plate at least `sim_min_height_px` high and wide is legible and read with `sim_read_probability`; each
+character is then read as a look-alike (`bim.plates.look_alikes`) with `sim_look_alike_rate`, as any other letter or
+digit with `sim_char_error_rate`, or lost with `sim_drop_rate` (the defaults: RapidOCR on the simulator's rendered
+plates at 320 × 240, `tools/calibrate_text_reader.py`). Real images go through
 `perception.ocr.RapidOcrReader`. `locate_readings` places any reader's readings in the robot base frame from the
 depth under their boxes: the `TextObservations` the localizer weighs (`localization.text`).
 """
@@ -14,6 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from bimfactor.bim.plates import look_alikes
 from bimfactor.config import TextReadingConfig
 from bimfactor.perception.base import TextReading, box_to_pixels
 from bimfactor.perception.lifting import backproject, transform_points
@@ -40,21 +43,28 @@ class SimTextReader:
         readings = []
         for iid in np.intersect1d(np.unique(ids), np.fromiter(self.plates, np.int64)):
             text = self.plates[int(iid)]
-            u_read, u_chars = self.rng.random(), self.rng.random(len(text))
-            shifts = self.rng.integers(1, len(ALPHABET), len(text))
+            u_read = self.rng.random()
             rows, cols = np.nonzero(ids == iid)
             box = np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], float)
             if min(box[2] - box[0], box[3] - box[1]) < self.cfg.sim_min_height_px:
                 continue
             if u_read >= self.cfg.sim_read_probability:
                 continue
-            read = "".join(
-                ALPHABET[(ALPHABET.index(c) + int(k)) % len(ALPHABET)] if u < self.cfg.sim_char_error_rate else c
-                for c, u, k in zip(text.upper(), u_chars, shifts, strict=True)
-                if c in ALPHABET
-            )
-            readings.append(TextReading(read, box, 1.0, gt_instance_id=int(iid)))
+            read = "".join(self._misread(c) for c in text.upper() if c in ALPHABET)
+            if read:  # every character lost: nothing was read
+                readings.append(TextReading(read, box, 1.0, gt_instance_id=int(iid)))
         return readings
+
+    def _misread(self, char: str) -> str:
+        """What is read of one character: itself, a look-alike (if it has one), any other character, or nothing."""
+        cfg = self.cfg
+        u, pick = self.rng.random(), self.rng.random()
+        if u < cfg.sim_look_alike_rate:
+            similar = look_alikes(char)
+            return similar[int(pick * len(similar))] if similar else char
+        if (u := u - cfg.sim_look_alike_rate) < cfg.sim_char_error_rate:
+            return ALPHABET[(ALPHABET.index(char) + 1 + int(pick * (len(ALPHABET) - 1))) % len(ALPHABET)]
+        return "" if u - cfg.sim_char_error_rate < cfg.sim_drop_rate else char
 
 
 def locate_readings(

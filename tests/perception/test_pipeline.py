@@ -98,3 +98,24 @@ def test_furniture_groups_of_the_paper_floor(paper_floor) -> None:
         assert navigable[cells[:, 0], cells[:, 1]].all()
         to_centre = np.asarray(group.centre_xy) - poses[:, :2]
         np.testing.assert_allclose(np.arctan2(to_centre[:, 1], to_centre[:, 0]), poses[:, 2])
+
+
+def test_the_text_reader_is_the_one_perception_text_reader_names(
+    config_overrides: list[str], text_embedder, meeting_orbit: SimResult
+) -> None:
+    from bimfactor.config import load_config
+    from bimfactor.errors import ConfigError
+    from bimfactor.perception.text import SimTextReader
+
+    def reader(*overrides: str):
+        cfg = load_config(None, [*config_overrides, *overrides])
+        return make_perception(cfg, meeting_orbit.meta, text_embedder).reader
+
+    assert reader() is None  # text off by default
+    assert isinstance(reader("perception.text.enabled=true"), SimTextReader)
+    with pytest.raises(ConfigError, match=r"text\.reader 'sim' reads the simulator's plates"):
+        load_config(None, [*config_overrides, "perception.backend=vlm", "perception.text.reader=sim"])
+    ocr = pytest.importorskip("bimfactor.perception.ocr")
+    pytest.importorskip("rapidocr_onnxruntime")
+    # RapidOCR on the simulated colour frames, with the sim backend's objects.
+    assert isinstance(reader("perception.text.enabled=true", "perception.text.reader=rapidocr"), ocr.RapidOcrReader)

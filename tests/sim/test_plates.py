@@ -9,7 +9,7 @@ import pytest
 
 from bimfactor.backend.factors import Landmarks
 from bimfactor.backend.posegraph import ModeGraph, observation_cost, semantic_associator
-from bimfactor.bim.plates import PLATE_REACH_M, door_plates
+from bimfactor.bim.plates import PLATE_REACH_M, door_plates, look_alikes
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.smcl import SemanticMCL
 from bimfactor.localization.text import PlateLikelihood
@@ -22,7 +22,13 @@ from bimfactor.types import Frame, Observations, SequenceMeta, TextObservations,
 
 from .conftest import NOISE_OFF, Building, config_with
 
-PLATES_ON = ["sim.door_plates.enabled=true", "perception.text.enabled=true", "perception.text.sim_char_error_rate=0"]
+PLATES_ON = [
+    "sim.door_plates.enabled=true",
+    "perception.text.enabled=true",
+    "perception.text.sim_look_alike_rate=0",
+    "perception.text.sim_char_error_rate=0",
+    "perception.text.sim_drop_rate=0",
+]
 
 
 @pytest.fixture(scope="module")
@@ -86,13 +92,24 @@ def test_character_errors_and_legibility(duplex: Building, plated) -> None:
     exact = SimTextReader(meta, cfg.perception.text, np.random.default_rng(1))
     assert plate.text in [r.text for r in exact.read(frames[0])]
     assert exact.read(frames[1]) == []  # 6 m away a 15 cm plate is a few pixels high: not legible
-    garbled_cfg = cfg.perception.text.model_copy(update={"sim_char_error_rate": 1.0})
-    garbled = SimTextReader(meta, garbled_cfg, np.random.default_rng(1)).read(frames[0])
+    ids = {rec["id"] for rec in _plate_records(world) if rec["text"] == plate.text}
+
+    def read_with(**rates: float) -> list[str]:
+        reader = SimTextReader(meta, cfg.perception.text.model_copy(update=rates), np.random.default_rng(1))
+        return [r.text for r in reader.read(frames[0]) if r.gt_instance_id in ids]
+
+    garbled = read_with(sim_char_error_rate=1.0)
     assert garbled and all(
-        len(r.text) == len(plate.text) and all(a != b for a, b in zip(r.text, plate.text, strict=True))
-        for r in garbled
-        if r.gt_instance_id in {rec["id"] for rec in _plate_records(world) if rec["text"] == plate.text}
+        len(t) == len(plate.text) and all(a != b for a, b in zip(t, plate.text, strict=True)) for t in garbled
     )
+    # Every character that has a look-alike is read as one; one that has none ("K") is read right.
+    similar = read_with(sim_look_alike_rate=1.0)
+    assert similar and all(
+        len(t) == len(plate.text)
+        and all(b in look_alikes(a) if look_alikes(a) else a == b for a, b in zip(plate.text, t, strict=True))
+        for t in similar
+    )
+    assert read_with(sim_drop_rate=1.0) == []  # every character lost: no reading
 
 
 def _facing(plate, distance: float) -> np.ndarray:
@@ -141,6 +158,13 @@ def test_reading_likelihood_by_hand(duplex: Building) -> None:
     # Behind the wall nothing explains it: ε alone.
     # (The other unit's plate, metres away and off the bearing, adds under 1e-3 to the last.)
     np.testing.assert_allclose(got, np.log([1.0, eps + (1 - eps) * np.exp(-c), eps]), atol=1e-3)
+    # The twin's letter read as its look-alike ("8" for "B"): a likely misread of the twin's plate, and two unlikely
+    # edits from this one ("8" for "A"); the look-alike's cost is the cheaper one.
+    misread = TextObservations(["8" + plate.text[1:]], np.array([2.0]), np.array([0.0]))
+    got = model.log_likelihood(poses[:2], storeys[:2], misread)
+    expected = eps + (1 - eps) * np.exp(-np.array([c, cfg.text_look_alike_cost]))
+    assert cfg.text_look_alike_cost < c
+    np.testing.assert_allclose(got, np.log(expected), atol=1e-3)
     # Read 1 m nearer than it is and 20° off: the paper's φ_dist and φ_ang.
     off = TextObservations([plate.text], np.array([1.0]), np.array([np.deg2rad(20)]))
     q = np.exp(-1.0 / cfg.sigma_d_m) * np.exp(cfg.kappa_alpha * (np.cos(np.deg2rad(20)) - 1))
