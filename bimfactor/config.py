@@ -156,7 +156,17 @@ class TextReadingConfig(_Strict):
     )
     min_score: float = Field(ge=0.0, le=1.0, description="OCR: readings below this confidence are dropped.")
     sim_min_height_px: int = Field(ge=1, description="Sim: a plate fewer pixels high than this is not legible.")
-    sim_read_probability: float = Field(ge=0.0, le=1.0, description="Sim: chance that a legible plate is read.")
+    sim_read_probability: float = Field(
+        ge=0.0, le=1.0, description="Sim: chance that a legible plate is read when its characters are wide in view."
+    )
+    sim_read_char_px: float = Field(
+        ge=0.0,
+        description="Sim: the plate's width in the image per character of its text at which half that chance is left "
+        "(distance and an oblique view both narrow the characters).",
+    )
+    sim_read_char_scale_px: float = Field(
+        gt=0.0, description="Sim: how many pixels per character the read chance takes to rise (a logistic's scale)."
+    )
     sim_look_alike_rate: float = Field(
         ge=0.0, le=1.0, description="Sim: chance that each character is read as one it looks like ('8' for 'B')."
     )
@@ -304,6 +314,18 @@ class SmclConfig(_Strict):
         lt=1.0,
         description="Door-plate readings: ε in P(reading | x) = ε + (1 − ε) · best plate match; the chance that a "
         "reading is a misread or a plate the BIM does not know, which bounds what one reading can say.",
+    )
+    text_reset_share: float = Field(
+        ge=0.0,
+        le=1.0,
+        description="Door-plate readings: the share of particles redrawn in front of the plates a reading names when "
+        "the belief does not explain it (sensor resetting; 0: off).",
+    )
+    text_reset_below: float = Field(
+        gt=0.0,
+        lt=1.0,
+        description="Door-plate readings: a reading is unexplained when the belief's P(reading | x) averages below "
+        "this (ε = text_unexplained where no particle stands before its plate, 1 where all do).",
     )
     scan_likelihood: bool = Field(
         description="Also weigh particles by the depth scan against the BIM's likelihood field (beyond the paper)."

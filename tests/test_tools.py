@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from bimfactor.perception.text import read_probability
+
 TOOLS = Path(__file__).resolve().parent.parent / "tools"
 
 
@@ -53,7 +55,13 @@ def test_text_reader_calibration_fits_the_sim_readers_rates() -> None:
         {"text": "B104", "read": [], "sim_legible": True},  # not read
         {"text": "B105", "read": ["XXXX"], "sim_legible": False},  # not legible to the sim reader: left out
     ]
+    for row, width in zip(rows, (60, 60, 60, 12, 60), strict=True):
+        row["plate_width_px"] = width  # 15 px per character, and 3 for the plate not read
     fit = reader_model(rows)
-    assert fit["legible_views"] == 4 and fit["read_probability"] == pytest.approx(0.75)
+    assert fit["legible_views"] == 4 and fit["read_share"] == pytest.approx(0.75)
     assert fit["characters"] == {"same": 9, "look_alike": 1, "other": 1, "dropped": 1, "inserted": 0}
     assert fit["look_alike_rate"] == fit["char_error_rate"] == fit["drop_rate"] == pytest.approx(1 / 12)
+    # Every wide plate read, the narrow one not: the fitted chance is near its most for the one, near 0 for the other.
+    chance = fit["read_probability"], fit["read_char_px"], fit["read_char_scale_px"]
+    assert fit["read_probability"] > 0.95 and 3.0 < fit["read_char_px"] < 15.0
+    assert read_probability(15.0, *chance) > 0.9 and read_probability(3.0, *chance) < 0.1

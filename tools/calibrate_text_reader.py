@@ -58,8 +58,9 @@ def main(argv: list[str] | None = None) -> int:
         )
     fit = _reader_model(rows)
     print(
-        f"sim reader fit over {fit['legible_views']} legible views: "
-        f"sim_read_probability {fit['read_probability']:.2f}, "
+        f"sim reader fit over {fit['legible_views']} legible views ({100 * fit['read_share']:.0f} % read): "
+        f"sim_read_probability {fit['read_probability']:.2f}, sim_read_char_px {fit['read_char_px']:.2f}, "
+        f"sim_read_char_scale_px {fit['read_char_scale_px']:.2f}, "
         f"sim_look_alike_rate {fit['look_alike_rate']:.3f}, sim_char_error_rate {fit['char_error_rate']:.3f}, "
         f"sim_drop_rate {fit['drop_rate']:.3f} (characters inserted: {fit['insert_rate']:.3f}, not simulated)"
     )
@@ -86,6 +87,7 @@ def _measure(prior_dir: Path, ifc: Path, overrides: list[str]) -> tuple[list[dic
     from bimfactor.types import Frame, SequenceMeta
 
     cfg = load_config(None, [*overrides, "sim.door_plates.enabled=true", "perception.text.sim_read_probability=1",
+                             "perception.text.sim_read_char_px=0", "perception.text.sim_read_char_scale_px=0.001",
                              "perception.text.sim_look_alike_rate=0", "perception.text.sim_char_error_rate=0",
                              "perception.text.sim_drop_rate=0"])  # fmt: skip
     prior = BimPrior.load(prior_dir)
@@ -107,7 +109,7 @@ def _measure(prior_dir: Path, ifc: Path, overrides: list[str]) -> tuple[list[dic
         pose = np.array([*xy, np.arctan2(-look[1], -look[0])])
         elevation = prior.storeys[rec["storey_index"]].storey.elevation_m
         image = camera.render(pose, elevation)
-        rows_px = np.nonzero(image.instance_ids == rec["id"])[0]
+        rows_px, cols_px = np.nonzero(image.instance_ids == rec["id"])
         if not len(rows_px):
             continue  # out of view (above the camera's field, or hidden)
         frame = Frame(0, 0.0, image.rgb, image.depth_m, np.zeros(3), instance_ids=image.instance_ids)
@@ -123,6 +125,7 @@ def _measure(prior_dir: Path, ifc: Path, overrides: list[str]) -> tuple[list[dic
                 "distance_m": distance,
                 "angle_deg": angle,
                 "plate_height_px": int(rows_px.max() - rows_px.min() + 1),
+                "plate_width_px": int(cols_px.max() - cols_px.min() + 1),
                 "read": read,
                 "edits": edits,
                 "sim_legible": any(r.gt_instance_id == rec["id"] for r in sim_reader.read(frame)),
@@ -164,32 +167,54 @@ def _table(rows: list[dict]) -> list[dict]:
 
 
 def _reader_model(rows: list[dict]) -> dict:
-    """The sim reader's parameters that RapidOCR's reads of the sim-legible views imply: the share of views with any
-    reading, and per character of each view's best reading (its cheapest edit, look-alikes at half an edit) the
-    shares read as a look-alike, as another character, not at all, and inserted."""
+    """The sim reader's parameters that RapidOCR's reads of the sim-legible views imply: its read chance by the
+    plate's width per character (`perception.text.read_probability`, fitted by maximum likelihood on a grid), and per
+    character of each view's best reading (its cheapest edit, look-alikes at half an edit) the shares read as a
+    look-alike, as another character, not at all, and inserted."""
     from bimfactor.localization.text import edit_distance, edit_operations
 
     legible = [r for r in rows if r["sim_legible"]]
     counts = dict.fromkeys(("same", "look_alike", "other", "dropped", "inserted"), 0)
-    read = 0
+    was_read = []
     for row in legible:
         texts = [t for t in row["read"] if t]
+        was_read.append(bool(texts))
         if not texts:
             continue
-        read += 1
         best = min(texts, key=lambda t: edit_distance(row["text"], t, 0.5))
         for key, n in edit_operations(row["text"], best, 0.5).items():
             counts[key] += n
     chars = max(counts["same"] + counts["look_alike"] + counts["other"] + counts["dropped"], 1)
+    char_px = np.array([r["plate_width_px"] / max(len(r["text"]), 1) for r in legible], float)
+    p_max, half_px, scale_px = _fit_read_chance(char_px, np.array(was_read, bool))
     return {
         "legible_views": len(legible),
-        "read_probability": read / max(len(legible), 1),
+        "read_share": float(np.mean(was_read)) if was_read else 0.0,
+        "read_probability": p_max,
+        "read_char_px": half_px,
+        "read_char_scale_px": scale_px,
         "look_alike_rate": counts["look_alike"] / chars,
         "char_error_rate": counts["other"] / chars,
         "drop_rate": counts["dropped"] / chars,
         "insert_rate": counts["inserted"] / chars,
         "characters": counts,
     }
+
+
+def _fit_read_chance(char_px: np.ndarray, read: np.ndarray) -> tuple[float, float, float]:
+    """(most, half-way px, scale px) of `perception.text.read_probability` that make `read` likeliest; a grid search
+    (most 0.30–1.00 by 0.01, half 0–20 px by 0.25, scale 0.25–5 px by 0.25)."""
+    from bimfactor.perception.text import read_probability
+
+    if not len(read):
+        return 0.0, 0.0, 1.0
+    most = np.arange(0.30, 1.0001, 0.01)[:, None, None, None]
+    half = np.arange(0.0, 20.0001, 0.25)[None, :, None, None]
+    scale = np.arange(0.25, 5.0001, 0.25)[None, None, :, None]
+    p = np.clip(read_probability(char_px, most, half, scale), 1e-9, 1.0 - 1e-9)
+    log_likelihood = np.where(read, np.log(p), np.log1p(-p)).sum(axis=-1)
+    i, j, k = np.unravel_index(int(np.argmax(log_likelihood)), log_likelihood.shape)
+    return float(most.ravel()[i]), float(half.ravel()[j]), float(scale.ravel()[k])
 
 
 def _plot(table: list[dict], meta: dict, path: Path) -> None:

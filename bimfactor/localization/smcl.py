@@ -308,6 +308,7 @@ class SemanticMCL:
         self.w_slow: float | None = None
         self.w_fast: float | None = None
         self.scan_fit: float | None = None  # the last update's Σ w_i s_i over the prior weights (None: no scan)
+        self.unexplained_texts: list[int] = []  # the last update's readings the belief did not explain (text resets)
         self.lost_monitor = LostMonitor(cfg)
         self._initialized = False
 
@@ -379,6 +380,31 @@ class SemanticMCL:
             sees[np.flatnonzero(ok)] = np.bincount(owner[ids == k[ok][owner]], minlength=int(ok.sum())) > 0
             poses.append(drawn[sees])
             storeys.append(storey[sees])
+            if sum(len(p) for p in poses) >= n:
+                break
+        return np.concatenate(poses)[:n], np.concatenate(storeys)[:n]
+
+    def sample_from_texts(
+        self, n: int, observations: Observations, readings: list[int]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Up to n poses that explain the door-plate readings `readings` of `observations` (sensor resetting): each
+        drawn in front of a plate a reading names (`PlateLikelihood.sample_poses`), with the motion noise added;
+        poses off navigable space are dropped (five rounds of draws at most). Returns (n', 3) and (n',)."""
+        texts, plates = observations.texts, self.likelihood.plates
+        poses, storeys = [np.zeros((0, 3))], [np.zeros(0, np.int64)]
+        for _ in range(5):
+            m = 4 * (n - sum(len(p) for p in poses))
+            k = self.rng.choice(readings, size=m)
+            for reading in np.unique(k):
+                count = int(np.sum(k == reading))
+                text, r, b = texts.texts[reading], float(texts.range_m[reading]), float(texts.bearing_rad[reading])
+                drawn, storey = plates.sample_poses(text, r, b, count, self.rng)
+                noise = self.rng.standard_normal(drawn.shape)
+                drawn[:, :2] += self.cfg.sigma_trans_m * noise[:, :2]
+                drawn[:, 2] = wrap_angle(drawn[:, 2] + np.deg2rad(self.cfg.sigma_rot_deg) * noise[:, 2])
+                ok = self.on_navigable(drawn, storey)
+                poses.append(drawn[ok])
+                storeys.append(storey[ok])
             if sum(len(p) for p in poses) >= n:
                 break
         return np.concatenate(poses)[:n], np.concatenate(storeys)[:n]
@@ -482,8 +508,17 @@ class SemanticMCL:
             rate_slow, rate_fast = self.cfg.alpha_slow, self.cfg.alpha_fast
             self.w_slow = w_avg if self.w_slow is None else self.w_slow + rate_slow * (w_avg - self.w_slow)
             self.w_fast = w_avg if self.w_fast is None else self.w_fast + rate_fast * (w_avg - self.w_fast)
+        self.unexplained_texts = []
         if has_texts:
-            log_likelihood += self.likelihood.text_log_likelihood(self.particles, self.storeys, observations)
+            per_reading = self.likelihood.plates.reading_likelihoods(self.particles, self.storeys, observations.texts)
+            log_likelihood += np.log(per_reading).sum(axis=0)
+            if self.cfg.text_reset_share > 0:
+                explained = per_reading @ (self.weights / self.weights.sum())
+                self.unexplained_texts = [
+                    k
+                    for k in np.flatnonzero(explained < self.cfg.text_reset_below).tolist()
+                    if len(self.likelihood.plates.named_plates(observations.texts.texts[k]))
+                ]
         if has_scan:
             scores = self.scan_likelihood.scores(self.particles, self.storeys, scan)
             self.scan_fit = float(np.dot(self.weights, scores) / self.weights.sum())
@@ -522,29 +557,33 @@ class SemanticMCL:
         self._require_initialized()
         M = self.num_particles
         n_random = int(self.rng.binomial(M, self.injection_probability())) if self.cfg.augmented else 0
-        if self.effective_sample_size() >= self.cfg.ess_threshold * M and n_random == 0:
+        resets = self.unexplained_texts if observations is not None and observations.n_texts else []
+        n_reset = round(self.cfg.text_reset_share * M) if resets else 0
+        if self.effective_sample_size() >= self.cfg.ess_threshold * M and n_random == 0 and n_reset == 0:
             return False, 0
         if self.max_particles > self.min_particles:
             keep = self.kld_resample()
             M = len(keep)
             n_random = int(self.rng.binomial(M, self.injection_probability())) if n_random else 0
-            keep = keep[: M - n_random]
+            n_reset = min(round(self.cfg.text_reset_share * M), M - n_random) if resets else 0
+            keep = keep[: M - n_random - n_reset]
         else:
-            keep = systematic_resample(self.weights, M - n_random, self.rng)
+            keep = systematic_resample(self.weights, M - n_random - n_reset, self.rng)
         particles, storeys = self.particles[keep], self.storeys[keep]
-        if n_random:
-            fresh, fresh_storeys = np.zeros((0, 3)), np.zeros(0, np.int64)
-            if self.cfg.injection == "observations" and observations is not None:
-                fresh, fresh_storeys = self.sample_from_observations(n_random, observations)
-            if len(fresh) < n_random:
-                more, more_storeys = self.sample_free_space(n_random - len(fresh))
-                fresh, fresh_storeys = np.concatenate([fresh, more]), np.concatenate([fresh_storeys, more_storeys])
-            particles = np.concatenate([particles, fresh])
-            storeys = np.concatenate([storeys, fresh_storeys])
-        self.particles, self.storeys = particles, storeys
+        fresh, fresh_storeys = np.zeros((0, 3)), np.zeros(0, np.int64)
+        if n_reset:
+            fresh, fresh_storeys = self.sample_from_texts(n_reset, observations, resets)
+        if n_random and self.cfg.injection == "observations" and observations is not None:
+            more, more_storeys = self.sample_from_observations(n_random, observations)
+            fresh, fresh_storeys = np.concatenate([fresh, more]), np.concatenate([fresh_storeys, more_storeys])
+        if len(fresh) < n_random + n_reset:
+            more, more_storeys = self.sample_free_space(n_random + n_reset - len(fresh))
+            fresh, fresh_storeys = np.concatenate([fresh, more]), np.concatenate([fresh_storeys, more_storeys])
+        self.particles = np.concatenate([particles, fresh])
+        self.storeys = np.concatenate([storeys, fresh_storeys])
         self.weights = np.full(M, 1.0 / M)
-        self.fresh = np.arange(M) >= M - n_random
-        return True, n_random
+        self.fresh = np.arange(M) >= M - len(fresh)
+        return True, len(fresh)
 
     def kld_resample(self) -> np.ndarray:
         """Indices of a KLD-sized resample: `max_particles` systematic draws in random order, cut at the first n

@@ -25,7 +25,7 @@ from bimfactor.bim.plates import door_plates, look_alikes, normalise_text
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import SmclConfig
 from bimfactor.localization.likelihood import bearing_similarity, distance_similarity, polar_coordinates
-from bimfactor.types import TextObservations
+from bimfactor.types import TextObservations, wrap_angle
 
 MIN_TEXT_MATCH = 1e-3  # plates whose text matches a reading less than this (one edit at c = 6: e^−6) are not weighed
 MIN_PLATE_ASSOCIATION = 0.1  # a reading enters a pose graph only for a plate it fits this well (q; a look-alike: e^−3)
@@ -122,18 +122,47 @@ class PlateLikelihood:
         q = q * bearing_similarity(bearing_rad, alpha, self.cfg.kappa_alpha) * (in_front & here)
         return q, candidates
 
-    def log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, texts: TextObservations) -> np.ndarray:
-        """(M,) Σ_k log(ε + (1 − ε) · max_j q_j(x)) over the step's readings (see the module docstring)."""
+    def reading_likelihoods(self, particles: np.ndarray, storeys: np.ndarray, texts: TextObservations) -> np.ndarray:
+        """(K, M) P(t_k | x) = ε + (1 − ε) · max_j q_j(x) of each of the step's K readings at M poses."""
         particles = np.asarray(particles, np.float64).reshape(-1, 3)
         eps = self.cfg.text_unexplained
-        out = np.zeros(len(particles))
-        if not len(self) or texts is None:
+        out = np.full((len(texts.texts), len(particles)), eps)
+        if not len(self):
             return out
-        for text, r, b in zip(texts.texts, texts.range_m, texts.bearing_rad, strict=True):
+        for k, (text, r, b) in enumerate(zip(texts.texts, texts.range_m, texts.bearing_rad, strict=True)):
             q, _ = self.scores(particles, storeys, text, float(r), float(b))
-            best = q.max(axis=1) if q.shape[1] else np.zeros(len(particles))
-            out += np.log(eps + (1.0 - eps) * best)
+            if q.shape[1]:
+                out[k] += (1.0 - eps) * q.max(axis=1)
         return out
+
+    def log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, texts: TextObservations) -> np.ndarray:
+        """(M,) Σ_k log P(t_k | x) over the step's readings (see the module docstring)."""
+        if texts is None or not len(texts.texts) or not len(self):
+            return np.zeros(len(np.asarray(particles).reshape(-1, 3)))
+        return np.log(self.reading_likelihoods(particles, storeys, texts)).sum(axis=0)
+
+    def named_plates(self, text: str) -> np.ndarray:
+        """Indices of the plates a reading names: their text matches it within one look-alike character."""
+        return np.flatnonzero(self.text_match(text) >= np.exp(-self.cfg.text_look_alike_cost) * (1 - 1e-9))
+
+    def sample_poses(
+        self, text: str, range_m: float, bearing_rad: float, n: int, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """n (3,) poses, and their storeys, from which one reading is explained: in front of a plate whose text it
+        matches within one look-alike (drawn in proportion to the match), at the read range in a direction within
+        60° of the plate's normal, turned so the plate is at the read bearing. No pose for a reading no plate
+        matches that well. Returns (n', 3) and (n',) with n' = n or 0."""
+        match = self.text_match(text)
+        candidates = self.named_plates(text)
+        if n <= 0 or not len(candidates):
+            return np.zeros((0, 3)), np.zeros(0, np.int64)
+        plate = rng.choice(candidates, size=n, p=match[candidates] / match[candidates].sum())
+        direction = np.arctan2(self.normal[plate, 1], self.normal[plate, 0]) + rng.uniform(-1.0, 1.0, n) * np.pi / 3
+        poses = np.empty((n, 3))
+        poses[:, 0] = self.xy[plate, 0] + range_m * np.cos(direction)
+        poses[:, 1] = self.xy[plate, 1] + range_m * np.sin(direction)
+        poses[:, 2] = wrap_angle(direction + np.pi - bearing_rad)
+        return poses, self.storey[plate]
 
     def associate(self, pose: np.ndarray, storey: int, texts: TextObservations | None) -> list[tuple[int, int]]:
         """(reading index, plate index) pairs at one (3,) pose: each reading's best plate there, if its q exceeds

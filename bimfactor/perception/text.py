@@ -1,10 +1,11 @@
 """Door-plate text: the simulator's reader, and where a reading is in the robot frame.
 
 `SimTextReader` reads the door plates the simulator hung (`sim.door_plates`, `bim.plates`) from the instance
-buffer: a plate at least `sim_min_height_px` high and wide is legible and read with `sim_read_probability`; each
+buffer: a plate at least `sim_min_height_px` high and wide is legible, and read with a chance that grows with the
+width its characters take in the image (`read_probability`: distance and an oblique view narrow them); each
 character is then read as a look-alike (`bim.plates.look_alikes`) with `sim_look_alike_rate`, as any other letter or
-digit with `sim_char_error_rate`, or lost with `sim_drop_rate` (the defaults: RapidOCR on the simulator's rendered
-plates at 320 × 240, `tools/calibrate_text_reader.py`). Real images go through
+digit with `sim_char_error_rate`, or lost with `sim_drop_rate` (the defaults are fitted to RapidOCR on the
+simulator's rendered plates, `tools/calibrate_text_reader.py`). Real images go through
 `perception.ocr.RapidOcrReader`. `locate_readings` places any reader's readings in the robot base frame from the
 depth under their boxes: the `TextObservations` the localizer weighs (`localization.text`).
 """
@@ -25,6 +26,14 @@ from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta, TextObservati
 
 ALPHABET = string.digits + string.ascii_uppercase  # what a misread character becomes
 MAX_POINTS = 400  # depth pixels under a box that place a reading
+
+
+def read_probability(char_px: np.ndarray | float, most: float, half_px: float, scale_px: float) -> np.ndarray:
+    """The sim reader's chance to read a legible plate whose width in the image is `char_px` pixels per character:
+    most · logistic((char_px − half_px) / scale_px) (`perception.text.sim_read_probability`, `sim_read_char_px`,
+    `sim_read_char_scale_px`)."""
+    z = (np.asarray(char_px, float) - half_px) / scale_px
+    return most / (1.0 + np.exp(-np.clip(z, -50.0, 50.0)))
 
 
 class SimTextReader:
@@ -48,7 +57,11 @@ class SimTextReader:
             box = np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], float)
             if min(box[2] - box[0], box[3] - box[1]) < self.cfg.sim_min_height_px:
                 continue
-            if u_read >= self.cfg.sim_read_probability:
+            char_px = (box[2] - box[0]) / max(len(text), 1)
+            cfg = self.cfg
+            if u_read >= read_probability(
+                char_px, cfg.sim_read_probability, cfg.sim_read_char_px, cfg.sim_read_char_scale_px
+            ):
                 continue
             read = "".join(self._misread(c) for c in text.upper() if c in ALPHABET)
             if read:  # every character lost: nothing was read

@@ -13,7 +13,7 @@ from bimfactor.bim.plates import PLATE_REACH_M, door_plates, look_alikes
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.smcl import SemanticMCL
 from bimfactor.localization.text import PlateLikelihood
-from bimfactor.perception.text import SimTextReader, locate_readings
+from bimfactor.perception.text import SimTextReader, locate_readings, read_probability
 from bimfactor.pipeline import visibility_of
 from bimfactor.sim.sensors import RgbdCamera
 from bimfactor.sim.simulate import build_world
@@ -33,7 +33,9 @@ PLATES_ON = [
 
 @pytest.fixture(scope="module")
 def plated(duplex: Building, config_overrides: list[str]):
-    cfg = config_with(config_overrides, *NOISE_OFF, *PLATES_ON, "perception.text.sim_read_probability=1")
+    always = ["perception.text.sim_read_probability=1", "perception.text.sim_read_char_px=0",
+              "perception.text.sim_read_char_scale_px=0.001"]  # fmt: skip
+    cfg = config_with(config_overrides, *NOISE_OFF, *PLATES_ON, *always)
     return cfg, build_world(duplex.prior, duplex.model, cfg, seed=0)
 
 
@@ -110,12 +112,31 @@ def test_character_errors_and_legibility(duplex: Building, plated) -> None:
         for t in similar
     )
     assert read_with(sim_drop_rate=1.0) == []  # every character lost: no reading
+    # The read chance by the plate's width per character: half way at sim_read_char_px, the most when wide.
+    p = read_probability(np.array([0.0, 4.0, 5.0, 6.0, 30.0]), 0.8, 5.0, 1.0)
+    assert np.all(np.diff(p) > 0) and p[2] == pytest.approx(0.4) and p[-1] == pytest.approx(0.8)
+    assert p[1] == pytest.approx(0.8 / (1 + np.e)) and p[0] < 0.01
+    assert read_with(sim_read_char_px=1e3) == []  # no plate is that wide: none is read
 
 
 def _facing(plate, distance: float) -> np.ndarray:
     """The pose `distance` in front of a plate's door, facing it."""
     xy = np.asarray(plate.xy) + distance * np.asarray(plate.normal_xy)
     return np.array([*xy, np.arctan2(-plate.normal_xy[1], -plate.normal_xy[0])])
+
+
+def _plate_and_twin(prior):
+    """A plate of unit A whose number appears once, and its twin in unit B."""
+    plates = door_plates(prior)
+    plate = next(p for p in plates if p.text.startswith("A") and sum(q.text == p.text for q in plates) == 1)
+    return plate, next(p for p in plates if p.text == "B" + plate.text[1:])
+
+
+def _reading_only(prior, text: str) -> Observations:
+    """A step that detected no object and read `text` 2 m straight ahead."""
+    empty = Observations(np.zeros((0, prior.object_embeddings.shape[1]), np.float32), np.zeros(0), np.zeros(0))
+    empty.texts = TextObservations([text], np.array([2.0]), np.array([0.0]))
+    return empty
 
 
 def test_plates_face_away_from_their_rooms(duplex: Building) -> None:
@@ -138,9 +159,7 @@ def test_plates_face_away_from_their_rooms(duplex: Building) -> None:
 
 def test_reading_likelihood_by_hand(duplex: Building) -> None:
     cfg = duplex.cfg.smcl
-    plates = door_plates(duplex.prior)
-    plate = next(p for p in plates if p.text.startswith("A") and sum(q.text == p.text for q in plates) == 1)
-    twin = next(p for p in plates if p.text == "B" + plate.text[1:])
+    plate, twin = _plate_and_twin(duplex.prior)
     # Only these two rooms keep their numbers, so no third plate's near-miss text enters the values below.
     rooms = [
         r if r.id in (plate.room_id, twin.room_id) else dataclasses.replace(r, space_number="")
@@ -177,19 +196,45 @@ def test_reading_likelihood_by_hand(duplex: Building) -> None:
 def test_the_filter_tells_the_twin_units_apart_by_a_plate(duplex: Building) -> None:
     """The duplex's units are one turned by 180°: objects and walls cannot tell them apart, a plate can."""
     cfg = duplex.cfg.smcl
-    plates = door_plates(duplex.prior)
-    plate = next(p for p in plates if p.text.startswith("A") and sum(q.text == p.text for q in plates) == 1)
-    twin = next(p for p in plates if p.text == "B" + plate.text[1:])
+    plate, twin = _plate_and_twin(duplex.prior)
     filt = SemanticMCL(duplex.prior, visibility_of(duplex.prior, duplex.cfg), cfg, np.random.default_rng(0))
     filt.initialize_around(_facing(plate, 2.0), plate.storey_index, 0.3, np.deg2rad(5))
     half = filt.num_particles // 2
     filt.particles[half:] = _facing(twin, 2.0)
     filt.storeys[half:] = twin.storey_index
     filt.weights[:] = 1.0 / filt.num_particles
-    empty = Observations(np.zeros((0, duplex.prior.object_embeddings.shape[1]), np.float32), np.zeros(0), np.zeros(0))
-    empty.texts = TextObservations([plate.text], np.array([2.0]), np.array([0.0]))
+    empty = _reading_only(duplex.prior, plate.text)
     filt.update(empty)
     assert filt.weights[:half].sum() > 0.9
+
+
+def test_a_reading_the_belief_cannot_explain_redraws_particles_before_its_plate(duplex: Building) -> None:
+    """Sensor resetting: a belief wholly in the wrong unit holds no particle that a plate read explains, so weighing
+    cannot move it there; the reading redraws `text_reset_share` of the particles in front of its plate, and the next
+    reading carries the weight over."""
+    cfg = duplex.cfg.smcl
+    plate, twin = _plate_and_twin(duplex.prior)
+    filt = SemanticMCL(duplex.prior, visibility_of(duplex.prior, duplex.cfg), cfg, np.random.default_rng(0))
+    filt.initialize_around(_facing(twin, 2.0), twin.storey_index, 0.3, np.deg2rad(5))
+    empty = _reading_only(duplex.prior, plate.text)
+    filt.update(empty)
+    assert filt.unexplained_texts == [0]
+    resampled, injected = filt.resample_if_needed(empty)
+    M = filt.num_particles
+    assert resampled and injected == round(cfg.text_reset_share * M)
+    # Redrawn 2 m from the plate (the read range), on its side of the wall, turned towards it.
+    offset = filt.particles[:, :2] - np.asarray(plate.xy)
+    near = (np.abs(np.hypot(*offset.T) - 2.0) < 4 * cfg.sigma_trans_m) & (offset @ np.asarray(plate.normal_xy) > 0)
+    assert near[filt.fresh].mean() > 0.95 and not near[~filt.fresh].any()
+    assert (filt.storeys[filt.fresh] == plate.storey_index).all()
+    filt.update(empty)  # read again: the redrawn particles in front of the plate explain it, the others do not
+    assert filt.weights[filt.storeys == plate.storey_index][near[filt.storeys == plate.storey_index]].sum() > 0.5
+    assert filt.unexplained_texts == []
+    # A reading that names no plate ("EXIT") redraws nothing, and neither does one the belief explains.
+    filt.initialize_around(_facing(twin, 2.0), twin.storey_index, 0.3, np.deg2rad(5))
+    for text in ("EXIT", twin.text):
+        filt.update(_reading_only(duplex.prior, text))
+        assert filt.unexplained_texts == []
 
 
 def test_the_pose_graphs_take_a_read_plate_as_a_landmark(duplex: Building) -> None:
