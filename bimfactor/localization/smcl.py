@@ -19,7 +19,9 @@ Beyond the paper, `augmented: true` adds augmented MCL (Thrun et al., Probabilis
 random particles are injected with probability max(0, 1 − w_fast / w_slow) to recover from a wrong convergence.
 `relocalize: true` handles the kidnapped robot, which a trickle of injected particles recovers from slowly: when the
 belief stops explaining the depth scans (`LostMonitor`), the particles are spread over the building again, as at
-the start, and the frame that showed it is weighed by the new cloud.
+the start, and the frame that showed it is weighed by the new cloud. Door plates read (`localization.text`) reset
+the belief where weighing cannot: a reading the particles do not explain redraws `text_reset_share` of them in
+front of the plates it names (`sample_from_texts`; sensor resetting, Lenser and Veloso 2000).
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ from bimfactor.localization.likelihood import bearing_similarity, distance_simil
 from bimfactor.types import TextObservations, wrap_angle
 
 MIN_TEXT_MATCH = 1e-3  # plates whose text matches a reading less than this (one edit at c = 6: e^−6) are not weighed
-MIN_PLATE_ASSOCIATION = 0.1  # a reading enters a pose graph only for a plate it fits this well (q; a look-alike: e^−3)
+MIN_PLATE_ASSOCIATION = 0.1  # a reading enters a pose graph only for a plate it fits this well (q; look-alike: e^−3.5)
 
 
 def edit_distance(a: str, b: str, look_alike: float = 1.0) -> float:
