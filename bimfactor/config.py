@@ -324,8 +324,8 @@ class SmclConfig(_Strict):
     text_reset_below: float = Field(
         gt=0.0,
         lt=1.0,
-        description="Door-plate readings: a reading is unexplained when the belief's P(reading | x) averages below "
-        "this (ε = text_unexplained where no particle stands before its plate, 1 where all do).",
+        description="Door-plate readings: a reading is unexplained when the belief's P(reading | x) − ε averages "
+        "below this share of its most (a particle right before the plate its text matches best).",
     )
     scan_likelihood: bool = Field(
         description="Also weigh particles by the depth scan against the BIM's likelihood field (beyond the paper)."

@@ -41,7 +41,7 @@ from bimfactor.errors import InputError
 from bimfactor.localization.field import ScanLikelihood
 from bimfactor.localization.likelihood import SemanticLikelihood, polar_coordinates
 from bimfactor.localization.motion import propagate
-from bimfactor.types import Observations, wrap_angle
+from bimfactor.types import Observations, TextObservations, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -515,12 +515,7 @@ class SemanticMCL:
             per_reading = self.likelihood.plates.reading_likelihoods(self.particles, self.storeys, observations.texts)
             log_likelihood += np.log(per_reading).sum(axis=0)
             if self.cfg.text_reset_share > 0:
-                explained = per_reading @ (self.weights / self.weights.sum())
-                self.unexplained_texts = [
-                    k
-                    for k in np.flatnonzero(explained < self.cfg.text_reset_below).tolist()
-                    if len(self.likelihood.plates.named_plates(observations.texts.texts[k]))
-                ]
+                self.unexplained_texts = self._unexplained_readings(per_reading, observations.texts)
         if has_scan:
             scores = self.scan_likelihood.scores(self.particles, self.storeys, scan)
             self.scan_fit = float(np.dot(self.weights, scores) / self.weights.sum())
@@ -531,6 +526,21 @@ class SemanticMCL:
         peak = log_w.max()
         self.weights = np.exp(log_w - peak) if np.isfinite(peak) else np.zeros_like(log_w)
         self._normalise("after the measurement update")
+
+    def _unexplained_readings(self, per_reading: np.ndarray, texts: TextObservations) -> list[int]:
+        """The readings (indices) that name a plate and that the belief explains poorly: of the most that P(t | x)
+        rises above ε for the reading's text (a particle right before its best-matching plate), the particles'
+        weighted average holds less than `text_reset_below`. A look-alike misread is judged as the text it reads."""
+        plates, eps = self.likelihood.plates, self.cfg.text_unexplained
+        explained = per_reading @ (self.weights / self.weights.sum())
+        out = []
+        for k, text in enumerate(texts.texts):
+            if not len(plates.named_plates(text)):
+                continue
+            most = (1.0 - eps) * float(plates.text_match(text).max())
+            if (explained[k] - eps) < self.cfg.text_reset_below * most:
+                out.append(k)
+        return out
 
     def effective_sample_size(self) -> float:
         return effective_sample_size(self.weights)

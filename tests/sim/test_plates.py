@@ -235,6 +235,10 @@ def test_a_reading_the_belief_cannot_explain_redraws_particles_before_its_plate(
     for text in ("EXIT", twin.text):
         filt.update(_reading_only(duplex.prior, text))
         assert filt.unexplained_texts == []
+    # A look-alike misread ("4" for "A") where its plate hangs is judged as the text it reads: explained.
+    filt.initialize_around(_facing(plate, 2.0), plate.storey_index, 0.3, np.deg2rad(5))
+    filt.update(_reading_only(duplex.prior, "4" + plate.text[1:]))
+    assert filt.unexplained_texts == []
 
 
 def test_the_pose_graphs_take_a_read_plate_as_a_landmark(duplex: Building) -> None:
