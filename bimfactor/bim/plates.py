@@ -10,6 +10,7 @@ and bearing tolerances (`localization.text`); the simulator hangs it beside the 
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 
@@ -49,6 +50,7 @@ def normalise_text(text: str) -> str:
     return re.sub(r"[^0-9A-Z]", "", text.upper())
 
 
+@functools.cache
 def look_alikes(char: str) -> str:
     """The characters OCR mistakes `char` for (`LOOK_ALIKE_GROUPS`), in a fixed order; "" for one with none."""
     return "".join(sorted({c for g in LOOK_ALIKE_GROUPS if char in g for c in g} - {char}))

@@ -371,9 +371,7 @@ class SemanticMCL:
             drawn[:, 0] = scorer.object_xy[k, 0] + ranges[j] * np.cos(direction)
             drawn[:, 1] = scorer.object_xy[k, 1] + ranges[j] * np.sin(direction)
             drawn[:, 2] = direction + np.pi - bearings[j]
-            noise = self.rng.standard_normal((m, 3))
-            drawn[:, :2] += self.cfg.sigma_trans_m * noise[:, :2]
-            drawn[:, 2] = wrap_angle(drawn[:, 2] + np.deg2rad(self.cfg.sigma_rot_deg) * noise[:, 2])
+            self._add_motion_noise(drawn)
             storey = self._object_storey[k]
             ok = self.on_navigable(drawn, storey)
             offsets, ids = scorer.visibility.candidates(drawn[ok, :2], storey[ok])
@@ -401,15 +399,19 @@ class SemanticMCL:
                 count = int(np.sum(k == reading))
                 text, r, b = texts.texts[reading], float(texts.range_m[reading]), float(texts.bearing_rad[reading])
                 drawn, storey = plates.sample_poses(text, r, b, count, self.rng)
-                noise = self.rng.standard_normal(drawn.shape)
-                drawn[:, :2] += self.cfg.sigma_trans_m * noise[:, :2]
-                drawn[:, 2] = wrap_angle(drawn[:, 2] + np.deg2rad(self.cfg.sigma_rot_deg) * noise[:, 2])
+                self._add_motion_noise(drawn)
                 ok = self.on_navigable(drawn, storey)
                 poses.append(drawn[ok])
                 storeys.append(storey[ok])
             if sum(len(p) for p in poses) >= n:
                 break
         return np.concatenate(poses)[:n], np.concatenate(storeys)[:n]
+
+    def _add_motion_noise(self, poses: np.ndarray) -> None:
+        """Perturb (n, 3) drawn poses in place by the motion model's σ_trans and σ_rot."""
+        noise = self.rng.standard_normal(poses.shape)
+        poses[:, :2] += self.cfg.sigma_trans_m * noise[:, :2]
+        poses[:, 2] = wrap_angle(poses[:, 2] + np.deg2rad(self.cfg.sigma_rot_deg) * noise[:, 2])
 
     def on_navigable(self, particles: np.ndarray, storeys: np.ndarray) -> np.ndarray:
         """(M,) bool: is each particle's position in navigable space of its storey?"""

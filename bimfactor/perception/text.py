@@ -48,17 +48,16 @@ class SimTextReader:
         """The plates of this frame that are legible and read, as `TextReading`s with their pixel boxes."""
         if not self.plates or frame.instance_ids is None:
             return []
-        ids = frame.instance_ids
+        ids, cfg = frame.instance_ids, self.cfg
         readings = []
         for iid in np.intersect1d(np.unique(ids), np.fromiter(self.plates, np.int64)):
             text = self.plates[int(iid)]
             u_read = self.rng.random()
             rows, cols = np.nonzero(ids == iid)
             box = np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], float)
-            if min(box[2] - box[0], box[3] - box[1]) < self.cfg.sim_min_height_px:
+            if min(box[2] - box[0], box[3] - box[1]) < cfg.sim_min_height_px:
                 continue
             char_px = (box[2] - box[0]) / max(len(text), 1)
-            cfg = self.cfg
             if u_read >= read_probability(
                 char_px, cfg.sim_read_probability, cfg.sim_read_char_px, cfg.sim_read_char_scale_px
             ):
