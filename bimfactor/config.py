@@ -327,6 +327,16 @@ class SmclConfig(_Strict):
         description="Door-plate readings: a reading is unexplained when the belief's P(reading | x) − ε averages "
         "below this share of its most (a particle right before the plate its text matches best).",
     )
+    text_reset_oversample: int = Field(
+        ge=1,
+        description="Door-plate redraw: draw this many times as many poses before the named plates and keep those "
+        "the frame's scan favours (1: no screen).",
+    )
+    injection_oversample: int = Field(
+        ge=1,
+        description="Augmented MCL's particles drawn from the observations: draw this many times as many and keep "
+        "those the frame's scan favours (1: no screen).",
+    )
     scan_likelihood: bool = Field(
         description="Also weigh particles by the depth scan against the BIM's likelihood field (beyond the paper)."
     )

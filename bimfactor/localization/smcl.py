@@ -21,7 +21,8 @@ random particles are injected with probability max(0, 1 − w_fast / w_slow) to 
 belief stops explaining the depth scans (`LostMonitor`), the particles are spread over the building again, as at
 the start, and the frame that showed it is weighed by the new cloud. Door plates read (`localization.text`) reset
 the belief where weighing cannot: a reading the particles do not explain redraws `text_reset_share` of them in
-front of the plates it names (`sample_from_texts`; sensor resetting, Lenser and Veloso 2000).
+front of the plates it names (`sample_from_texts`; sensor resetting, Lenser and Veloso 2000), kept from
+`text_reset_oversample` times as many drawn by how well they explain the frame's depth scan (`screen_by_scan`).
 """
 
 from __future__ import annotations
@@ -407,6 +408,20 @@ class SemanticMCL:
                 break
         return np.concatenate(poses)[:n], np.concatenate(storeys)[:n]
 
+    def screen_by_scan(
+        self, n: int, poses: np.ndarray, storeys: np.ndarray, scan: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """n of the drawn (N, 3) poses, chosen without replacement in proportion to the frame's scan likelihood
+        exp(score / T_scan) (`text_reset_oversample` and `injection_oversample` draw more than are needed, so that
+        the walls in view pick among them); the first n when there is no scan term or scan. Returns (n', 3) and
+        (n',), n' = min(n, N)."""
+        if self.scan_likelihood is None or scan is None or not len(scan) or len(poses) <= n:
+            return poses[:n], storeys[:n]
+        scores = self.scan_likelihood.scores(poses, storeys, scan)
+        odds = np.exp((scores - scores.max()) / self.cfg.scan_temperature)
+        keep = self.rng.choice(len(poses), size=n, replace=False, p=odds / odds.sum())
+        return poses[keep], storeys[keep]
+
     def _add_motion_noise(self, poses: np.ndarray) -> None:
         """Perturb (n, 3) drawn poses in place by the motion model's σ_trans and σ_rot."""
         noise = self.rng.standard_normal(poses.shape)
@@ -562,12 +577,16 @@ class SemanticMCL:
             w_slow = max(w_slow, np.exp((self.cfg.injection_reference_score - 1.0) / self.cfg.temperature))
         return max(0.0, 1.0 - self.w_fast / w_slow)
 
-    def resample_if_needed(self, observations: Observations | None = None) -> tuple[bool, int]:
+    def resample_if_needed(
+        self, observations: Observations | None = None, scan: np.ndarray | None = None
+    ) -> tuple[bool, int]:
         """Systematic resampling when ESS < δ_ess·M (or random particles are due); returns (resampled, injected).
 
         With KLD-sampling the new count is `kld_resample`'s, and the random particles are drawn for it.
         Random particles come from `observations` (`injection: observations`, see `sample_from_observations`;
-        uniform where they yield too few) or uniformly over free space (`injection: uniform`)."""
+        uniform where they yield too few) or uniformly over free space (`injection: uniform`). Particles drawn
+        from door-plate readings or from the observations are screened by the frame's `scan` (`screen_by_scan`,
+        per `text_reset_oversample` and `injection_oversample`)."""
         self._require_initialized()
         M = self.num_particles
         n_random = int(self.rng.binomial(M, self.injection_probability())) if self.cfg.augmented else 0
@@ -586,9 +605,15 @@ class SemanticMCL:
         particles, storeys = self.particles[keep], self.storeys[keep]
         fresh, fresh_storeys = np.zeros((0, 3)), np.zeros(0, np.int64)
         if n_reset:
-            fresh, fresh_storeys = self.sample_from_texts(n_reset, observations, resets)
+            k = self.cfg.text_reset_oversample
+            fresh, fresh_storeys = self.screen_by_scan(
+                n_reset, *self.sample_from_texts(k * n_reset, observations, resets), scan
+            )
         if n_random and self.cfg.injection == "observations" and observations is not None:
-            more, more_storeys = self.sample_from_observations(n_random, observations)
+            k = self.cfg.injection_oversample
+            more, more_storeys = self.screen_by_scan(
+                n_random, *self.sample_from_observations(k * n_random, observations), scan
+            )
             fresh, fresh_storeys = np.concatenate([fresh, more]), np.concatenate([fresh_storeys, more_storeys])
         if len(fresh) < n_random + n_reset:
             more, more_storeys = self.sample_free_space(n_random + n_reset - len(fresh))
@@ -666,7 +691,7 @@ class SemanticMCL:
             self.update(observations, scan)
         lap("update")
         ess = self.effective_sample_size()
-        resampled, injected = self.resample_if_needed(observations)
+        resampled, injected = self.resample_if_needed(observations, scan)
         lap("resample")
         estimate = self.estimate()
         lap("estimate")

@@ -12,6 +12,7 @@ from bimfactor.localization.field import ScanLikelihood, scan_endpoints
 from bimfactor.localization.smcl import SemanticMCL
 from bimfactor.sim.sensors import camera_mount
 from bimfactor.types import CameraIntrinsics
+from tests.localization.handmade import object_id, observe
 
 W, H = 64, 48
 
@@ -164,6 +165,53 @@ def test_injected_particles_stay_out_of_the_estimate_until_weighed(
     mcl.update(None, _divider_scan())  # a measurement weighs them: they count again
     assert not mcl.fresh.any() and np.array_equal(mcl.estimation_weights(), mcl.weights)
     assert np.abs(mcl.estimate().pose - [3.0, 3.0, 0.5]).max() > 1e-6
+
+
+def test_drawn_poses_are_screened_by_the_frame_scan(
+    box_prior: BimPrior, box_visibility: VisibilityTable, smcl_cfg: SmclConfig
+):
+    """Of 200 drawn poses that put the divider where the scan has it and 200 turned by 30°, the 100 kept are nearly
+    all of the first kind; with no scan the first 100 come back as drawn."""
+    cfg = smcl_cfg.model_copy(update={"scan_likelihood": True})
+    mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(5), num_particles=10)
+    drawn = np.repeat([[3.0, 3.0, 0.0], [3.0, 3.0, np.deg2rad(30.0)]], 200, axis=0)
+    storeys = np.zeros(len(drawn), np.int64)
+    kept, kept_storeys = mcl.screen_by_scan(100, drawn, storeys, _divider_scan())
+    assert len(kept) == len(kept_storeys) == 100
+    assert np.sum(kept[:, 2] == 0.0) >= 85
+    assert len(np.unique(kept, axis=0)) == 2  # chosen among the drawn, not moved
+    as_drawn, _ = mcl.screen_by_scan(100, drawn, storeys, None)
+    np.testing.assert_array_equal(as_drawn, drawn[:100])
+    cfg_off = smcl_cfg.model_copy(update={"scan_likelihood": False})
+    off = SemanticMCL(box_prior, box_visibility, cfg_off, np.random.default_rng(5), num_particles=10)
+    np.testing.assert_array_equal(off.screen_by_scan(100, drawn, storeys, _divider_scan())[0], drawn[:100])
+
+
+def test_injected_particles_fit_the_frame_scan_when_screened(
+    box_prior: BimPrior, box_visibility: VisibilityTable, smcl_cfg: SmclConfig
+):
+    """Augmented MCL's particles drawn from one observation (the window 2 m straight ahead) lie on an arc about it;
+    screened by the frame's scan (the south wall square ahead, 1.9 m off) they crowd where the wall is square
+    ahead and fit the scan better (`injection_oversample` 4), unscreened (1) they spread along the arc."""
+    window = np.asarray(box_prior.objects[object_id(box_prior, "window")].position_m[:2])
+    obs = observe(("window", 2.0, 0.0))
+    wall = np.column_stack([np.full(11, 1.9), np.linspace(-1.0, 1.0, 11)])
+    spread, fit = {}, {}
+    for oversample in (1, 4):
+        cfg = smcl_cfg.model_copy(
+            update={"augmented": True, "injection": "observations", "injection_oversample": oversample}
+        )
+        mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0), num_particles=400)
+        mcl.initialize()
+        mcl.w_slow, mcl.w_fast = 1.0, 0.0
+        resampled, injected = mcl.resample_if_needed(obs, wall)
+        assert resampled and injected == 400
+        offset = mcl.particles[:, :2] - window
+        np.testing.assert_allclose(np.median(np.hypot(*offset.T)), 2.0, atol=0.3)  # they explain the window
+        spread[oversample] = np.median(np.abs(np.arctan2(offset[:, 0], offset[:, 1])))  # off the wall's normal
+        fit[oversample] = ScanLikelihood(box_prior, cfg).scores(mcl.particles, mcl.storeys, wall).mean()
+    assert spread[4] < 0.75 * spread[1]  # 0.41 against 0.62 rad
+    assert fit[4] > fit[1] + 0.1  # 0.63 against 0.49
 
 
 # ------------------------------------------------------------------------------------------ the kidnapped robot

@@ -10,6 +10,7 @@ import pytest
 from bimfactor.backend.factors import Landmarks
 from bimfactor.backend.posegraph import ModeGraph, observation_cost, semantic_associator
 from bimfactor.bim.plates import PLATE_REACH_M, door_plates, look_alikes
+from bimfactor.localization.field import ScanLikelihood
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.smcl import SemanticMCL
 from bimfactor.localization.text import PlateLikelihood
@@ -239,6 +240,27 @@ def test_a_reading_the_belief_cannot_explain_redraws_particles_before_its_plate(
     filt.initialize_around(_facing(plate, 2.0), plate.storey_index, 0.3, np.deg2rad(5))
     filt.update(_reading_only(duplex.prior, "4" + plate.text[1:]))
     assert filt.unexplained_texts == []
+
+
+def test_the_redraw_is_screened_by_the_frame_scan(duplex: Building) -> None:
+    """Redrawn on the arc before the plate (±60° of its normal), the particles kept from four times as many drawn
+    (`text_reset_oversample` 4) fit the frame's scan (the plate's wall square ahead at the read range) better than
+    those drawn without the screen (1), and still explain the reading."""
+    plate, twin = _plate_and_twin(duplex.prior)
+    wall = np.column_stack([np.full(9, 2.0), np.linspace(-0.4, 0.4, 9)])  # the plate's wall, 2 m straight ahead
+    reading = _reading_only(duplex.prior, plate.text)
+    fit = {}
+    for oversample in (1, 4):
+        cfg = duplex.cfg.smcl.model_copy(update={"text_reset_oversample": oversample, "augmented": False})
+        filt = SemanticMCL(duplex.prior, visibility_of(duplex.prior, duplex.cfg), cfg, np.random.default_rng(0))
+        filt.initialize_around(_facing(twin, 2.0), twin.storey_index, 0.3, np.deg2rad(5))
+        filt.update(reading)
+        assert filt.resample_if_needed(reading, wall)[1] == round(cfg.text_reset_share * filt.num_particles)
+        drawn, storeys = filt.particles[filt.fresh], filt.storeys[filt.fresh]
+        offset = drawn[:, :2] - np.asarray(plate.xy)
+        assert np.median(np.abs(np.hypot(*offset.T) - 2.0)) < 3 * cfg.sigma_trans_m
+        fit[oversample] = ScanLikelihood(duplex.prior, cfg).scores(drawn, storeys, wall).mean()
+    assert fit[4] > fit[1] + 0.05  # 0.58 against 0.49
 
 
 def test_the_pose_graphs_take_a_read_plate_as_a_landmark(duplex: Building) -> None:
