@@ -417,8 +417,8 @@ class SemanticMCL:
         (n',), n' = min(n, N)."""
         if self.scan_likelihood is None or scan is None or not len(scan) or len(poses) <= n:
             return poses[:n], storeys[:n]
-        scores = self.scan_likelihood.scores(poses, storeys, scan)
-        odds = np.exp((scores - scores.max()) / self.cfg.scan_temperature)
+        log_p = self.scan_likelihood.log_likelihood(poses, storeys, scan)
+        odds = np.exp(log_p - log_p.max())
         keep = self.rng.choice(len(poses), size=n, replace=False, p=odds / odds.sum())
         return poses[keep], storeys[keep]
 
