@@ -59,12 +59,20 @@ def odometry_increment(odom_prev: np.ndarray, odom_curr: np.ndarray) -> np.ndarr
 
 
 def odometry_increments(poses: np.ndarray) -> np.ndarray:
-    """(N, 3) poses → (N−1, 3) increments (δrot1, δtrans, δrot2) of the odometry motion model."""
+    """(N, 3) poses → (N−1, 3) increments (δrot1, δtrans, δrot2) of the odometry motion model.
+
+    Backward motion is a negative δtrans with δrot1 ∈ (−π/2, π/2] (as AMCL's odometry model treats it), not a turn
+    by π: otherwise the few centimetres an in-place turn slips backwards would read as δrot1 = π, δrot2 = Δθ − π, and
+    the noise model (α1 δrot1², α1 δrot2²) would give that keyframe's heading σ ≈ 55° instead of a few degrees.
+    """
     poses = np.asarray(poses, float)
     d = np.diff(poses[:, :2], axis=0)
     trans = np.hypot(d[:, 0], d[:, 1])
     turn = wrap_angle(np.diff(poses[:, 2]))
     rot1 = np.where(trans >= ODOMETRY_MIN_TRANSLATION_M, wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - poses[:-1, 2]), 0.0)
+    backward = np.abs(rot1) > np.pi / 2
+    rot1 = np.where(backward, wrap_angle(rot1 + np.pi), rot1)
+    trans = np.where(backward, -trans, trans)
     rot2 = wrap_angle(turn - rot1)
     return np.stack([rot1, trans, rot2], axis=1)
 

@@ -72,7 +72,7 @@ def test_velocity_form_equals_increment_form_with_the_same_generator():
     np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.parametrize("increment", [[0.5, 0.0, 0.0], [0.4, 0.1, 0.3], [0.0, 0.0, 0.3]])
+@pytest.mark.parametrize("increment", [[0.5, 0.0, 0.0], [0.4, 0.1, 0.3], [0.0, 0.0, 0.3], [-0.4, 0.1, 0.3]])
 def test_odometry_covariance_matches_the_sampled_motion_model(increment):
     """Sample the odometry motion model (as the simulator does) and compare the increments' spread."""
     alpha = [0.05, 0.01, 0.05, 0.01]
@@ -84,6 +84,24 @@ def test_odometry_covariance_matches_the_sampled_motion_model(increment):
     sampled = np.column_stack([trans * np.cos(rot1), trans * np.sin(rot1), rot1 + rot2])
     expected = odometry_covariance(np.array(increment), alpha)
     np.testing.assert_allclose(np.cov(sampled.T), expected, rtol=0.1, atol=1e-4)
+
+
+def test_backward_motion_is_a_negative_translation_not_a_half_turn():
+    rot1, trans, rot2 = odometry_increments(
+        np.array([[1.0, 2.0, 0.5], [1.0 - 0.4 * np.cos(0.5), 2.0 - 0.4 * np.sin(0.5), 0.8]])
+    )[0]
+    np.testing.assert_allclose([rot1, trans, rot2], [0.0, -0.4, 0.3], atol=1e-12)
+
+
+def test_an_in_place_turn_that_slips_backwards_keeps_its_heading_sigma():
+    """An 18° turn on the spot that slips 2.6 cm is as certain in heading whichever way it slipped (it was 54° when
+    the backward slip read as a turn by π)."""
+    alpha = [0.05, 0.01, 0.05, 0.01]
+    forward = odometry_covariance(np.array([0.026, 0.0, 0.314]), alpha)
+    backward = odometry_covariance(np.array([-0.026, 0.0, 0.314]), alpha)
+    np.testing.assert_allclose(np.diag(backward), np.diag(forward), atol=1e-12)  # the y–yaw term turns sign
+    assert np.rad2deg(np.sqrt(backward[2, 2])) < 5.0
+    assert np.sqrt(backward[0, 0]) < 0.05
 
 
 def test_keyframes_every_distance_or_turn_from_the_last_kept():
