@@ -737,6 +737,16 @@ class Config(_Strict):
     registration: RegistrationConfig
     evaluation: EvaluationConfig
 
+    @model_validator(mode="after")
+    def _scan_within_the_band(self) -> Config:
+        if self.smcl.scan_min_z_m > self.bim.grid.band_min_m:
+            raise ValueError(
+                f"smcl.scan_min_z_m ({self.smcl.scan_min_z_m:g}) is above bim.grid.band_min_m "
+                f"({self.bim.grid.band_min_m:g}): the grid would hold surfaces the scan cannot see (a window's sill "
+                "reads as the wall's inner face)"
+            )
+        return self
+
     def dump_yaml(self) -> str:
         """The resolved configuration as YAML, written next to every output."""
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
@@ -804,7 +814,8 @@ def _first_error(exc: ValidationError) -> str:
         return _unknown_key(where)
     if err["type"] == "missing":
         return f"missing config key '{where}'"
-    return f"config key '{where}': {err['msg']}"
+    message = err["msg"].removeprefix("Value error, ")
+    return f"config key '{where}': {message}" if where else f"config: {message}"
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:

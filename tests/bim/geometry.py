@@ -13,6 +13,7 @@ _ANCESTRY = {
     "IfcDoor": ("IfcDoor", "IfcBuildingElement", "IfcElement", "IfcProduct"),
     "IfcFurniture": ("IfcFurniture", "IfcFurnishingElement", "IfcElement", "IfcProduct"),
     "IfcSlab": ("IfcSlab", "IfcBuildingElement", "IfcElement", "IfcProduct"),
+    "IfcWindow": ("IfcWindow", "IfcBuildingElement", "IfcElement", "IfcProduct"),
 }
 
 

@@ -70,6 +70,29 @@ def test_layers_clearance_and_excluded_doors() -> None:
     assert grid.clearance_m[free[0], free[1]] == pytest.approx(1.0, abs=0.06)
 
 
+def test_a_window_recess_is_free_above_its_sill() -> None:
+    """duplex.ifc's floor-to-ceiling windows: a 3 cm sill lining spans the 0.35 m recess at 0.10–0.13 m, the pane
+    stands at the wall's outer face. The scan (from `smcl.scan_min_z_m`) sees the pane; the grid's band starts there
+    too, so the recess is free in the grid and the pane is its face."""
+    sill = box("IfcWindow", (0.0, 0.0, 0.10), (4.0, 0.35, 0.13))
+    pane = box("IfcWindow", (0.0, 0.35, 0.10), (4.0, 0.40, 2.50))
+    cfg = _grid_cfg()
+    grid = build_storey_grid(STOREY, [sill, pane], SPEC, cfg, furniture_classes=[])
+    recess, glass = SPEC.world_to_cell(np.array([[2.0, 0.2], [2.0, 0.375]]))
+    assert not grid.structure[recess[0], recess[1]] and grid.structure[glass[0], glass[1]]
+    low = build_storey_grid(STOREY, [sill, pane], SPEC, cfg.model_copy(update={"band_min_m": 0.10}), [])
+    assert low.structure[recess[0], recess[1]]  # the band from 0.10 m fills the recess the scan sees through
+
+
+def test_the_scan_may_not_start_above_the_grids_band() -> None:
+    from bimfactor.config import load_config
+    from bimfactor.errors import ConfigError
+
+    assert load_config().smcl.scan_min_z_m <= load_config().bim.grid.band_min_m
+    with pytest.raises(ConfigError, match=r"^config: smcl.scan_min_z_m \(0.3\) is above bim.grid.band_min_m"):
+        load_config(overrides=["smcl.scan_min_z_m=0.3"])
+
+
 def _grid_cfg():
     from bimfactor.config import load_config
 
