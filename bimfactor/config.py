@@ -11,6 +11,7 @@ import copy
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, PositiveFloat, ValidationError, model_validator
 
@@ -224,6 +225,16 @@ class PerceptionConfig(_Strict):
         return self
 
 
+class DepthSigmaConfig(_Strict):
+    sigma0_m: float = Field(ge=0.0, description="Axial depth noise σ(z) = sigma0 + k·(z − z0)², constant term.")
+    k_per_m: float = Field(ge=0.0, description="Quadratic growth k of the axial noise.")
+    z0_m: float = Field(ge=0.0, description="Depth of least noise z0.")
+
+    def sigma_m(self, depth_m: np.ndarray) -> np.ndarray:
+        """Axial depth noise σ(z) = sigma0 + k·(z − z0)², same shape as `depth_m`."""
+        return self.sigma0_m + self.k_per_m * (np.asarray(depth_m) - self.z0_m) ** 2
+
+
 class SmclConfig(_Strict):
     num_particles: int = Field(ge=1, description="M (paper: 1000); with `kld_sampling` the fewest particles.")
     kld_sampling: bool = Field(
@@ -343,9 +354,12 @@ class SmclConfig(_Strict):
     scan_beam_deg: float = Field(gt=0.0, description="Scan: one endpoint (the nearest surface) per bearing bin.")
     scan_surface_m: float = Field(
         gt=0.0,
-        description="Scan: a bin's returns within this of its nearest one are its surface; the endpoint is "
-        "their median.",
+        description="Scan: a bin's returns within scan_surface_sigmas σ(r) of its nearest one (r), at least "
+        "scan_surface_min_m and at most this, are its surface; the endpoint is their median.",
     )
+    scan_surface_min_m: float = Field(gt=0.0, description="Scan: the nearest surface's least depth (see above).")
+    scan_surface_sigmas: float = Field(gt=0.0, description="Scan: the nearest surface's depth in σ of the noise.")
+    scan_depth_noise: DepthSigmaConfig = Field(description="Scan: the camera's axial depth noise σ(z).")
     scan_min_z_m: float = Field(
         description="Scan: depth points from this height above the floor up to the top of the occupancy grid's "
         "obstacle band (bim.grid.band_max_m)."
@@ -410,10 +424,7 @@ class CameraSimConfig(_Strict):
     mount_pitch_deg: float = Field(description="Camera pitch; positive looks down.")
 
 
-class DepthNoiseConfig(_Strict):
-    sigma0_m: float = Field(ge=0.0, description="Axial depth noise σ(z) = sigma0 + k·(z − z0)², constant term.")
-    k_per_m: float = Field(ge=0.0, description="Quadratic growth k of the axial noise.")
-    z0_m: float = Field(ge=0.0, description="Depth of least noise z0.")
+class DepthNoiseConfig(DepthSigmaConfig):
     grazing_dropout_deg: float = Field(gt=0.0, le=90.0, description="Incidence angle beyond which returns drop.")
     dropout_prob: float = Field(ge=0.0, le=1.0, description="Random per-pixel dropout probability.")
 

@@ -31,9 +31,12 @@ def scan_endpoints(
 
     Points are kept between `scan_min_z_m` and `max_z_m` (the top of the grid's obstacle band) above the floor
     and within `scan_max_range_m` (horizontal); bins are `scan_beam_deg` wide. NaN depth is no return. In each bin
-    the returns within `scan_surface_m` of the nearest one form the nearest surface, and the endpoint is their
-    median by range: the nearest return alone is the minimum of hundreds of noisy samples of a wall, biased short
-    by about 3σ of the depth noise (15 cm at 5 m for a RealSense-like camera).
+    the returns within w of the nearest one form the nearest surface, and the endpoint is their median by range:
+    the nearest return alone is the minimum of hundreds of noisy samples of a wall, biased short by about 3σ of the
+    depth noise (15 cm at 5 m for a RealSense-like camera). w = `scan_surface_sigmas` (6) σ(r) of the noise
+    (`scan_depth_noise`) at the nearest return's range r, within `scan_surface_min_m` … `scan_surface_m`: it holds
+    a wall's ±3σ spread, and no more. A fixed 0.3 m took in the top of a low table seen from above, whose returns
+    lie behind its edge, and put the endpoint 0.15–0.2 m inside the table (`bimfactor bench scanmatch`).
     """
     points = backproject_depth(depth_m, intrinsics, T_base_camera)
     points = height_band(points, cfg.scan_min_z_m, max_z_m)
@@ -48,7 +51,9 @@ def scan_endpoints(
     _, first, counts = np.unique(bins, return_index=True, return_counts=True)
     # Sorted by range within each bin, the nearest surface is a prefix of the bin's run; its median is halfway.
     group = np.repeat(np.arange(len(first)), counts)
-    on_surface = ranges <= ranges[first][group] + cfg.scan_surface_m
+    nearest = ranges[first]
+    depth = np.clip(cfg.scan_surface_sigmas * cfg.scan_depth_noise.sigma_m(nearest), cfg.scan_surface_min_m, None)
+    on_surface = ranges <= (nearest + np.minimum(depth, cfg.scan_surface_m))[group]
     surface_counts = np.bincount(group, weights=on_surface, minlength=len(first)).astype(np.int64)
     return points[order[first + surface_counts // 2], :2]
 

@@ -44,11 +44,6 @@ def camera_mount(cfg: CameraSimConfig) -> np.ndarray:
     return T
 
 
-def depth_sigma(depth_m: np.ndarray, cfg: DepthNoiseConfig) -> np.ndarray:
-    """Axial depth noise σ(z) = sigma0 + k·(z − z0)², same shape as `depth_m`."""
-    return cfg.sigma0_m + cfg.k_per_m * (depth_m - cfg.z0_m) ** 2
-
-
 class RgbdCamera:
     """A pinhole RGB-D camera on the robot base; renders the world with a precomputed grid of rays."""
 
@@ -134,7 +129,7 @@ class RgbdCamera:
         if rng is not None:
             if self.rgb_noise_std > 0:
                 rgb += self._rgb_noise_levels[rng.integers(0, 1 << 16, size=rgb.shape, dtype=np.uint16)]
-            sigma = depth_sigma(depth[valid], noise).astype(np.float32)
+            sigma = noise.sigma_m(depth[valid]).astype(np.float32)
             depth[valid] += sigma * rng.standard_normal(len(sigma), dtype=np.float32)
             if noise.dropout_prob > 0:
                 valid &= rng.random(len(valid), dtype=np.float32) >= noise.dropout_prob

@@ -46,19 +46,44 @@ def test_endpoints_are_the_nearest_surface_per_bearing_bin(test_config: Config) 
 
 
 def test_an_endpoint_is_the_median_of_its_nearest_surface_not_its_nearest_noisy_return(test_config: Config) -> None:
-    """A wall 5 m ahead seen with 5 cm depth noise: the nearest of a bin's hundreds of returns is ~3σ short, the
-    median of the returns within `scan_surface_m` of it is on the wall; a far wall behind does not count."""
-    surface_m = test_config.smcl.scan_surface_m
+    """A wall 5 m ahead seen with the camera's depth noise (σ ≈ 4 cm there): the nearest of a bin's hundreds of
+    returns is ~3σ short, the median of the returns within 6σ of it is on the wall; a far wall behind does not
+    count."""
+    cfg = test_config.smcl
+    sigma = float(cfg.scan_depth_noise.sigma_m(5.0))
+    surface_m = min(cfg.scan_surface_sigmas * sigma, cfg.scan_surface_m)
     rng = np.random.default_rng(0)
-    depth = (5.0 + 0.05 * rng.standard_normal((H, W))).astype(np.float32)
+    depth = (5.0 + sigma * rng.standard_normal((H, W))).astype(np.float32)
     depth[:, ::7] = 9.0  # columns of a far wall seen through gaps: beyond the nearest surface
     scan = _endpoints(depth, test_config)
     ranges = scan[:, 0] - test_config.sim.camera.mount_forward_m
     assert abs(np.mean(ranges) - 5.0) < 0.015  # unbiased (the nearest returns: 5 m − ~2.5σ)
     assert np.all(np.abs(ranges - 5.0) < 0.2)  # each a sample of the noise, none on the far wall
-    assert surface_m > 3 * 0.05  # the surface holds the whole ±3σ spread of the noise
+    assert surface_m >= 6 * sigma  # the surface holds the whole ±3σ spread of the noise
     nearest = np.delete(depth, np.s_[::7], axis=1).min(axis=0).mean()  # per column, fewer returns than a bin
-    assert nearest < 5.0 - 0.08
+    assert nearest < 5.0 - 1.5 * sigma
+
+
+def test_a_low_table_seen_from_above_ends_the_scan_at_its_edge(test_config: Config) -> None:
+    """A thin table top 0.1 m below the camera, from 1.0 to 1.8 m ahead, a wall at 3 m: the top's returns lie behind
+    its edge, so the nearest surface is only as deep as the noise there (2 cm), not the 0.3 m of a far wall's."""
+    cfg = test_config
+    mount = cfg.sim.camera.mount_height_m
+    w, h = 640, 480  # fine rows: the top spans 14 of them
+    intrinsics = CameraIntrinsics.from_hfov(w, h, cfg.sim.camera.hfov_deg)
+    rows = np.arange(h, dtype=np.float64)[:, None] - intrinsics.cy
+    with np.errstate(divide="ignore"):
+        on_top = np.where(rows > 0, (mount - 0.4) * intrinsics.fy / rows, np.inf)  # depth where a row meets z = 0.4
+    depth = np.where((on_top >= 1.0) & (on_top <= 1.8), on_top, 3.0) * np.ones((1, w))
+
+    def ahead(c: Config) -> np.ndarray:
+        scan = scan_endpoints(depth.astype(np.float32), intrinsics, camera_mount(c.sim.camera), c.smcl, 1.2)
+        return scan[np.abs(scan[:, 1]) < 0.3, 0] - c.sim.camera.mount_forward_m  # the bins straight ahead
+
+    assert len(ahead(cfg)) >= 3
+    assert np.all(ahead(cfg) < 1.03)  # on the table's edge
+    fixed = cfg.model_copy(update={"smcl": cfg.smcl.model_copy(update={"scan_surface_min_m": 0.3})})
+    assert np.all(ahead(fixed) > 1.1)  # a fixed 0.3 m surface: the median return lies on the top, inside the table
 
 
 def test_no_return_gives_an_empty_scan(test_config: Config) -> None:

@@ -7,7 +7,7 @@ import pytest
 from trimesh.ray.ray_triangle import ray_triangle_id
 
 from bimfactor.config import Config
-from bimfactor.sim.sensors import BACKGROUND_RGB, RgbdCamera, camera_mount, depth_sigma
+from bimfactor.sim.sensors import BACKGROUND_RGB, RgbdCamera, camera_mount
 from bimfactor.sim.simulate import build_world
 from bimfactor.sim.trajectory import SimTrajectory
 from bimfactor.sim.world import NON_PHYSICAL_CLASSES, SimWorld
@@ -140,7 +140,7 @@ def test_noisy_depth_within_four_sigma(
     )
     valid = np.isfinite(depth)
     assert valid.sum() >= SAMPLE_PIXELS // 3
-    sigma = depth_sigma(depth_true[valid], cfg.sim.depth_noise)
+    sigma = cfg.sim.depth_noise.sigma_m(depth_true[valid])
     assert np.all(np.abs(depth[valid] - depth_true[valid]) <= 4 * sigma + 1e-5)
     assert np.mean(np.abs(depth[valid] - depth_true[valid]) > 1e-5) > 0.5  # the noise is really on
     assert image.depth_m.dtype == np.float32 and image.instance_ids.dtype == np.int32
@@ -155,7 +155,7 @@ def test_noise_statistics_and_dropouts(building: Building, world: SimWorld, six_
     camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
     noisy = camera.render(pose, elevation, np.random.default_rng(5))
     both = np.isfinite(clean.depth_m) & np.isfinite(noisy.depth_m)
-    z = (noisy.depth_m[both] - clean.depth_m[both]) / depth_sigma(clean.depth_m[both], cfg.sim.depth_noise)
+    z = (noisy.depth_m[both] - clean.depth_m[both]) / cfg.sim.depth_noise.sigma_m(clean.depth_m[both])
     assert abs(z.mean()) < 0.05 and 0.9 < z.std() < 1.1
     dropped = np.isnan(noisy.depth_m) & np.isfinite(clean.depth_m)
     assert 0.17 < dropped.sum() / np.isfinite(clean.depth_m).sum() < 0.23
