@@ -52,8 +52,10 @@ def scan_endpoints(
     # Sorted by range within each bin, the nearest surface is a prefix of the bin's run; its median is halfway.
     group = np.repeat(np.arange(len(first)), counts)
     nearest = ranges[first]
-    depth = np.clip(cfg.scan_surface_sigmas * cfg.scan_depth_noise.sigma_m(nearest), cfg.scan_surface_min_m, None)
-    on_surface = ranges <= (nearest + np.minimum(depth, cfg.scan_surface_m))[group]
+    surface = np.clip(
+        cfg.scan_surface_sigmas * cfg.scan_depth_noise.sigma_m(nearest), cfg.scan_surface_min_m, cfg.scan_surface_m
+    )
+    on_surface = ranges <= (nearest + surface)[group]
     surface_counts = np.bincount(group, weights=on_surface, minlength=len(first)).astype(np.int64)
     return points[order[first + surface_counts // 2], :2]
 
