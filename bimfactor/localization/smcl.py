@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -363,9 +364,8 @@ class SemanticMCL:
         n_objects = sem.size // len(observations)
         ranges = np.asarray(observations.range_m, np.float64)
         bearings = np.asarray(observations.bearing_rad, np.float64)
-        poses, storeys = [], []
-        for _ in range(5):
-            m = 4 * (n - sum(len(p) for p in poses))
+
+        def draw(m: int) -> tuple[np.ndarray, np.ndarray]:
             j, k = np.divmod(self.rng.choice(sem.size, size=m, p=sem / sem.sum()), n_objects)
             direction = self.rng.uniform(-np.pi, np.pi, m)
             drawn = np.empty((m, 3))
@@ -379,11 +379,9 @@ class SemanticMCL:
             owner = np.repeat(np.arange(int(ok.sum())), np.diff(offsets))
             sees = np.zeros(len(drawn), bool)
             sees[np.flatnonzero(ok)] = np.bincount(owner[ids == k[ok][owner]], minlength=int(ok.sum())) > 0
-            poses.append(drawn[sees])
-            storeys.append(storey[sees])
-            if sum(len(p) for p in poses) >= n:
-                break
-        return np.concatenate(poses)[:n], np.concatenate(storeys)[:n]
+            return drawn[sees], storey[sees]
+
+        return self._draw_in_rounds(n, draw)
 
     def sample_from_texts(
         self, n: int, observations: Observations, readings: list[int]
@@ -392,10 +390,10 @@ class SemanticMCL:
         drawn in front of a plate a reading names (`PlateLikelihood.sample_poses`), with the motion noise added;
         poses off navigable space are dropped (five rounds of draws at most). Returns (n', 3) and (n',)."""
         texts, plates = observations.texts, self.likelihood.plates
-        poses, storeys = [np.zeros((0, 3))], [np.zeros(0, np.int64)]
-        for _ in range(5):
-            m = 4 * (n - sum(len(p) for p in poses))
+
+        def draw(m: int) -> tuple[np.ndarray, np.ndarray]:
             k = self.rng.choice(readings, size=m)
+            poses, storeys = [np.zeros((0, 3))], [np.zeros(0, np.int64)]
             for reading in np.unique(k):
                 count = int(np.sum(k == reading))
                 text, r, b = texts.texts[reading], float(texts.range_m[reading]), float(texts.bearing_rad[reading])
@@ -404,6 +402,19 @@ class SemanticMCL:
                 ok = self.on_navigable(drawn, storey)
                 poses.append(drawn[ok])
                 storeys.append(storey[ok])
+            return np.concatenate(poses), np.concatenate(storeys)
+
+        return self._draw_in_rounds(n, draw)
+
+    @staticmethod
+    def _draw_in_rounds(n: int, draw: Callable[[int], tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+        """Up to n poses and their storeys from `draw(m)` (the poses kept of m drawn): five rounds at most, each
+        drawing four times as many as are still missing."""
+        poses, storeys = [np.zeros((0, 3))], [np.zeros(0, np.int64)]
+        for _ in range(5):
+            kept, kept_storeys = draw(4 * (n - sum(len(p) for p in poses)))
+            poses.append(kept)
+            storeys.append(kept_storeys)
             if sum(len(p) for p in poses) >= n:
                 break
         return np.concatenate(poses)[:n], np.concatenate(storeys)[:n]
