@@ -579,6 +579,10 @@ class BackendConfig(_Strict):
     )
     odom_sigma_trans_m: float = Field(gt=0.0, description="Odometry factor: a floor on the translation σ ...")
     odom_sigma_rot_deg: float = Field(gt=0.0, description="... and on the yaw σ.")
+    odom_robust_kernel: Literal["huber", "cauchy", "none"] = Field(
+        description="M-estimator on the odometry factors: a wheel slip is an outlier of the motion model."
+    )
+    odom_robust_k: float = Field(gt=0.0, description="Its width in σ units.")
     range_sigma_m: float = Field(gt=0.0, description="σ of an observed object's range.")
     bearing_sigma_deg: float = Field(gt=0.0, description="σ of an observed object's bearing.")
     landmark_sigma_m: float = Field(gt=0.0, description="σ tying a BIM landmark to its BIM position (as-built drift).")

@@ -109,21 +109,21 @@ def odometry_noise_covariance(increment: np.ndarray, cfg: BackendConfig) -> np.n
     return odometry_covariance(increment, cfg.odom_alpha) + np.diag(floor)
 
 
-def _robust(base: gtsam.noiseModel.Base, cfg: BackendConfig) -> gtsam.noiseModel.Base:
-    """Wrap a Gaussian noise model in the configured M-estimator (or return it as is for 'none')."""
-    if cfg.robust_kernel == "none":
+def _robust(base: gtsam.noiseModel.Base, kernel: str, k: float) -> gtsam.noiseModel.Base:
+    """Wrap a Gaussian noise model in an M-estimator ('huber' or 'cauchy' of width `k` σ; 'none': as is)."""
+    if kernel == "none":
         return base
-    if cfg.robust_kernel == "huber":
-        estimator = gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k)
+    if kernel == "huber":
+        estimator = gtsam.noiseModel.mEstimator.Huber.Create(k)
     else:
-        estimator = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
+        estimator = gtsam.noiseModel.mEstimator.Cauchy.Create(k)
     return gtsam.noiseModel.Robust.Create(estimator, base)
 
 
 def bearing_range_noise(cfg: BackendConfig) -> gtsam.noiseModel.Base:
     """(bearing, range) noise of an object observation, robust per `cfg.robust_kernel`."""
     sigmas = np.array([np.deg2rad(cfg.bearing_sigma_deg), cfg.range_sigma_m])
-    return _robust(gtsam.noiseModel.Diagonal.Sigmas(sigmas), cfg)
+    return _robust(gtsam.noiseModel.Diagonal.Sigmas(sigmas), cfg.robust_kernel, cfg.robust_k)
 
 
 # ------------------------------------------------------------------------------------------ factors
@@ -145,10 +145,16 @@ def odometry_factor(
     i: int, increment: np.ndarray, cfg: BackendConfig, covariance: np.ndarray | None = None
 ) -> gtsam.BetweenFactorPose2:
     """X(i−1) → X(i) by a (3,) robot-frame increment; noise from `odometry_noise_covariance` or a given (3, 3)
-    covariance."""
+    covariance, robust per `cfg.odom_robust_kernel`.
+
+    The covariance is the motion model's at the *measured* increment, while the odometry's error grows with the
+    true one: a turn the wheels measured short (a slip) is judged by the small turn's σ, ten σ off and more. A
+    heavy-tailed kernel lets the landmark and scan factors overrule such a step instead of bending the graph
+    around it."""
     if covariance is None:
         covariance = odometry_noise_covariance(increment, cfg)
-    noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, np.float64))
+    gaussian = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, np.float64))
+    noise = _robust(gaussian, cfg.odom_robust_kernel, cfg.odom_robust_k)
     return gtsam.BetweenFactorPose2(X(i - 1), X(i), to_pose2(increment), noise)
 
 

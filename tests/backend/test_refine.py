@@ -16,6 +16,7 @@ PRECISE = load_config().backend.model_copy(
         "bearing_sigma_deg": 1.0,
         "landmark_sigma_m": 0.02,
         "odom_alpha": PRECISE_ODOMETRY_ALPHA,
+        "odom_robust_kernel": "none",  # its noise is the model's own, without slips
     }
 )
 BIRTH_COV = np.diag([0.3, 0.3, np.deg2rad(10.0)]) ** 2
