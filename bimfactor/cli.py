@@ -833,6 +833,12 @@ def localize(
                 "the belief stopped explaining the depth scans and was spread over the building again at step(s) "
                 f"{', '.join(relocalized)} (steps.csv: relocalized)"
             )
+        challenged = [str(i) for i, moved in enumerate(run.challenged) if moved]
+        if challenged:
+            typer.echo(
+                "a challenger drawn from the observations explained the frames better and the belief moved there at "
+                f"step(s) {', '.join(challenged)} (steps.csv: challenged)"
+            )
         metrics = run_metrics(run)
         if metrics is not None:
             typer.echo(_metrics_line(metrics))

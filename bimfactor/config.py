@@ -400,6 +400,23 @@ class SmclConfig(_Strict):
     )
     lost_fit_alpha: float = Field(gt=0.0, le=1.0, description="Rate of the scan fit's running average.")
     lost_min_endpoints: int = Field(ge=1, description="Frames with fewer scan endpoints say nothing about being lost.")
+    challenger: bool = Field(
+        description="Beyond the paper: while the belief is converged, a second small filter (`challenger_particles`) "
+        "drawn from the current observations runs beside it; when it predicts the following frames better by "
+        "`challenger_threshold_nats` (Page's CUSUM of the log predictive-likelihood ratio) at a place the belief is "
+        "not, the belief takes its particles (a look-alike room the belief locked onto)."
+    )
+    challenger_particles: int = Field(ge=1, description="The challenger's particles.")
+    challenger_threshold_nats: float = Field(
+        gt=0.0, description="The CUSUM of ln p(z | challenger) − ln p(z | belief) that hands the belief over."
+    )
+    challenger_agree_m: float = Field(
+        gt=0.0, description="A challenger whose estimate lies within this of the belief's agrees with it ..."
+    )
+    challenger_agree_frames: int = Field(
+        ge=1, description="... and is drawn again after agreeing this many frames in a row ..."
+    )
+    challenger_max_frames: int = Field(ge=1, description="... or after this many frames without winning.")
     converged_pos_std_m: float = Field(gt=0.0, description="Converged when the position std is below this ...")
     converged_yaw_std_deg: float = Field(gt=0.0, description="... and the yaw std below this ...")
     converged_storey_share: float = Field(

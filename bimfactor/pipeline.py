@@ -170,6 +170,7 @@ class LocalizationRun:
     n_particles: np.ndarray
     scan_fit: np.ndarray  # (T,) the belief's predicted scan fit before each update; NaN without a scan
     lost_frames: np.ndarray  # (T,) int: where the filter spread its particles again, the frames it had been lost
+    challenged: np.ndarray  # (T,) bool: where the belief took a challenger's particles (`smcl.challenger`)
     odom_increments: np.ndarray
     observations: list[Observations]
     scans: list[np.ndarray | None] = field(default_factory=list)
@@ -506,6 +507,7 @@ def localize_sequence(
         n_particles=np.asarray([r.filtered.n_particles for r in rows], np.int64),
         scan_fit=np.asarray([np.nan if r.filtered.scan_fit is None else r.filtered.scan_fit for r in rows], float),
         lost_frames=np.asarray([r.filtered.lost_frames for r in rows], np.int64),
+        challenged=np.asarray([r.filtered.challenged for r in rows], bool),
         odom_increments=np.asarray([r.odom_increment for r in rows[1:]], float).reshape(-1, 3),
         observations=[r.observations for r in rows],
         scans=[r.scan for r in rows],

@@ -557,6 +557,32 @@ def test_localize_warns_when_frames_are_much_closer_than_keyframes(
     assert "keyframes every 2 m or 60°" in warning and f"convert sequence {short_sequence} -o OUT" in warning
 
 
+def test_localize_moves_a_belief_started_in_the_look_alike_room_next_door(
+    demo_prior: Path, short_sequence: Path, tmp_path: Path
+) -> None:
+    # A pose guess 9.3 m west of the truth is the room next door along the corridor, a room of the same shape: the
+    # belief converged there explains the scans, so the lost monitor stays quiet for most of the run. The
+    # challenger drawn from the observations out-predicts it within a few steps; without it the belief stays.
+    frames = read_sequence(short_sequence)
+    x, y, yaw = frames[0].gt_pose
+    guess = f"{x - 9.3},{y},{np.degrees(yaw)}"
+    held = {}  # steps more than 5 m off
+    for challenger in (True, False):
+        run = tmp_path / f"run-{challenger}"
+        result = invoke("localize", demo_prior, short_sequence, "-o", run, "--initial-pose", guess,
+                        "--set", f"smcl.challenger={str(challenger).lower()}")  # fmt: skip
+        assert result.exit_code == 0, result.output
+        rows = list(csv.DictReader((run / "steps.csv").read_text().splitlines()))
+        moved = [int(r["step"]) for r in rows if r["challenged"] == "1"]
+        assert ("(steps.csv: challenged)" in result.output) == bool(moved) == challenger
+        errors = [np.hypot(float(r["x"]) - float(r["gt_x"]), float(r["y"]) - float(r["gt_y"])) for r in rows]
+        held[challenger] = sum(e > 5.0 for e in errors)
+        if challenger:
+            # The challenger may still be spread when it wins: the belief then converges within a few steps.
+            assert moved[0] <= 5 and min(errors[: moved[0]]) > 5.0 and max(errors[moved[0] + 5 :]) < 1.0
+    assert held[False] >= 10  # until the lost monitor notices, if it does
+
+
 def test_localize_from_an_initial_pose(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
     x, y, yaw = read_sequence(short_sequence)[0].gt_pose
     guess = f"{x + 0.5},{y - 0.5},{np.degrees(yaw) + 10}"
@@ -647,6 +673,7 @@ def test_bench_paper_runs_the_kidnap_and_pose_guess_scenarios(
     average = report["smcl"]["average"]
     assert average["scored_from_steps"] == [3, 3] and len(average["trans_err_by_step_m"]) == 4
     assert 0 <= average["tracking_before_kidnap_runs"] <= 2 and "relocalized_runs" in average
+    assert "challenged_runs" in average
     assert average["trans_err_before_kidnap_m"] > 0.0  # the three steps before it, from a uniform start
     assert "\nkidnapped: " in kidnap.stdout and "scored from the step" not in kidnap.stdout
     guess = invoke("bench", "paper", "-o", tmp_path / "guess", "--workers", "1", "--scenario", "guess",

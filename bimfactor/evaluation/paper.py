@@ -79,6 +79,7 @@ class RunResult:
     orient_err_twin_deg: np.ndarray | None = None
     trans_err_before_m: float | None = None  # kidnap: the mean translation error over the steps before it
     storey_hit: np.ndarray | None = None  # (T,) the estimate on the true storey
+    challenges: int = 0  # steps at which the belief took a challenger's particles
 
 
 def forward_variants(variants: list[str]) -> list[str]:
@@ -263,6 +264,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
                 *twin_errors,
                 trans_err_before_m=trans_before,
                 storey_hit=(track.storeys == gt_storeys).astype(float),
+                challenges=int(forward.get(variant, run).challenged.sum()),
             )
         )
     return results
@@ -307,6 +309,7 @@ def _pooled(runs: list[RunResult]) -> dict:
         "converged_runs": sum(c is not None for c in converged),
         "runs": len(runs),
         "relocalized_runs": sum(r.relocalizations > 0 for r in runs),
+        "challenged_runs": sum(r.challenges > 0 for r in runs),
         **_kidnap_counts(runs),
         "trans_err_conv_m": float(np.mean(conv_trans)) if conv_trans else None,
         "orient_err_conv_deg": float(np.mean(conv_orient)) if conv_orient else None,
@@ -476,6 +479,10 @@ def format_table_one(report: dict, variant: str) -> str:
         )
     if average.get("relocalized_runs"):
         lines.append(f"the filter spread its particles over the building again in {average['relocalized_runs']} runs")
+    if average.get("challenged_runs"):
+        lines.append(
+            f"the belief moved to a challenger that explained the frames better in {average['challenged_runs']} runs"
+        )
     starts = average.get("scored_from_steps", [])
     if report.get("protocol", {}).get("score_from") == "filter_converged" and any(starts):
         lines.append(

@@ -29,7 +29,7 @@ POSE_COLUMNS = [
 GT_COLUMNS = ["gt_x", "gt_y", "gt_yaw", "gt_room"]
 STEP_COLUMNS = [
     "step", "timestamp_s", *POSE_COLUMNS, "converged", "ess", "n_particles", "n_observations", "texts_read",
-    "scan_fit", "relocalized", "filter_ms",
+    "scan_fit", "relocalized", "challenged", "filter_ms",
     "perception_ms", "n_modes", "mode_id", "mode_probability", "graph_ms", "icp_accepted", "icp_ms", "twin_x",
     "twin_y", "twin_yaw", "twin_share", *GT_COLUMNS,
 ]  # fmt: skip
@@ -97,7 +97,8 @@ def write_run(run: LocalizationRun, prior: BimPrior, out_dir: str | Path, config
     figures. steps.csv's icp_accepted is 1 or 0 where the fine stage ran (variant full, a mode existed), else empty;
     on storeys with a twin (`bim.symmetry`) twin_x, twin_y, twin_yaw are the estimate's twin pose and twin_share the
     belief's weight there, else empty. scan_fit is the belief's predicted scan fit (empty without a scan) and
-    relocalized 1 where the filter spread its particles over the building again (`smcl.relocalize`).
+    relocalized 1 where the filter spread its particles over the building again (`smcl.relocalize`), challenged 1
+    where it took the particles of a challenger that explained the frames better (`smcl.challenger`).
     """
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
@@ -126,7 +127,7 @@ def _write_run_files(run: LocalizationRun, prior: BimPrior, out_dir: Path, confi
             [i, _num(run.timestamps_s[i]), *_pose_cells(out.poses[i], out.storeys[i], out.rooms[i], out.covariances[i]),
              int(run.converged[i]), _num(run.ess[i]), int(run.n_particles[i]), int(run.n_observations[i]),
              _texts_read(run.observations[i]), "" if np.isnan(run.scan_fit[i]) else f"{run.scan_fit[i]:.4f}",
-             int(run.relocalized[i]),
+             int(run.relocalized[i]), int(run.challenged[i]),
              f"{run.filter.step_ms[i]:.3f}", f"{run.perception_ms[i]:.3f}", "" if modes is None else len(modes), *best,
              "" if modes is None else f"{graph_ms[i]:.3f}", *icp, *twin,
              *_gt_cells(run.gt_poses, run.gt_rooms, i)]

@@ -23,6 +23,10 @@ the start, and the frame that showed it is weighed by the new cloud. Door plates
 the belief where weighing cannot: a reading the particles do not explain redraws `text_reset_share` of them in
 front of the plates it names (`sample_from_texts`; sensor resetting, Lenser and Veloso 2000), kept from
 `text_reset_oversample` times as many drawn by how well they explain the frame's depth scan (`screen_by_scan`).
+`challenger: true` handles the look-alike room a belief converged in, which neither of those notices (it explains
+each frame almost as well as the right room would): a small second filter drawn from the current observations runs
+beside the converged belief, and when it predicts the frames decisively better somewhere else, the belief takes its
+particles (`Challenger`).
 """
 
 from __future__ import annotations
@@ -139,6 +143,7 @@ class StepResult:
     scan_fit: float | None = None  # the belief's predicted scan fit before the update (`SemanticMCL.scan_fit`)
     relocalized: bool = False  # the particles were spread over the building again at this step
     lost_frames: int = 0  # relocalized: the frames, this one included, since the belief stopped explaining the scans
+    challenged: bool = False  # the belief took the particles of a challenger that explained the frames better
 
     @property
     def pose(self) -> np.ndarray:
@@ -159,6 +164,90 @@ class StepResult:
     @property
     def storey(self) -> int:
         return self.estimate.storey
+
+
+class Challenger:
+    """A second, small filter that a converged belief must keep out-predicting: the look-alike room it locked onto.
+
+    A belief that converged in the wrong one of two rooms of the same shape explains each frame almost as well as
+    the right one would: its scan fit stays at its usual level (`LostMonitor` never fires) and augmented MCL's
+    averages settle there too. What tells the rooms apart is evidence summed over frames, against an alternative.
+    The challenger is that alternative: `challenger_particles` poses that explain the current frame's observations
+    (each one observation by one BIM object, `SemanticMCL.sample_from_observations`; uniform over free space where
+    those run short), drawn from `max(injection_oversample, text_reset_oversample)` times as many by the frame's
+    scan (`screen_by_scan`), then run as a filter of its own on the same frames. From the next frame on, each
+    frame's log predictive likelihoods ln p(z | challenger) and ln p(z | belief) (`SemanticMCL.log_evidence`, one
+    measurement model for both, so their ratio is a Bayes factor) feed Page's CUSUM of their difference. When it
+    exceeds `challenger_threshold_nats` while the challenger's estimate lies elsewhere, the belief takes the
+    challenger's particles (`SemanticMCL.adopt`). A challenger that agrees with the belief (estimates within
+    `challenger_agree_m` on one storey) for `challenger_agree_frames` frames in a row, or has not won within
+    `challenger_max_frames`, is drawn again at the next frame: the belief is checked against fresh alternatives
+    for as long as it is converged. The frame it is drawn from does not count (the draw was chosen to fit it).
+    Its draws come from a generator spawned from the filter's, so the belief's own draws are those it would make
+    without it.
+    """
+
+    def __init__(self, owner: SemanticMCL) -> None:
+        self.owner = owner
+        self.cfg = owner.cfg
+        solo = owner.cfg.model_copy(update={"challenger": False, "relocalize": False})
+        rng = owner.rng.spawn(1)[0]
+        self.filter = SemanticMCL(owner.prior, owner.likelihood.visibility, solo, rng, solo.challenger_particles, owner)
+        self.running = False
+        self.frames = 0  # frames followed since it was drawn
+        self.agreeing = 0  # consecutive frames its estimate agreed with the belief's
+        self.cusum = 0.0
+
+    def stop(self) -> None:
+        """Draw a new challenger at the next converged frame (the belief was spread or handed over)."""
+        self.running = False
+
+    def start(self, observations: Observations | None, scan: np.ndarray | None) -> None:
+        """Draw the challenger from this frame: poses that explain its observations, screened by its scan."""
+        rival, cfg = self.filter, self.cfg
+        n = cfg.challenger_particles
+        drawn = max(1, cfg.injection_oversample, cfg.text_reset_oversample) * n
+        poses, storeys = rival.sample_from_observations(drawn, observations) if observations is not None else ((), ())
+        if len(poses) < drawn:
+            more, more_storeys = rival.sample_free_space(drawn - len(poses))
+            poses = np.concatenate([np.reshape(poses, (-1, 3)), more])
+            storeys = np.concatenate([np.asarray(storeys, np.int64), more_storeys])
+        rival.set_particles(*rival.screen_by_scan(n, poses, storeys, scan))
+        self.running, self.frames, self.agreeing, self.cusum = True, 0, 0, 0.0
+
+    def follow(
+        self,
+        odom_increment: np.ndarray | None,
+        observations: Observations | None,
+        scan: np.ndarray | None,
+        estimate: PoseEstimate,
+    ) -> bool:
+        """One frame, after the belief's step gave `estimate`: True when the belief took the challenger's particles."""
+        owner, cfg, rival = self.owner, self.cfg, self.filter
+        if not self.running:
+            has_data = (observations is not None and len(observations) > 0) or (scan is not None and len(scan) > 0)
+            if estimate.converged and has_data:
+                self.start(observations, scan)
+            return False
+        if odom_increment is not None:
+            rival.predict(odom_increment)
+        rival.update(observations, scan)
+        ours, theirs = owner.log_evidence, rival.log_evidence
+        rival.resample_if_needed(observations, scan)
+        self.frames += 1
+        if ours is not None and theirs is not None:
+            self.cusum = max(0.0, self.cusum + theirs - ours)
+        guess = rival.estimate()
+        apart = float(np.hypot(*(guess.pose[:2] - estimate.pose[:2])))
+        agree = guess.storey == estimate.storey and apart <= cfg.challenger_agree_m
+        self.agreeing = self.agreeing + 1 if agree else 0
+        if self.cusum > cfg.challenger_threshold_nats and not agree:
+            owner.adopt(rival)
+            self.running = False
+            return True
+        if self.agreeing >= cfg.challenger_agree_frames or self.frames >= cfg.challenger_max_frames:
+            self.running = False
+        return False
 
 
 # ------------------------------------------------------------------------------------------ pieces
@@ -289,6 +378,7 @@ class SemanticMCL:
         cfg: SmclConfig,
         rng: np.random.Generator,
         num_particles: int | None = None,
+        shared: SemanticMCL | None = None,
     ) -> None:
         self.prior = prior
         self.cfg = cfg
@@ -297,11 +387,15 @@ class SemanticMCL:
         self.min_particles = int(num_particles or cfg.num_particles)
         adaptive = num_particles is None and cfg.kld_sampling
         self.max_particles = int(cfg.max_particles) if adaptive else self.min_particles
-        self.likelihood = SemanticLikelihood(prior, visibility, cfg)
-        self.scan_likelihood = ScanLikelihood(prior, cfg) if cfg.scan_likelihood else None
+        if shared is not None:  # a second filter over the same prior and models (the challenger)
+            self.likelihood, self.scan_likelihood = shared.likelihood, shared.scan_likelihood
+            self.navigable, self._free_cells = shared.navigable, shared._free_cells
+        else:
+            self.likelihood = SemanticLikelihood(prior, visibility, cfg)
+            self.scan_likelihood = ScanLikelihood(prior, cfg) if cfg.scan_likelihood else None
+            self.navigable = np.stack([layers.navigable.astype(bool) for layers in prior.storeys])  # (S, rows, cols)
+            self._free_cells = np.flatnonzero(self.navigable).astype(np.int64)  # flat (storey, row, col) indices
         self._object_storey = np.asarray([o.storey_index for o in prior.objects], np.int64)
-        self.navigable = np.stack([layers.navigable.astype(bool) for layers in prior.storeys])  # (S, rows, cols)
-        self._free_cells = np.flatnonzero(self.navigable).astype(np.int64)  # flat (storey, row, col) indices
         if len(self._free_cells) == 0:
             raise InputError("the prior has no navigable space to spread particles over")
         self.particles = np.zeros((self.max_particles, 3))
@@ -313,7 +407,9 @@ class SemanticMCL:
         self.w_fast: float | None = None
         self.scan_fit: float | None = None  # the last update's Σ w_i s_i over the prior weights (None: no scan)
         self.unexplained_texts: list[int] = []  # the last update's readings the belief did not explain (text resets)
+        self.log_evidence: float | None = None  # the last update's ln p(z | belief), the predictive likelihood
         self.lost_monitor = LostMonitor(cfg)
+        self.challenger = Challenger(self) if cfg.challenger else None
         self._initialized = False
 
     @property
@@ -461,6 +557,8 @@ class SemanticMCL:
         self.fresh = np.zeros(self.max_particles, bool)
         self.w_slow = self.w_fast = None
         self.lost_monitor.reset()
+        if self.challenger is not None:
+            self.challenger.stop()
         self._initialized = True
 
     def initialize_around(self, pose: np.ndarray, storey: int, sigma_xy_m: float, sigma_yaw_rad: float) -> None:
@@ -492,7 +590,26 @@ class SemanticMCL:
         self.fresh = np.zeros(n, bool)
         self.w_slow = self.w_fast = None
         self.lost_monitor.reset()
+        if self.challenger is not None:
+            self.challenger.stop()
         self._initialized = True
+
+    def set_particles(self, particles: np.ndarray, storeys: np.ndarray) -> None:
+        """Start from the given (N, 3) poses on their (N,) storeys with equal weights (none fresh); augmented MCL's
+        averages and the lost monitor start over."""
+        self.particles, self.storeys = np.array(particles, np.float64).reshape(-1, 3), np.array(storeys, np.int64)
+        if len(self.particles) == 0:
+            raise InputError("no particles to start the filter from")
+        self.weights = np.full(len(self.particles), 1.0 / len(self.particles))
+        self.fresh = np.zeros(len(self.particles), bool)
+        self.w_slow = self.w_fast = None
+        self.lost_monitor.reset()
+        self._initialized = True
+
+    def adopt(self, other: SemanticMCL) -> None:
+        """Take another filter's belief: this filter's particle count drawn from its weighted particles."""
+        keep = systematic_resample(other.weights, self.num_particles, self.rng)
+        self.set_particles(other.particles[keep], other.storeys[keep])
 
     def predict(self, odom_increment: np.ndarray) -> None:
         """Move the particles by a (3,) robot-frame odometry increment (dx, dy, dyaw) with the motion noise."""
@@ -516,6 +633,7 @@ class SemanticMCL:
         """
         self._require_initialized()
         self.scan_fit = None
+        self.log_evidence = None
         has_observations = observations is not None and len(observations) > 0
         # With the missed-detection term a frame that detected nothing still says which places it did not see.
         weighs_misses = observations is not None and self.cfg.detection_probability > 0.0
@@ -553,6 +671,8 @@ class SemanticMCL:
             log_w = np.log(self.weights) + log_likelihood
         peak = log_w.max()
         self.weights = np.exp(log_w - peak) if np.isfinite(peak) else np.zeros_like(log_w)
+        if np.isfinite(peak):  # ln Σ w_i p(z | x_i) of the weights before the update (normalised): ln p(z | belief)
+            self.log_evidence = float(peak + np.log(self.weights.sum()))
         self._normalise("after the measurement update")
 
     def _unexplained_readings(self, per_reading: np.ndarray, texts: TextObservations) -> list[int]:
@@ -706,8 +826,25 @@ class SemanticMCL:
         lap("resample")
         estimate = self.estimate()
         lap("estimate")
+        challenged = False
+        if self.challenger is not None and not lost_frames:
+            challenged = self.challenger.follow(odom_increment, observations, scan, estimate)
+            if challenged:
+                log.info("a challenger drawn from the observations explains the frames better: the belief moves there")
+                estimate = self.estimate()
+            lap("challenger")
         return StepResult(
-            estimate, ess, resampled, injected, n_obs, timings, self.num_particles, fit, lost_frames > 0, lost_frames
+            estimate,
+            ess,
+            resampled,
+            injected,
+            n_obs,
+            timings,
+            self.num_particles,
+            fit,
+            lost_frames > 0,
+            lost_frames,
+            challenged,
         )
 
     # -------------------------------------------------------------------------------- helpers

@@ -148,6 +148,16 @@ def test_the_kidnap_table_says_how_many_runs_were_tracking_and_how_soon_they_rec
         "and 15° to the end), in a median 5 steps",
         "the filter spread its particles over the building again in 2 runs",
     ]
+
+
+def test_the_table_says_in_how_many_runs_the_belief_moved_to_a_challenger() -> None:
+    runs = [_run(k, 0, 0.3, 1.0) for k in range(3)]
+    for run, challenges in zip(runs, (0, 2, 1), strict=True):
+        run.challenges = challenges
+    average = _pooled(runs)
+    assert average["challenged_runs"] == 2
+    text = format_table_one({"variants": ["smcl"], "smcl": {"average": average, "per_trajectory": {}}}, "smcl")
+    assert text.splitlines()[-1] == "the belief moved to a challenger that explained the frames better in 2 runs"
     assert "tracking_before_kidnap_runs" not in _pooled([_run(0, 0, 0.3, 1.0)])  # other scenarios: no such line
 
 

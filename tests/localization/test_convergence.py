@@ -13,7 +13,7 @@ import pytest
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import SmclConfig
-from bimfactor.localization.smcl import SemanticMCL
+from bimfactor.localization.smcl import SemanticMCL, StepResult
 from bimfactor.types import Observations, se2_between, wrap_angle
 
 RANGE_SIGMA_M = 0.1
@@ -67,23 +67,39 @@ def observe_from(
     )
 
 
-def run(prior: BimPrior, table: VisibilityTable, cfg: SmclConfig, seed: int) -> list[tuple[float, float, bool, int]]:
-    """(position error m, yaw error rad, converged flag, room id) after every step of the scripted path."""
+def drive(
+    prior: BimPrior, table: VisibilityTable, cfg: SmclConfig, seed: int, start: np.ndarray | None = None
+) -> list[tuple[np.ndarray, StepResult]]:
+    """The true pose and the filter's step along the scripted path, from a uniform start or from a belief converged
+    about a (3,) `start` pose."""
     path = scripted_path(WAYPOINTS)
     filter_rng, world_rng = np.random.default_rng(seed), np.random.default_rng(1000 + seed)
     mcl = SemanticMCL(prior, table, cfg, filter_rng)
-    mcl.initialize()
+    if start is None:
+        mcl.initialize()
+    else:
+        mcl.initialize_around(start, 0, 0.3, np.deg2rad(5.0))
     out = []
     for i, pose in enumerate(path):
         increment = None
         if i > 0:
             noise = np.r_[ODOM_SIGMA_M * world_rng.standard_normal(2), ODOM_SIGMA_RAD * world_rng.standard_normal()]
             increment = se2_between(path[i - 1], pose) + noise
-        result = mcl.step(increment, observe_from(prior, table, cfg, pose, world_rng))
-        err_m = float(np.hypot(*(result.pose[:2] - pose[:2])))
-        err_yaw = float(abs(wrap_angle(result.pose[2] - pose[2])))
-        out.append((err_m, err_yaw, result.converged, result.room_id))
+        out.append((pose, mcl.step(increment, observe_from(prior, table, cfg, pose, world_rng))))
     return out
+
+
+def run(prior: BimPrior, table: VisibilityTable, cfg: SmclConfig, seed: int) -> list[tuple[float, float, bool, int]]:
+    """(position error m, yaw error rad, converged flag, room id) after every step of the scripted path."""
+    return [
+        (
+            float(np.hypot(*(result.pose[:2] - pose[:2]))),
+            float(abs(wrap_angle(result.pose[2] - pose[2]))),
+            result.converged,
+            result.room_id,
+        )
+        for pose, result in drive(prior, table, cfg, seed)
+    ]
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -102,3 +118,48 @@ def test_converges_from_a_uniform_start_within_20_steps(office_prior, office_vis
     (kitchen,) = [r.id for r in office_prior.rooms if r.category == "kitchen"]
     assert int(office_prior.room_at(np.array([WAYPOINTS[-1]]), 0)[0]) == kitchen
     assert room == kitchen
+
+
+# ------------------------------------------------------------------------------------------ the look-alike place
+
+
+def track_from(
+    prior: BimPrior, table: VisibilityTable, cfg: SmclConfig, start: np.ndarray, seed: int
+) -> tuple[list[float], list[bool]]:
+    """The scripted path tracked from a belief converged about `start`: position error and `challenged` per step."""
+    steps = drive(prior, table, cfg, seed, start)
+    return [float(np.hypot(*(r.pose[:2] - pose[:2]))) for pose, r in steps], [r.challenged for _, r in steps]
+
+
+def _challenger_cfg(smcl_cfg: SmclConfig, challenger: bool) -> SmclConfig:
+    """The settings of the uniform-start test with the challenger as the only recovery (no injection, no respread)."""
+    return smcl_cfg.model_copy(
+        update={
+            "semantic_threshold": 0.7,
+            "temperature": 0.15,
+            "augmented": False,
+            "relocalize": False,
+            "challenger": challenger,
+        }
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_challenger_moves_a_belief_locked_one_office_along_the_corridor(
+    office_prior, office_visibility, smcl_cfg, seed
+):
+    # The belief starts converged 5 m west of the robot: the corridor's doors repeat every 5 m. Without a
+    # challenger it stays there for the whole path; with one it moves to the robot and tracks it.
+    start = scripted_path(WAYPOINTS)[0] + [-5.0, 0.0, 0.0]
+    locked, never = track_from(office_prior, office_visibility, _challenger_cfg(smcl_cfg, False), start, seed)
+    assert min(locked) > 4.0 and not any(never)
+    errors, challenged = track_from(office_prior, office_visibility, _challenger_cfg(smcl_cfg, True), start, seed)
+    (moved,) = np.flatnonzero(challenged)
+    assert max(errors[moved:]) < 0.6 and min(errors[:moved]) > 4.0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_challenger_leaves_a_belief_at_the_right_place_alone(office_prior, office_visibility, smcl_cfg, seed):
+    start = scripted_path(WAYPOINTS)[0]
+    errors, challenged = track_from(office_prior, office_visibility, _challenger_cfg(smcl_cfg, True), start, seed)
+    assert not any(challenged) and max(errors) < 0.6

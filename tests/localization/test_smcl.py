@@ -196,6 +196,36 @@ def test_update_multiplies_by_the_likelihood_and_normalises(box_prior, box_visib
     np.testing.assert_array_equal(mcl.weights, before)
 
 
+def test_the_update_reports_the_frames_predictive_likelihood(box_prior, box_visibility, smcl_cfg):
+    # ln p(z | belief) = ln Σ w_i p(z | x_i) over the weights before the update: with scores 1 and 0 and weights
+    # 0.25 and 0.75 it is ln(0.25 e^(1/T) + 0.75); the challenger compares two filters by it.
+    smcl_cfg = smcl_cfg.model_copy(update={"detection_probability": 0.0})
+    mcl = SemanticMCL(box_prior, box_visibility, smcl_cfg, np.random.default_rng(0), num_particles=2)
+    mcl.initialize()
+    mcl.particles = np.array([[4.0, 3.0, np.pi], [4.0, 3.0, 0.0]])
+    mcl.storeys = np.zeros(2, np.int64)
+    mcl.weights = np.array([0.25, 0.75])
+    mcl.update(observe(("chair", 1.0, 0.0)))
+    assert mcl.log_evidence == pytest.approx(np.log(0.25 * np.exp(1.0 / smcl_cfg.temperature) + 0.75))
+    mcl.update(None)
+    assert mcl.log_evidence is None
+
+
+def test_the_challenger_draws_from_its_own_generator(box_prior, box_visibility, smcl_cfg):
+    # The belief's own draws are those it makes without a challenger: runs stay comparable until a hand-over.
+    poses = []
+    for challenger in (False, True):
+        cfg = noise_free(smcl_cfg).model_copy(update={"challenger": challenger})
+        mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(3), num_particles=300)
+        mcl.initialize_around(np.array([4.0, 3.0, np.pi]), 0, 0.2, 0.1)
+        for _ in range(6):
+            result = mcl.step(np.array([0.0, 0.0, 0.0]), observe(("chair", 1.0, 0.0)))
+        assert result.converged and not result.challenged
+        assert (mcl.challenger is not None and mcl.challenger.filter._initialized) == challenger  # it ran
+        poses.append(mcl.particles.copy())
+    np.testing.assert_array_equal(*poses)
+
+
 def test_a_frame_without_detections_weighs_the_objects_each_particle_should_have_seen(
     box_prior, box_visibility, smcl_cfg
 ):
@@ -369,7 +399,8 @@ def test_observations_decide_the_storey(smcl_cfg: SmclConfig):
 def test_step_reports_timings_and_ess(box_prior, box_visibility, smcl_cfg):
     mcl = SemanticMCL(box_prior, box_visibility, smcl_cfg, np.random.default_rng(0), num_particles=200)
     result = mcl.step(None, observe(("chair", 1.0, 0.0)))
-    assert set(result.timings_ms) == {"predict", "update", "resample", "estimate"}
+    challenger = {"challenger"} if smcl_cfg.challenger else set()
+    assert set(result.timings_ms) == {"predict", "update", "resample", "estimate"} | challenger
     assert 1.0 <= result.ess <= 200.0 and result.n_observations == 1
     assert result.covariance is result.estimate.covariance
 
