@@ -207,11 +207,12 @@ class Challenger:
         rival, cfg = self.filter, self.cfg
         n = cfg.challenger_particles
         drawn = max(1, cfg.injection_oversample, cfg.text_reset_oversample) * n
-        poses, storeys = rival.sample_from_observations(drawn, observations) if observations is not None else ((), ())
+        poses, storeys = rival.sample_free_space(0)
+        if observations is not None:
+            poses, storeys = rival.sample_from_observations(drawn, observations)
         if len(poses) < drawn:
             more, more_storeys = rival.sample_free_space(drawn - len(poses))
-            poses = np.concatenate([np.reshape(poses, (-1, 3)), more])
-            storeys = np.concatenate([np.asarray(storeys, np.int64), more_storeys])
+            poses, storeys = np.concatenate([poses, more]), np.concatenate([storeys, more_storeys])
         rival.set_particles(*rival.screen_by_scan(n, poses, storeys, scan))
         self.running, self.frames, self.agreeing, self.cusum = True, 0, 0, 0.0
 
