@@ -660,6 +660,7 @@ class BackendConfig(_Strict):
     )
     scan_window_m: float = Field(gt=0.0, description="Scan matching: search ± this in x and y around the mode ...")
     scan_window_deg: float = Field(gt=0.0, le=90.0, description="... and ± this in yaw.")
+    scan_recentre: int = Field(ge=0, description="An optimum on the window's edge: search again about it this often.")
     scan_step_m: float = Field(gt=0.0, description="Scan matching: the coarse search's step in x and y ...")
     scan_step_deg: float = Field(gt=0.0, description="... and in yaw.")
     scan_fine_step_m: float = Field(gt=0.0, description="Scan matching: the fine search's step in x and y ...")

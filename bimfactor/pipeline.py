@@ -610,7 +610,7 @@ def refine_run(
     measure_fns: list[PoseFactorFn | None] | None = None
     if cfg.backend.scan_factor and has_scans:
         matcher = matcher or CorrelativeMatcher(prior, cfg.backend)
-        measure_fns = [None if scan is None else matcher.factor_fn(scan) for scan in run.scans]
+        measure_fns = [None if scan is None else matcher.factor_fn(scan, recentre=0) for scan in run.scans]
     scan_likelihood = ScanLikelihood(prior, cfg.smcl) if has_scans else None
 
     def frame_fits(poses: np.ndarray, storey: int, steps: range) -> np.ndarray:

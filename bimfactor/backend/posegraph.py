@@ -10,7 +10,10 @@ Per mode k (a `ModeGraph`), keyed by keyframe index i and BIM object id j:
    (`MultiHypothesisBackend.step`'s `pose_factor_fn`, kept apart as `scan_factors`) and a fine registrar's result
    (`add_pose_factor`).
 Online, ISAM2 takes one update per keyframe (one more only when re-association changes the matches); a mode
-whose update GTSAM finds indeterminate restarts its graph from its particle cluster at that keyframe.
+whose update GTSAM finds indeterminate restarts its graph from its particle cluster at that keyframe, and a mode
+whose scan matched beyond the matcher's window about its prediction (`registration.correlative`, searched again
+about the window's edge) restarts its graph at that match: its history disagrees with the walls, and a graph
+that kept it would hold the old poses against the match through its robust odometry factors.
 
 Mode probability (`MultiHypothesisBackend.step`): with w_k the mode's particle-weight share and, over the K
 measurements of the step (nodes and text readings), C_k = Σ_j min(χ²_kj, c_out) where χ²_kj = (Δbearing/σ_b)² +
@@ -485,12 +488,26 @@ class MultiHypothesisBackend:
             predicted, increment = graph.pose.copy(), None
         else:
             predicted, increment = graph.predict(odom_increment), odom_increment
-        association = list(associate_fn(predicted, mode.storey))
         measured = None if pose_factor_fn is None else pose_factor_fn(predicted, mode.storey)
+        if measured is not None and increment is not None and self._beyond_window(measured[0], predicted):
+            # The scan matched beyond the search window about the prediction (the matcher searched again about
+            # the window's edge): the graph's history disagrees with the walls, so it starts again at the match.
+            body = np.linalg.inv(measured[1])
+            covariance = covariance_body_to_world(body, float(measured[0][2]))
+            graph = ModeGraph(mode.id, i, measured[0], covariance, self.landmarks, self.cfg, mode.storey)
+            self.graphs[mode.id] = graph
+            predicted, increment, measured = graph.pose.copy(), None, None
+        association = list(associate_fn(predicted, mode.storey))
         if measured is not None:
             graph.add_pose_factor(i, *measured, scan=True)
         graph.add_keyframe(i, observations, association, increment, odom_covariance)
         return graph, graph.reassociate(observations, associate_fn, predicted)
+
+    def _beyond_window(self, pose: np.ndarray, predicted: np.ndarray) -> bool:
+        """Whether a (3,) pose lies outside the scan matcher's window about a (3,) predicted pose."""
+        delta = np.abs(np.asarray(pose, np.float64) - predicted)
+        delta[2] = abs(wrap_angle(delta[2]))
+        return bool(delta[:2].max() > self.cfg.scan_window_m or delta[2] > np.deg2rad(self.cfg.scan_window_deg))
 
     def add_pose_factor(
         self, mode_id: int, i: int, pose: np.ndarray, information: np.ndarray

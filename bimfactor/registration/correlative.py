@@ -26,9 +26,15 @@ ICP against the walls (`registration.fine`) is precise but has a narrow basin an
 basin is the window, it costs about 2 ms, and its accuracy is the grid's: about 5 cm and 0.4° (`bimfactor bench
 scanmatch`).
 
+When the best pose lies on the window's edge, the optimum is outside the window: the search starts again about
+that edge pose, up to `scan_recentre` times (a mode seeded from the biased mean of a wide particle cloud can sit
+0.5–1.5 m and 20–40° off, beyond one window). The pose graphs treat a match beyond the first window as a
+disagreement with their history (`backend.posegraph`); the offline refinement matches from its smoothed poses
+with the first window alone (`recentre=0`), where a wider search finds more look-alike optima than it mends.
+
 A match is rejected, with the reason, when the scan has fewer than `scan_min_endpoints` endpoints, when fewer than
 `scan_min_inliers` endpoints lie on the BIM's faces at the best pose (the scan sees clutter or nothing the BIM
-has), or when the best coarse pose lies on the window's edge (the optimum is outside the window).
+has), or when the best coarse pose still lies on the window's edge after the last search.
 """
 
 from __future__ import annotations
@@ -144,7 +150,9 @@ class CorrelativeMatcher:
         self._coarse_floor = np.diag([cfg.scan_step_m, cfg.scan_step_m, coarse_rad]) ** 2 / 12.0
         self._min_cov = np.diag([cfg.scan_min_sigma_m, cfg.scan_min_sigma_m, np.deg2rad(cfg.scan_min_sigma_deg)]) ** 2
 
-    def factor_fn(self, endpoints: np.ndarray) -> Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray] | None]:
+    def factor_fn(
+        self, endpoints: np.ndarray, recentre: int | None = None
+    ) -> Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray] | None]:
         """A `backend.posegraph.PoseFactorFn` for one keyframe's (N, 2) endpoints: the accepted match from a pose
         as (pose, body-frame information), None when rejected.
 
@@ -156,7 +164,7 @@ class CorrelativeMatcher:
         def measure(pose: np.ndarray, storey: int) -> tuple[np.ndarray, np.ndarray] | None:
             key = (np.asarray(pose, np.float64).tobytes(), int(storey))
             if key not in found:
-                found[key] = self.match(pose, storey, endpoints)
+                found[key] = self.match(pose, storey, endpoints, recentre)
             match = found[key]
             return (match.pose.copy(), match.information_body) if match.accepted else None
 
@@ -191,7 +199,7 @@ class CorrelativeMatcher:
                     break
         return picked
 
-    def match(self, pose: np.ndarray, storey: int, endpoints: np.ndarray) -> ScanMatch:
+    def match(self, pose: np.ndarray, storey: int, endpoints: np.ndarray, recentre: int | None = None) -> ScanMatch:
         """Search the window around a (3,) pose on a storey for the (N, 2) base-frame endpoints (see the module
         docstring); a rejected match carries the start pose and the reason."""
         pose = np.asarray(pose, np.float64).reshape(3)
@@ -199,16 +207,23 @@ class CorrelativeMatcher:
         cfg = self.cfg
         if len(endpoints) < cfg.scan_min_endpoints:
             return ScanMatch(pose, np.full((3, 3), np.nan), 0, False, f"{len(endpoints)} endpoints")
-        coarse = pose + self._coarse
-        log_c, _ = self._search(self._coarse_grid, pose, storey, endpoints, coarse=True)
-        # Ties (a flat direction: one wall, a corridor) go to the pose nearest the start, not to the window's edge.
-        candidates = self._candidates(log_c - self._tie_break)
-        scored = [
-            (c, coarse[c] + self._fine, *self._search(self._fine_grid, coarse[c], storey, endpoints))
-            for c in candidates
-        ]
-        best, fine, log_f, on_wall = max(scored, key=lambda item: item[2].max())
-        if self._edge[best]:
+        centre = pose
+        for _ in range(1 + (cfg.scan_recentre if recentre is None else recentre)):
+            coarse = centre + self._coarse
+            log_c, _ = self._search(self._coarse_grid, centre, storey, endpoints, coarse=True)
+            # Ties (a flat direction: one wall, a corridor) go to the pose nearest the start, not to the window's edge.
+            candidates = self._candidates(log_c - self._tie_break)
+            scored = [
+                (c, coarse[c] + self._fine, *self._search(self._fine_grid, coarse[c], storey, endpoints))
+                for c in candidates
+            ]
+            best, fine, log_f, on_wall = max(scored, key=lambda item: item[2].max())
+            if not self._edge[best]:
+                break
+            # The optimum lies beyond the window: search again about the edge pose that led towards it.
+            centre = coarse[best].copy()
+            centre[2] = wrap_angle(centre[2])
+        else:
             return ScanMatch(pose, np.full((3, 3), np.nan), 0, False, "optimum on the window edge")
         inliers = int(on_wall[np.argmax(log_f)])
         if inliers < cfg.scan_min_inliers:

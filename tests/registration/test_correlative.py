@@ -89,10 +89,27 @@ def test_matches_are_rejected_with_the_reason(box, cfg):
     assert not few.accepted and "5 endpoints" in few.reason
     nothing = matcher.match(truth, 0, scan + np.array([0.0, 30.0]))  # 30 m off to the side: off the grid
     assert not nothing.accepted and "on the BIM" in nothing.reason
-    wall = np.array([4.0, 3.0, 0.0])  # the divider square on, from 1 m further back: the optimum is outside ± 0.6 m
+    wall = np.array([4.0, 3.0, 0.0])  # the divider square on, from 1 m further back: the optimum is outside ± 0.5 m
     far = matcher.match(wall - np.array([1.0, 0.0, 0.0]), 0, cast_scan(box, wall, fov_deg=30.0))
     assert not far.accepted and "edge" in far.reason
     np.testing.assert_array_equal(far.pose, wall - np.array([1.0, 0.0, 0.0]))
+
+
+def test_an_optimum_beyond_the_window_is_found_by_searching_again_about_the_edge(box, cfg):
+    """The corner seen from 1.1 m and 30° off the start: each search of the ± 0.5 m / ± 18° window ends on its
+    edge, and the matcher searches again about that edge pose, `recentre` times at most (`scan_recentre`)."""
+    assert cfg.scan_window_m < 1.1 and cfg.scan_window_deg < 30.0
+    truth = np.array([4.0, 4.0, np.deg2rad(30.0)])
+    scan = cast_scan(box, truth)
+    start = truth + np.array([-0.8, -0.75, np.deg2rad(-30.0)])
+    matcher = CorrelativeMatcher(box, cfg)
+    assert not matcher.match(start, 0, scan, recentre=0).accepted
+    again = CorrelativeMatcher(box, cfg.model_copy(update={"scan_recentre": 2}))
+    assert again.match(start, 0, scan, recentre=0).reason == "optimum on the window edge"
+    match = again.match(start, 0, scan)
+    assert match.accepted, match.reason
+    dxy, dyaw = pose_error(match.pose, truth)
+    assert dxy < 0.04 and dyaw < 0.5
 
 
 def test_the_factor_function_returns_body_frame_information_of_accepted_matches(box, cfg):
