@@ -483,8 +483,7 @@ class MultiHypothesisBackend:
         re-associated."""
         graph = self.graphs.get(mode.id)
         if graph is None:
-            graph = ModeGraph(mode.id, i, mode.mean, mode.covariance, self.landmarks, self.cfg, mode.storey)
-            self.graphs[mode.id] = graph
+            graph = self._start_graph(mode, i, mode.mean, mode.covariance)
             predicted, increment = graph.pose.copy(), None
         else:
             predicted, increment = graph.predict(odom_increment), odom_increment
@@ -492,16 +491,21 @@ class MultiHypothesisBackend:
         if measured is not None and increment is not None and self._beyond_window(measured[0], predicted):
             # The scan matched beyond the search window about the prediction (the matcher searched again about
             # the window's edge): the graph's history disagrees with the walls, so it starts again at the match.
-            body = np.linalg.inv(measured[1])
-            covariance = covariance_body_to_world(body, float(measured[0][2]))
-            graph = ModeGraph(mode.id, i, measured[0], covariance, self.landmarks, self.cfg, mode.storey)
-            self.graphs[mode.id] = graph
+            covariance = covariance_body_to_world(np.linalg.inv(measured[1]), float(measured[0][2]))
+            graph = self._start_graph(mode, i, measured[0], covariance)
             predicted, increment, measured = graph.pose.copy(), None, None
         association = list(associate_fn(predicted, mode.storey))
         if measured is not None:
             graph.add_pose_factor(i, *measured, scan=True)
         graph.add_keyframe(i, observations, association, increment, odom_covariance)
         return graph, graph.reassociate(observations, associate_fn, predicted)
+
+    def _start_graph(self, mode: TrackedMode, i: int, pose: np.ndarray, covariance: np.ndarray) -> ModeGraph:
+        """A new graph for a mode, first keyframe i with its prior at a (3,) pose and (3, 3) world-frame covariance,
+        in place of any it had."""
+        graph = ModeGraph(mode.id, i, pose, covariance, self.landmarks, self.cfg, mode.storey)
+        self.graphs[mode.id] = graph
+        return graph
 
     def _beyond_window(self, pose: np.ndarray, predicted: np.ndarray) -> bool:
         """Whether a (3,) pose lies outside the scan matcher's window about a (3,) predicted pose."""
@@ -524,8 +528,7 @@ class MultiHypothesisBackend:
             # As in a step: an indeterminate system restarts the mode's graph from its estimate at keyframe i
             # (without that keyframe's landmark factors), and the fit enters the new graph with it.
             _log_restart(mode_id, i, error, "at it, on a fine registration")
-            graph = ModeGraph(mode_id, i, mode.mean, mode.covariance, self.landmarks, self.cfg, mode.storey)
-            self.graphs[mode_id] = graph
+            graph = self._start_graph(mode, i, mode.mean, mode.covariance)
             graph.add_pose_factor(i, pose, information)  # pending: applied with the keyframe
             graph.add_keyframe(i, Observations(np.zeros((0, 0)), np.zeros(0), np.zeros(0)), [])
         mode.mean, mode.covariance = graph.pose.copy(), graph.covariance.copy()
