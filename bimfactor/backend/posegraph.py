@@ -392,7 +392,8 @@ class MultiHypothesisBackend:
         self.tracker = ModeTracker(cfg)
         self.graphs: dict[int, ModeGraph] = {}
         self.index = -1
-        # Modes pruned after `refine_retired_min_keyframes` keyframes: offline refinement's other candidates.
+        # Graphs no mode goes on with (pruned, or restarted at a scan match beyond the window) that lived
+        # `refine_retired_min_keyframes` keyframes: offline refinement's other candidates.
         self.retired: list[ModeHistory] = []
 
     @classmethod
@@ -451,9 +452,7 @@ class MultiHypothesisBackend:
         retiring = {m.id: m.probability for m in self.tracker.modes}
         pruned = self.tracker.prune()
         for mode_id in pruned:
-            graph = self.graphs.pop(mode_id)
-            if len(graph.poses) >= self.cfg.refine_retired_min_keyframes:
-                self.retired.append(graph.history(retiring[mode_id]))
+            self._retire(self.graphs.pop(mode_id), retiring[mode_id])
         n_measured = len(observations) + observations.n_texts
         estimates = [self._estimate(mode, costs[mode.id], n_measured) for mode in self.tracker.modes]
         estimates.sort(key=lambda e: -e.probability)
@@ -490,7 +489,10 @@ class MultiHypothesisBackend:
         measured = None if pose_factor_fn is None else pose_factor_fn(predicted, mode.storey)
         if measured is not None and increment is not None and self._beyond_window(measured[0], predicted):
             # The scan matched beyond the search window about the prediction (the matcher searched again about
-            # the window's edge): the graph's history disagrees with the walls, so it starts again at the match.
+            # the window's edge): the graph's history disagrees with the walls, so it starts again at the match. The
+            # history it had is kept as a refine candidate, as a pruned mode's is: the robot may have been carried
+            # off to a look-alike here, and offline the old graph still explains the keyframes before.
+            self._retire(graph, mode.probability)
             covariance = covariance_body_to_world(np.linalg.inv(measured[1]), float(measured[0][2]))
             graph = self._start_graph(mode, i, measured[0], covariance)
             predicted, increment, measured = graph.pose.copy(), None, None
@@ -506,6 +508,12 @@ class MultiHypothesisBackend:
         graph = ModeGraph(mode.id, i, pose, covariance, self.landmarks, self.cfg, mode.storey)
         self.graphs[mode.id] = graph
         return graph
+
+    def _retire(self, graph: ModeGraph, probability: float) -> None:
+        """A graph no mode goes on with: kept in `retired` (offline refinement's candidates) when it lived
+        `refine_retired_min_keyframes` keyframes."""
+        if len(graph.poses) >= self.cfg.refine_retired_min_keyframes:
+            self.retired.append(graph.history(probability))
 
     def _beyond_window(self, pose: np.ndarray, predicted: np.ndarray) -> bool:
         """Whether a (3,) pose lies outside the scan matcher's window about a (3,) predicted pose."""

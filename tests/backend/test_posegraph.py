@@ -303,32 +303,43 @@ def test_a_scan_measurement_enters_the_mode_graph_with_its_keyframe_and_is_kept_
     assert abs(wrap_angle(step.pose[2] - sc.true_poses[4, 2])) < np.deg2rad(0.5)
 
 
-def test_a_scan_match_beyond_the_window_starts_the_mode_graph_again_at_it():
-    """A mode born 1.2 m off the truth: its first keyframe's scan is not matched, the second's lies beyond the
-    ± `scan_window_m` window about the prediction (the matcher searched again about the window's edge). The graph
-    disagrees with the walls there, so it starts again at that match, dropping the history before it; matches
-    inside the window then enter it as scan factors."""
+@pytest.mark.parametrize("first_match", [1, 6])
+def test_a_scan_match_beyond_the_window_starts_the_mode_graph_again_at_it(first_match: int):
+    """A mode born 1.2 m off the truth: its scans are not matched before keyframe `first_match`, whose match lies
+    beyond the ± `scan_window_m` window about the prediction (the matcher searched again about the window's edge).
+    The graph disagrees with the walls there, so it starts again at that match; matches inside the window then enter
+    it as scan factors. The history before the restart is kept as a refine candidate when it is long enough
+    (`refine_retired_min_keyframes`), as a pruned mode's is."""
     sc = loop_scenario(np.random.default_rng(0), PRECISE)
     backend = MultiHypothesisBackend(sc.landmark_xy, PRECISE)
     information = np.diag([1 / 0.01**2, 1 / 0.01**2, 1 / np.deg2rad(0.2) ** 2])
     born_off = np.array([1.2, 0.0, np.deg2rad(5.0)])
     assert born_off[0] > PRECISE.scan_window_m
+    assert 1 < PRECISE.refine_retired_min_keyframes <= 6
     asked = []
-    for t in range(5):
+    T = first_match + 4
+    for t in range(T):
         clusters = [Mode(sc.true_poses[0] + born_off, np.diag([0.3, 0.3, np.deg2rad(10.0)]) ** 2, 1.0)]
 
         def measure(pose, storey, t=t):
             asked.append(pose - sc.true_poses[t])
-            return None if t == 0 else (sc.true_poses[t], information)
+            return None if t < first_match else (sc.true_poses[t], information)
 
         increment = None if t == 0 else sc.increments[t - 1]
         backend.step(clusters if t == 0 else [], increment, sc.observations[t], lambda p, s: [], None, measure)
-    assert np.hypot(*asked[1][:2]) > 1.0 and np.all(np.hypot(*np.array(asked[2:])[:, :2].T) < 0.2)
+    off = np.hypot(*np.array(asked)[:, :2].T)
+    assert off[first_match] > 1.0 and np.all(off[first_match + 1 :] < 0.2)
     (history,) = backend.histories()
-    assert history.first_index == 1 and len(history.poses) == 4
-    np.testing.assert_allclose(history.prior_pose, sc.true_poses[1])
-    assert [i for i, _, _ in history.scan_factors] == [2, 3, 4]
-    assert np.linalg.norm(history.poses[-1, :2] - sc.true_poses[4, :2]) < 0.03
+    assert history.first_index == first_match and len(history.poses) == T - first_match
+    np.testing.assert_allclose(history.prior_pose, sc.true_poses[first_match])
+    assert [i for i, _, _ in history.scan_factors] == list(range(first_match + 1, T))
+    assert np.linalg.norm(history.poses[-1, :2] - sc.true_poses[T - 1, :2]) < 0.03
+    if first_match < PRECISE.refine_retired_min_keyframes:
+        assert backend.retired == []
+    else:
+        (before,) = backend.retired
+        assert before.mode_id == history.mode_id and before.first_index == 0 and len(before.poses) == first_match
+        assert np.all(np.hypot(*(before.poses[:, :2] - sc.true_poses[:first_match, :2]).T) > 0.5)  # as it was
 
 
 def test_a_long_objects_landmark_gives_way_along_its_footprint():
