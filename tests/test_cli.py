@@ -624,7 +624,8 @@ def test_refine_fails_cleanly_on_bad_input(demo_prior: Path, short_sequence: Pat
 def test_bench_paper_scores_every_variant(demo_prior: Path, tmp_path: Path, cli_config_args: list[str]) -> None:
     out = tmp_path / "bench"
     tiny = ["evaluation.num_trajectories=1", "evaluation.repeats=1", "evaluation.trajectory_length=5"]
-    result = invoke("bench", "paper", "-o", out, "--workers", "1", *[a for t in tiny for a in ("--set", t)],
+    warmup = ["evaluation.warmup_max_steps=2"]  # scored from the filter's convergence (the default), at most 2 steps in
+    result = invoke("bench", "paper", "-o", out, "--workers", "1", *[a for t in tiny + warmup for a in ("--set", t)],
                     *cli_config_args)  # fmt: skip
     assert result.exit_code == 0, result.output
     report = json.loads((out / "results.json").read_text())
@@ -644,19 +645,25 @@ def test_bench_paper_scores_every_variant(demo_prior: Path, tmp_path: Path, cli_
         assert result.stdout.count(f"\n{variant}\n") + result.stdout.startswith(f"{variant}\n") == 1
     assert (out / "error_by_step.png").stat().st_size > 0 and f"figure: {out / 'error_by_step.png'}" in result.stdout
     assert_one_line_error(invoke("bench", "paper", "-o", out, "--variant", "icp"), contains="evaluation.variants")
-    assert report["protocol"]["score_from"] == "start" and report["smcl"]["average"]["scored_from_steps"] == [0]
-    # The full variant, scored from where the filter reports itself converged (at most two steps in).
-    warmup = ["evaluation.score_from=filter_converged", "evaluation.warmup_max_steps=2"]
+    assert report["protocol"]["score_from"] == "filter_converged" and report["protocol"]["warmup_max_steps"] == 2
+    (first,) = report["smcl"]["average"]["scored_from_steps"]
+    assert 0 <= first <= 2
+    for variant in report["variants"]:  # the same runs from their first frame, printed under each table
+        from_start = report[variant]["average"]["from_start"]
+        assert set(from_start) >= {"trans_err_m", "orient_err_deg", "room_acc"} and from_start["trans_err_m"] >= 0.0
+    assert result.stdout.count("the same runs from their first frame (the uniform cloud included): ") == 3
+    # The full variant, scored from the first frame.
+    start = ["evaluation.score_from=start"]
     full = invoke("bench", "paper", "-o", tmp_path / "full", "--prior", demo_prior, "--workers", "1", "--variant",
-                  "smcl+graph", "--variant", "full", *[a for t in tiny + warmup for a in ("--set", t)],
+                  "smcl+graph", "--variant", "full", *[a for t in tiny + start for a in ("--set", t)],
                   *cli_config_args)  # fmt: skip
     assert full.exit_code == 0, full.output
     report = json.loads((tmp_path / "full" / "results.json").read_text())
     assert report["variants"] == ["smcl+graph", "full"]
     assert set(report["full"]["average"]) >= keys | {"icp_accepted_share", "icp_rejections"}
-    assert report["protocol"]["score_from"] == "filter_converged" and report["protocol"]["warmup_max_steps"] == 2
-    (first,) = report["full"]["average"]["scored_from_steps"]
-    assert 0 <= first <= 2 and len(report["full"]["average"]["trans_err_by_step_m"]) == 5
+    assert report["protocol"]["score_from"] == "start" and report["full"]["average"]["scored_from_steps"] == [0]
+    assert len(report["full"]["average"]["trans_err_by_step_m"]) == 5 and "from_start" not in report["full"]["average"]
+    assert "the same runs from their first frame" not in full.stdout
 
 
 def test_bench_paper_runs_the_kidnap_and_pose_guess_scenarios(

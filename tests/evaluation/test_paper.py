@@ -11,6 +11,7 @@ from bimfactor.config import load_config
 from bimfactor.errors import ConfigError
 from bimfactor.evaluation.paper import (
     RunResult,
+    StepErrors,
     _confidence_intervals,
     _known_storey,
     _pooled,
@@ -59,6 +60,38 @@ def test_the_average_carries_a_bootstrap_interval_over_runs_and_the_table_prints
     }
     assert format_table_one(warmed, "smcl").splitlines()[-1] == (
         "scored from the step the filter first reported itself converged: median step 3 (range 0–30) of the 7 runs"
+    )
+
+
+def test_the_error_after_convergence_pools_the_steps_after_each_runs_convergence() -> None:
+    early, late, never = _run(0, 0, 0.1, 1.0), _run(1, 0, 0.1, 1.0), _run(2, 0, 3.0, 0.0)
+    early.trans_err_m[:2] = 5.0  # converged from step 2: eight steps of 0.1 m
+    late.trans_err_m[:] = 0.9
+    late.trans_err_m[8] = 1.5  # converged from step 9: one step of 0.9 m
+    early.metrics["steps_to_converge"], late.metrics["steps_to_converge"] = 2, 9
+    never.metrics["steps_to_converge"] = None
+    average = _pooled([early, late, never])
+    assert average["trans_err_conv_m"] == pytest.approx((8 * 0.1 + 0.9) / 9)
+    assert average["trans_err_conv_run_mean_m"] == pytest.approx((0.1 + 0.9) / 2)
+    assert average["orient_err_conv_deg"] == pytest.approx(1.0)  # 10 × 0.1 m's degrees, the same steps
+    assert average["converged_runs"] == 2
+    assert _pooled([never])["trans_err_conv_m"] is None
+
+
+def test_the_first_t_steps_are_scored_beside_the_converged_window_only_when_every_run_has_them() -> None:
+    runs = [_run(k, 0, 0.2, 1.0) for k in range(2)]
+    assert "from_start" not in _pooled(runs)
+    runs[0].from_start = StepErrors(np.full(10, 4.0), np.full(10, 30.0), np.r_[np.zeros(5), np.ones(5)])
+    assert "from_start" not in _pooled(runs)
+    runs[1].from_start = StepErrors(np.full(10, 2.0), np.full(10, 10.0), np.ones(10))
+    average = _pooled(runs)
+    assert average["from_start"]["trans_err_m"] == pytest.approx(3.0)
+    assert average["from_start"]["orient_err_deg"] == pytest.approx(20.0)
+    assert average["from_start"]["room_acc"] == pytest.approx(0.75)
+    assert average["trans_err_m"] == pytest.approx(0.2)  # the scored window is unchanged
+    report = {"variants": ["smcl"], "smcl": {"average": average, "per_trajectory": {}}}
+    assert format_table_one(report, "smcl").splitlines()[-1] == (
+        "the same runs from their first frame (the uniform cloud included): 3.00 m, 20.0°, 75.0 %"
     )
 
 
@@ -120,8 +153,13 @@ def test_the_kidnapped_robot_is_carried_to_the_route_three_further_on() -> None:
 
 def test_a_scenario_other_than_the_papers_scores_from_its_own_start() -> None:
     assert load_config(None, ["evaluation.scenario=kidnap"]).evaluation.scenario == "kidnap"
-    with pytest.raises(ConfigError, match="scenario guess scores from its own start"):
-        load_config(None, ["evaluation.scenario=guess", "evaluation.score_from=filter_converged"])
+    papers = load_config(None, []).evaluation
+    assert papers.score_from == "filter_converged" and papers.scores_from_convergence
+    assert papers.warmup_steps == papers.warmup_max_steps > 0
+    for scenario in ("guess", "kidnap"):  # the default score_from does not apply: no warm-up, no first-T comparison
+        ev = load_config(None, [f"evaluation.scenario={scenario}"]).evaluation
+        assert not ev.scores_from_convergence and ev.warmup_steps == 0
+    assert load_config(None, ["evaluation.score_from=start"]).evaluation.warmup_steps == 0
     with pytest.raises(ConfigError, match=r"evaluation\.scenario"):
         load_config(None, ["evaluation.scenario=teleport"])
     check_protocol(load_config(None, ["evaluation.scenario=kidnap"]))  # refine smooths each stretch on its own
