@@ -233,7 +233,14 @@ def save_error_by_step_plot(report: dict, path: str | Path) -> Path | None:
     ax_o.set_ylabel("orientation error [°]")
     protocol = report.get("protocol", {})
     kidnapped = protocol.get("scenario") == "kidnap"
-    ax_o.set_xlabel("keyframe after the robot was carried off" if kidnapped else "scored step")
+    converged = protocol.get("score_from") == "filter_converged"
+    ax_o.set_xlabel(
+        "keyframe after the robot was carried off"
+        if kidnapped
+        else "scored step (from the step the filter first reported itself converged)"
+        if converged
+        else "scored step (from the first frame)"
+    )
     runs = next(iter(curves.values()))["runs"]
     scenario = {"kidnap": ", kidnapped robot", "guess": ", from a pose guess"}.get(protocol.get("scenario", ""), "")
     ax_t.set_title(f"Error per step, mean over {runs} runs{scenario}")
