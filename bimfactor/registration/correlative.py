@@ -5,12 +5,12 @@ Beyond the paper. The particle filter weighs particles by the depth scan against
 correlative scan matching", ICRA 2009): an exhaustive search over a window of poses around a mode's predicted pose,
 scored by
 
-    log P(z | x) = (N_eff / N) · Σ_n log(f_n(x) + ε),    f_n = exp(−d_n² / 2σ²),
+    log P(z | x) = (min(N, N_eff) / N) · Σ_n log(f_n(x) + ε),    f_n = exp(−d_n² / 2σ²),
 
 with d_n the distance of endpoint n to the nearest face of a wall or a piece of furniture (`face_distances`),
 ε (`scan_outlier`) bounding what an endpoint on clutter or a moved object can cost, and N_eff
-(`scan_effective_endpoints`) the endpoints that count as independent (neighbouring returns of one wall share its
-as-built and grid errors). An endpoint whose ray was inside a wall `scan_clear_before_m` before it scores as an
+(`scan_effective_endpoints`) the most endpoints that count as independent (neighbouring returns of one wall share
+its as-built and grid errors); a scan of fewer endpoints counts each once, not as if it were N_eff of them. An endpoint whose ray was inside a wall `scan_clear_before_m` before it scores as an
 outlier: a sensor cannot see the far face of a wall.
 
 1. Coarse: the whole window (± `scan_window_m`, ± `scan_window_deg`) in `scan_step_m` / `scan_step_deg` steps,
@@ -175,7 +175,7 @@ class CorrelativeMatcher:
         on the BIM (field value ≥ 1/2: within 1.18 σ of a face)."""
         cfg = self.cfg
         f = values.astype(np.float32) / np.float32(255.0)
-        scale = cfg.scan_effective_endpoints / f.shape[1]
+        scale = cfg.scan_effective_endpoints / max(f.shape[1], cfg.scan_effective_endpoints)
         log_p = scale * np.log(f + np.float32(cfg.scan_outlier)).sum(axis=1, dtype=np.float64)
         return log_p, (f >= np.float32(0.5)).sum(axis=1)
 

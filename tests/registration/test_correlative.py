@@ -81,6 +81,21 @@ def test_a_scan_is_not_matched_through_a_wall(box, cfg):
     assert seen_through.values(east_face[None], 0, scan, cfg.scan_clear_before_m).mean() < 50
 
 
+def test_a_scan_counts_at_most_the_effective_endpoints(box, cfg):
+    """Up to `scan_effective_endpoints` endpoints each count once; more share that many: a 40-endpoint scan weighs
+    what 20 of its endpoints would, and a 5-endpoint scan is not weighed as if it were 20."""
+    matcher = CorrelativeMatcher(box, cfg)
+    n_eff = int(cfg.scan_effective_endpoints)
+    rng = np.random.default_rng(3)
+    values = rng.integers(0, 256, size=(4, 2 * n_eff), dtype=np.uint8)
+    plain = np.log(values.astype(np.float32) / np.float32(255.0) + np.float32(cfg.scan_outlier)).sum(axis=1)
+    few, _ = matcher.log_likelihood(values[:, :5])
+    np.testing.assert_allclose(few, np.log(values[:, :5] / 255.0 + cfg.scan_outlier).sum(axis=1), rtol=1e-5)
+    many, on_wall = matcher.log_likelihood(values)
+    np.testing.assert_allclose(many, plain / 2.0, rtol=1e-5)
+    np.testing.assert_array_equal(on_wall, (values >= 128).sum(axis=1))
+
+
 def test_matches_are_rejected_with_the_reason(box, cfg):
     matcher = CorrelativeMatcher(box, cfg)
     truth = np.array([4.0, 4.0, np.deg2rad(30.0)])
