@@ -10,8 +10,9 @@ scored by
 with d_n the distance of endpoint n to the nearest face of a wall or a piece of furniture (`face_distances`),
 ε (`scan_outlier`) bounding what an endpoint on clutter or a moved object can cost, and N_eff
 (`scan_effective_endpoints`) the most endpoints that count as independent (neighbouring returns of one wall share
-its as-built and grid errors); a scan of fewer endpoints counts each once, not as if it were N_eff of them. An endpoint whose ray was inside a wall `scan_clear_before_m` before it scores as an
-outlier: a sensor cannot see the far face of a wall.
+its as-built and grid errors); a scan of fewer endpoints counts each once, not as if it were N_eff of them. An
+endpoint whose ray was inside a wall `scan_clear_before_m` before it scores as an outlier: a sensor cannot see the
+far face of a wall.
 
 1. Coarse: the whole window (± `scan_window_m`, ± `scan_window_deg`) in `scan_step_m` / `scan_step_deg` steps,
    scored in a smoother field (σ = `scan_coarse_sigma_m`) so that no peak falls between the steps;
