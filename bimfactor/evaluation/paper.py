@@ -7,9 +7,8 @@ filter_converged`, the default: the route simulated longer, and the first T step
 the first T (`start`, the uniform cloud included). Table I's statistics cannot include a uniform cloud's first steps
 (every value lies within std·√(N − 1) of the mean, and the paper's Trajectory 4, 0.32 ± 0.22 m over 3 × 50 steps, puts
 each of its estimates within 3.0 m of the truth), so its steps began once the filter had narrowed the floor down.
-Table I's statistics are mean ± std over
-the steps of a trajectory's repeats; the average row pools
-every step of every run, and comes with a 95 % bootstrap interval that resamples whole runs (a run that locks onto
+Table I's statistics are mean ± std over the steps of a trajectory's repeats; the average row pools every step of
+every run, and comes with a 95 % bootstrap interval that resamples whole runs (a run that locks onto
 a wrong place is wrong for many steps at once, so the steps' std says little about how far the average can move
 when the same protocol runs with other seeds). Runs go to parallel processes.
 
