@@ -46,7 +46,7 @@ import numpy as np
 
 from bimfactor.config import Config
 from bimfactor.errors import ConfigError
-from bimfactor.evaluation.metrics import run_bootstrap_ci
+from bimfactor.evaluation.metrics import orientation_errors_deg, run_bootstrap_ci, translation_errors_m
 from bimfactor.io.atomic import write_text_atomic
 from bimfactor.progress import progress
 from bimfactor.types import wrap_angle
@@ -54,6 +54,7 @@ from bimfactor.types import wrap_angle
 if TYPE_CHECKING:
     from bimfactor.bim.prior import BimPrior
     from bimfactor.bim.symmetry import Motion
+    from bimfactor.pipeline import Track
     from bimfactor.sim.simulate import SimResult
     from bimfactor.types import Frame, SequenceMeta
 
@@ -67,6 +68,15 @@ class StepErrors:
     trans_err_m: np.ndarray
     orient_err_deg: np.ndarray
     room_hit: np.ndarray
+
+    @classmethod
+    def of(cls, track: Track, gt_poses: np.ndarray, gt_rooms: np.ndarray) -> StepErrors:
+        """A track's errors against the ground truth of the same steps."""
+        return cls(
+            translation_errors_m(track.poses, gt_poses),
+            orientation_errors_deg(track.poses, gt_poses),
+            (track.rooms == gt_rooms).astype(float),
+        )
 
 
 @dataclass
@@ -196,13 +206,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
     """Simulate trajectory k (config seed), localize it with seed (config seed, repeat), score every variant (also
     up to the building's `twins`, when it has any); in a worker process, or in this one with one worker."""
     from bimfactor.config import Config
-    from bimfactor.evaluation.metrics import (
-        errors_up_to_twin,
-        inside_ellipse,
-        orientation_errors_deg,
-        steps_to_converge,
-        translation_errors_m,
-    )
+    from bimfactor.evaluation.metrics import errors_up_to_twin, inside_ellipse, steps_to_converge
     from bimfactor.evaluation.report import track_metrics
     from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run, scan_matcher
 
@@ -243,6 +247,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
     results = []
     for variant in variants:
         track = tracks[variant].window(scored)
+        errors = StepErrors.of(track, gt_poses, gt_rooms)
         twin_errors = errors_up_to_twin(track.poses, gt_poses, gt_storeys, twins) if twins else (None, None)
         fine = forward[variant].fine.window(scored) if variant in forward and forward[variant].fine else None
         metrics = track_metrics(track, gt_poses, gt_rooms)
@@ -264,9 +269,9 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
                 variant,
                 trajectory,
                 repeat,
-                translation_errors_m(track.poses, gt_poses),
-                orientation_errors_deg(track.poses, gt_poses),
-                (track.rooms == gt_rooms).astype(float),
+                errors.trans_err_m,
+                errors.orient_err_deg,
+                errors.room_hit,
                 inside_ellipse(track.poses, track.covariances, gt_poses),
                 track.step_ms,
                 metrics.to_dict(),
@@ -279,11 +284,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
                 trans_err_before_m=trans_before,
                 storey_hit=(track.storeys == gt_storeys).astype(float),
                 challenges=int(forward.get(variant, run).challenged.sum()),
-                from_start=StepErrors(
-                    translation_errors_m(tracks[variant].poses[first], run.gt_poses[first]),
-                    orientation_errors_deg(tracks[variant].poses[first], run.gt_poses[first]),
-                    (tracks[variant].rooms[first] == run.gt_rooms[first]).astype(float),
-                )
+                from_start=StepErrors.of(tracks[variant].window(first), run.gt_poses[first], run.gt_rooms[first])
                 if ev.scores_from_convergence
                 else None,
             )
