@@ -16,15 +16,18 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, PositiveFloat, ValidationError, model_validator
 
 from bimfactor.errors import ConfigError
+from bimfactor.io.text import read_utf8
+from bimfactor.resources import check_particle_memory
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
 
 
 class _Strict(BaseModel):
-    """Unknown keys are errors, never silently dropped."""
+    """The base of every config model: unknown keys are errors, never silently dropped, and no float anywhere (also
+    inside lists and tuples) may be inf or nan: a `.inf` passes `ge=0`, and a field without bounds takes `.nan`."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class IfcReadConfig(_Strict):
@@ -787,17 +790,48 @@ class Config(_Strict):
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
+    """The mapping a config file holds; a ConfigError of one line for whatever else the file is."""
+    if path.is_dir():
+        raise ConfigError(f"{path} is a folder, not a config file")
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
+    text = read_utf8(path, ConfigError, hint="save the file as UTF-8")
+    if not text.strip():
+        raise ConfigError(f"{path}: the file is empty; a config file is a YAML mapping of the keys it overrides")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = " ".join(str(exc.problem or exc.context or type(exc).__name__).split())
+        raise ConfigError(f"{path}: not valid YAML{where}: {what}") from None
+    except yaml.reader.ReaderError as exc:
+        line = text.count("\n", 0, exc.position) + 1
+        raise ConfigError(
+            f"{path}: not valid YAML at line {line}: character {chr(exc.character)!a} ({exc.reason})"
+        ) from None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc.__class__.__name__})") from exc
-    if data is None:
+        raise ConfigError(f"{path}: not valid YAML ({type(exc).__name__})") from None
+    if data is None:  # nothing but comments: overrides nothing
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: top level must be a mapping")
+        kind = _yaml_kind(data)
+        raise ConfigError(
+            f"{path}: top level must be a mapping of config keys (as in configs/default.yaml), not a {kind}"
+        )
     return data
+
+
+def _yaml_kind(value: object) -> str:
+    if isinstance(value, list):
+        return "list"
+    if isinstance(value, str):
+        return "string"
+    if isinstance(value, bool):
+        return "boolean"
+    if isinstance(value, int | float):
+        return "number"
+    return type(value).__name__
 
 
 def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
@@ -848,6 +882,8 @@ def _first_error(exc: ValidationError) -> str:
         return _unknown_key(where)
     if err["type"] == "missing":
         return f"missing config key '{where}'"
+    if err["type"] == "finite_number":
+        return f"config key '{where}': must be a finite number, not {err['input']!r}"
     message = err["msg"].removeprefix("Value error, ")
     return f"config key '{where}': {message}" if where else f"config: {message}"
 
@@ -855,7 +891,8 @@ def _first_error(exc: ValidationError) -> str:
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Load `configs/default.yaml`, then a preset or user file on top, then `key=value` overrides.
 
-    A preset can be named by file path or by its name in `configs/` (e.g. "fast").
+    A preset can be named by file path or by its name in `configs/` (e.g. "fast"). A configuration whose particle
+    sets cannot fit in the memory available now is refused (`resources.check_particle_memory`).
     """
     data = _read_yaml(DEFAULT_CONFIG)
     if path is not None:
@@ -866,9 +903,11 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
     for assignment in overrides:
         _apply_override(data, assignment)
     try:
-        return Config.model_validate(data)
+        cfg = Config.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(_first_error(exc)) from None
+    check_particle_memory(cfg)
+    return cfg
 
 
 def config_file(name: str) -> Path:
