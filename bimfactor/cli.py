@@ -13,6 +13,7 @@ import json
 import logging
 import math
 import os
+import signal
 import sys
 import time
 import traceback
@@ -22,6 +23,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import click
 import typer
+import typer.core
 
 from bimfactor import __version__
 from bimfactor.errors import BimfactorError, ConfigError, InputError
@@ -33,8 +35,46 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+
+try:  # typer >= 0.20 parses arguments with its own copy of click
+    from typer._click import exceptions as click_exceptions
+except ImportError:  # pragma: no cover - older typer runs on click itself
+    from click import exceptions as click_exceptions
+
+
+class _OneLineUsageError(click_exceptions.UsageError):
+    """A usage error shown as one `error:` line (click prints the usage block and a hint otherwise)."""
+
+    def show(self, file: Any = None) -> None:
+        command = f"{self.ctx.command_path}: " if self.ctx is not None else ""
+        typer.echo(f"error: {command}{_one_line(self.format_message())} (see --help)", err=True)
+
+
+class _OneLineGroup(typer.core.TyperGroup):
+    """The command group: argument parsing errors of every subcommand become one line on stderr, exit 2."""
+
+    def make_context(self, *args: Any, **kwargs: Any) -> Any:
+        with _one_line_usage():
+            return super().make_context(*args, **kwargs)
+
+    def invoke(self, ctx: Any) -> Any:
+        with _one_line_usage():
+            return super().invoke(ctx)
+
+
+@contextlib.contextmanager
+def _one_line_usage() -> Iterator[None]:
+    try:
+        yield
+    except (click_exceptions.NoArgsIsHelpError, _OneLineUsageError):
+        raise
+    except click_exceptions.UsageError as exc:
+        raise _OneLineUsageError(exc.format_message(), exc.ctx) from None
+
+
 app = typer.Typer(
     name="bimfactor",
+    cls=_OneLineGroup,
     help="Robot localization against a building's BIM model (IFC): CoarseBIMLoc with pose graphs and ICP.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
@@ -43,6 +83,7 @@ app = typer.Typer(
     context_settings={"help_option_names": ["-h", "--help"]},
 )
 bench_app = typer.Typer(
+    cls=_OneLineGroup,
     help="Benchmarks that anyone can rerun; each writes results.json and config.yaml to its output folder.",
     short_help="Benchmarks (results.json + config.yaml per run).",
     no_args_is_help=True,
@@ -53,6 +94,7 @@ app.add_typer(bench_app, name="bench")
 DEFAULT_DEMO_OUT = Path("runs/demo")
 DEFAULT_BENCH_PRIOR_OUT = Path("runs/bench-prior")
 DEFAULT_PRIOR_ROOT = Path("runs/prior")
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 SIGPIPE_EXIT = 141  # 128 + SIGPIPE, what a shell reports for `yes | head`
 
 # ------------------------------------------------------------------------------------------ common options
@@ -83,6 +125,12 @@ DebugOption = Annotated[
 BenchPriorOption = Annotated[
     Path | None,
     typer.Option("--prior", metavar="PRIOR_DIR", help="A prior folder (default: the paper-floor preset)."),
+]
+ForceOption = Annotated[
+    bool,
+    typer.Option(
+        "--force", help="Localize even when the sequence says it was recorded in another building than the prior's."
+    ),
 ]
 SeedOption = Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")]
 InitialPoseOption = Annotated[
@@ -115,12 +163,42 @@ def _fail(message: str, exit_code: int) -> typer.Exit:
     return typer.Exit(exit_code)
 
 
+class _Terminated(BaseException):
+    """SIGTERM (`timeout`, `docker stop`, systemd), raised in the command so that its outputs are cleaned up."""
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    if os.getpid() != _MAIN_PID:  # a worker process of a benchmark pool: end as the default handler would
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return
+    raise _Terminated
+
+
+_MAIN_PID = os.getpid()
+SIGTERM_EXIT = 143  # 128 + SIGTERM
+
+
 @contextlib.contextmanager
 def _cli_errors(debug: bool) -> Iterator[None]:
-    """Turn exceptions into one `error:` line on stderr and an exit code; tracebacks only with --debug."""
+    """Turn exceptions into one `error:` line on stderr and an exit code; tracebacks only with --debug.
+
+    SIGTERM is handled like Ctrl-C: temporary outputs are removed and nothing half-written is left.
+    """
+    global _MAIN_PID
+    _MAIN_PID = os.getpid()
+    with contextlib.suppress(ValueError):  # only the main thread may set handlers (CliRunner in a thread)
+        signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         yield
-    except (click.exceptions.Exit, click.ClickException, click.Abort):
+    except (
+        typer.Exit,
+        typer.Abort,
+        click_exceptions.ClickException,
+        click.exceptions.Exit,
+        click.ClickException,
+        click.Abort,
+    ):
         raise
     except BimfactorError as exc:
         if debug:
@@ -128,6 +206,8 @@ def _cli_errors(debug: bool) -> Iterator[None]:
         raise _fail(str(exc), exc.exit_code) from None
     except KeyboardInterrupt:
         raise _fail("interrupted", 130) from None
+    except _Terminated:
+        raise _fail("terminated", SIGTERM_EXIT) from None
     except BrokenPipeError:
         # The reader of stdout went away (`bimfactor ... | head`): files are already written atomically, so stop
         # quietly with the shell's SIGPIPE status, and point stdout at /dev/null so the exit flush cannot fail again.
@@ -162,7 +242,20 @@ def _start(config: str | None, overrides: list[str] | None, verbose: bool) -> Co
     from bimfactor.config import load_config
 
     _setup_logging(verbose)
+    _one_blas_thread()
     return load_config(config, overrides or [])
+
+
+def _one_blas_thread() -> None:
+    """Run BLAS and OpenMP on one thread, so that results do not depend on the machine's core count (a threaded
+    BLAS sums in another order: estimates differed by up to 6e-9 m); the per-keyframe matrices are too small to gain
+    from threads (localize of the demo sequence: 16.6 s on one thread, 16.9 s on two). The environment variables
+    reach the libraries loaded later; threadpoolctl limits those already loaded."""
+    for variable in BLAS_THREAD_VARIABLES:
+        os.environ.setdefault(variable, "1")
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=int(os.environ["OPENBLAS_NUM_THREADS"]))
 
 
 def _version_callback(value: bool) -> None:
@@ -237,8 +330,9 @@ def synth(
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
-        from bimfactor.bim.synth import write_building
+        from bimfactor.bim.synth import check_synth_output, write_building
 
+        check_synth_output(output)
         used_seed = cfg.seed if seed is None else seed
         spec = write_building(preset, used_seed, output)
         counts = spec.object_counts()
@@ -286,14 +380,16 @@ def prior(
         if not model.exists():
             raise InputError(f"no such file or folder: {model}")
         if model.is_dir():
+            if not (model / "prior.json").is_file():
+                raise InputError(f"{model}: a folder but not a bimfactor prior (no prior.json); give an .ifc file")
             if output is not None:
-                raise InputError(f"{model} is a prior folder; -o applies to IFC input only")
+                raise InputError(f"{model} is a prior folder, which is summarised; -o applies to IFC input only")
             built, out_dir = BimPrior.load(model), model
         else:
             if model.suffix.lower() != ".ifc":
                 raise InputError(f"{model}: expected an .ifc file or a prior folder")
             out_dir = output if output is not None else DEFAULT_PRIOR_ROOT / model.stem
-            ensure_prior_destination(out_dir)
+            ensure_prior_destination(out_dir, model)
             started = time.perf_counter()
             built = build_prior(model, cfg)
             built.save(out_dir, config_yaml=cfg.dump_yaml())
@@ -464,7 +560,8 @@ def bench_prior(
         from bimfactor.evaluation.bench import default_prior_bench_files, format_prior_table, run_prior_bench
 
         files = list(ifc) if ifc else default_prior_bench_files(all_buildings)
-        result = run_prior_bench(files, cfg, output, reload_repeats=repeats)
+        with _bench_dir(output, *files):
+            result = run_prior_bench(files, cfg, output, reload_repeats=repeats)
         typer.echo(format_prior_table(result.rows))
         typer.echo(f"text encoder load (once, not in the builds): {result.embedder_load_s:.1f} s")
         typer.echo(f"results: {output / 'results.json'}")
@@ -497,14 +594,14 @@ def bench_sim(
         from bimfactor.bim.synth import write_building
         from bimfactor.evaluation.bench import run_sim_bench, shared_ifc_dir
 
-        if ifc:
-            files = list(ifc)
-        else:
-            output.mkdir(parents=True, exist_ok=True)
-            paper = output / "paper-floor.ifc"
-            write_building("paper-floor", cfg.seed, paper)
-            files = [paper, shared_ifc_dir() / "duplex.ifc"]
-        rows = run_sim_bench(files, cfg, output, n_frames=frames)
+        with _bench_dir(output, *(ifc or [])):
+            if ifc:
+                files = list(ifc)
+            else:
+                paper = output / "paper-floor.ifc"
+                write_building("paper-floor", cfg.seed, paper)
+                files = [paper, shared_ifc_dir() / "duplex.ifc"]
+            rows = run_sim_bench(files, cfg, output, n_frames=frames)
         for row in rows:
             typer.echo(
                 f"{row['building']:<32} {row['width']}x{row['height']}  {row['frames_per_s']:6.1f} frames/s  "
@@ -558,13 +655,26 @@ def simulate(
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
+        from bimfactor.io.atomic import check_output_dir, container_dir
+
         used_seed = cfg.seed if seed is None else seed
         if all_trajectories and kidnap_to is not None:
             raise ConfigError("--kidnap-to carries one trajectory's robot to another: not with --all")
+        count = cfg.evaluation.num_trajectories
+        for name, k in (("--trajectory", trajectory), ("--kidnap-to", kidnap_to)):
+            if k is not None and k >= count:
+                raise ConfigError(
+                    f"{name} {k}: the standard trajectories are 0-{count - 1} (evaluation.num_trajectories)"
+                )
         if all_trajectories:
-            for k in range(cfg.evaluation.num_trajectories):
-                typer.echo(_simulate_to_disk(prior_dir, output / f"k{k}", cfg, k, used_seed, overwrite))
+            check_output_dir(output, "sequences", inputs=[prior_dir])
+            for k in range(count):
+                check_output_dir(output / f"k{k}", "sequence", inputs=[prior_dir], replace=overwrite)
+            with container_dir(output, "sequences", inputs=[prior_dir]):
+                for k in range(count):
+                    typer.echo(_simulate_to_disk(prior_dir, output / f"k{k}", cfg, k, used_seed, overwrite))
         else:
+            check_output_dir(output, "sequence", inputs=[prior_dir], replace=overwrite)
             typer.echo(_simulate_to_disk(prior_dir, output, cfg, trajectory, used_seed, overwrite, kidnap_to))
 
 
@@ -584,9 +694,9 @@ def _simulate_to_disk(
     import numpy as np
 
     from bimfactor.evaluation.plots import save_trajectory_plot
-    from bimfactor.io.atomic import write_text_atomic
+    from bimfactor.io.atomic import output_dir
     from bimfactor.io.preview import write_preview
-    from bimfactor.io.sequence import read_sequence, write_sequence
+    from bimfactor.io.sequence import read_sequence, write_sequence_files
     from bimfactor.sim.simulate import build_world, kidnap, load_world_inputs, simulate_sequence
 
     prior, model = load_world_inputs(prior_dir, cfg)
@@ -606,20 +716,21 @@ def _simulate_to_disk(
         keyframes = np.asarray([f.gt_pose for f in frames])
         dense_xy = keyframes[:, :2]
         account = f"trajectory {trajectory}, carried after keyframe {ev.kidnap_at} to trajectory {kidnap_to}"
-    write_sequence(output, meta, frames, overwrite=overwrite)
-    write_text_atomic(output / "config.yaml", cfg.dump_yaml())
-    preview = write_preview(read_sequence(output), output / "preview.png")
     rooms = {int(r) for r in prior.room_at(dense_xy, drive.storey_index) if r >= 0}
     odom = np.asarray([f.odom_pose for f in frames])
-    save_trajectory_plot(
-        prior,
-        drive.storey_index,
-        output / "trajectory.png",
-        dense_xy,
-        keyframes,
-        odom,
-        title=f"{meta.name}: {len(frames)} keyframes, {len(rooms)} rooms",
-    )
+    with output_dir(output, "sequence", inputs=[prior_dir], replace=overwrite) as folder:
+        write_sequence_files(folder, meta, frames, label=str(output))
+        (folder / "config.yaml").write_text(cfg.dump_yaml())
+        preview = write_preview(read_sequence(folder), folder / "preview.png")
+        save_trajectory_plot(
+            prior,
+            drive.storey_index,
+            folder / "trajectory.png",
+            dense_xy,
+            keyframes,
+            odom,
+            title=f"{meta.name}: {len(frames)} keyframes, {len(rooms)} rooms",
+        )
     return (
         f"wrote {output}: {len(frames)} keyframes of {account} (seed {seed}), {len(rooms)} rooms visited; "
         f"figures {preview.name}, trajectory.png"
@@ -658,22 +769,24 @@ def convert(
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
+        from bimfactor.io.atomic import check_output_dir, output_dir
         from bimfactor.io.preview import write_preview
         from bimfactor.io.rosbag import read_rosbag
-        from bimfactor.io.sequence import read_sequence, write_sequence
+        from bimfactor.io.sequence import read_sequence, write_sequence_files
         from bimfactor.io.tum import read_tum_rgbd
         from bimfactor.localization.motion import keyframe_indices
 
+        if kind not in ("tum", "rosbag", "sequence"):
+            raise InputError(f"unknown recording kind '{kind}' (expected tum, rosbag or sequence)")
+        if not source.exists():
+            raise InputError(f"no such file or folder: {source}")
+        check_output_dir(output, "sequence", inputs=[source], replace=overwrite)
         if kind == "tum":
             sequence = read_tum_rgbd(source, max_sync_dt_s=cfg.io.tum_max_sync_dt_s)
         elif kind == "rosbag":
             sequence = read_rosbag(source, cfg.io.rosbag)
-        elif kind == "sequence":
-            if output.resolve() == source.resolve():
-                raise InputError(f"{output}: the output must be another folder than the sequence it is read from")
-            sequence = read_sequence(source)
         else:
-            raise InputError(f"unknown recording kind '{kind}' (expected tum, rosbag or sequence)")
+            sequence = read_sequence(source)
         recorded, odometry = len(sequence), sequence.odometry()
         if not all_frames and odometry is not None:
             steps = cfg.localization
@@ -686,9 +799,10 @@ def convert(
             )
         else:
             kept = f"{recorded} frames" + ("" if odometry is not None else " (no odometry: every frame kept)")
-        write_sequence(output, sequence.meta, sequence, overwrite=overwrite)
-        preview = write_preview(read_sequence(output), output / "preview.png")
-        typer.echo(f"wrote {output}: {kept} from {kind} {source}; preview {preview}")
+        with output_dir(output, "sequence", inputs=[source], replace=overwrite) as folder:
+            write_sequence_files(folder, sequence.meta, sequence, label=str(output))
+            write_preview(read_sequence(folder), folder / "preview.png")
+        typer.echo(f"wrote {output}: {kept} from {kind} {source}; preview {output / 'preview.png'}")
 
 
 # ------------------------------------------------------------------------------------------ localize
@@ -718,11 +832,17 @@ def _start_overrides(text: str | None, storey: int | None) -> list[str]:
     return [f"smcl.initial_pose={json.dumps(values[:3])}", *on, *known]
 
 
+def _bench_dir(output: Path, *inputs: Path | str | None) -> contextlib.AbstractContextManager[Path]:
+    """A benchmark's output folder (`io.atomic.container_dir`): new, empty or an earlier benchmark's, never an input."""
+    from bimfactor.io.atomic import container_dir
+
+    return container_dir(output, "bench", inputs=[i for i in inputs if i is not None])
+
+
 def _write_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) -> Path:
     """OUT/results.json ({"benchmark": name, **result}) and OUT/config.yaml, each written atomically."""
     from bimfactor.io.atomic import write_text_atomic
 
-    output.mkdir(parents=True, exist_ok=True)
     results = output / "results.json"
     write_text_atomic(results, json.dumps({"benchmark": name, **result}, indent=2, default=float))
     write_text_atomic(output / "config.yaml", cfg.dump_yaml())
@@ -741,6 +861,17 @@ def _warn_dense_steps(sequence: Any, path: Path, cfg: Any) -> None:
     )
     if note is not None:
         typer.echo(f"warning: {path}: {note}; 'bimfactor convert sequence {path} -o OUT' keeps the keyframes", err=True)
+
+
+def _check_building(meta: Any, prior: BimPrior, force: bool) -> None:
+    """Refuse a sequence recorded in another building than the prior's (a warning with --force)."""
+    from bimfactor.pipeline import building_mismatch
+
+    mismatch = building_mismatch(meta, prior)
+    if mismatch is not None and not force:
+        raise InputError(f"{mismatch}; --force localizes it all the same")
+    if mismatch is not None:
+        typer.echo(f"warning: {mismatch}", err=True)
 
 
 def _metrics_line(metrics: Any) -> str:
@@ -769,6 +900,7 @@ def localize(
     seed: SeedOption = None,
     initial_pose: InitialPoseOption = None,
     storey: StoreyOption = None,
+    force: ForceOption = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -780,7 +912,8 @@ def localize(
     most probable mode and feeds accepted fits into its graph.
 
     Writes RUN_DIR/estimate.txt (TUM), steps.csv (pose, storey, room, covariance, converged flag, number of modes
-    per step, full: whether ICP was accepted; on a building with twin storeys the estimate's twin pose and the
+    per step, full: whether ICP was accepted; skipped: why a frame's observations were not used, for empty or
+    saturated depth or an odometry jump; on a building with twin storeys the estimate's twin pose and the
     belief's weight there), modes.csv (graph variants: every mode per step), metrics.json (with
     ground truth: the paper's translation / orientation error, room accuracy and the 95 % ellipse coverage; full:
     ICP acceptance and rejection reasons), snapshots.npz, config.yaml, trajectory.png and particles.png. RUN_DIR
@@ -808,11 +941,12 @@ def localize(
         from bimfactor.bim.prior import BimPrior
         from bimfactor.evaluation.report import ensure_run_destination, run_metrics, twin_summary, write_run
         from bimfactor.io.sequence import read_sequence
-        from bimfactor.pipeline import localize_sequence
+        from bimfactor.pipeline import localize_sequence, skipped_frames_note
 
-        ensure_run_destination(output)
+        ensure_run_destination(output, [prior_dir, sequence_dir])
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
+        _check_building(sequence.meta, prior, force)
         _warn_dense_steps(sequence, sequence_dir, cfg)
         n = len(sequence)
         snapshot_steps = sorted({0, n // 10, n // 4, n // 2, n - 1})
@@ -825,7 +959,14 @@ def localize(
             snapshot_steps=snapshot_steps,
             prior_dir=prior_dir,
         )
-        figures = write_run(run, prior, output, cfg.dump_yaml(), title=f"{sequence.meta.name} against {prior_dir}")
+        figures = write_run(
+            run,
+            prior,
+            output,
+            cfg.dump_yaml(),
+            title=f"{sequence.meta.name} against {prior_dir}",
+            inputs=[prior_dir, sequence_dir],
+        )
         typer.echo(f"wrote {output}: {n} steps ({run.variant}); figures " + ", ".join(f.name for f in figures))
         relocalized = [str(i) for i, spread in enumerate(run.relocalized) if spread]
         if relocalized:
@@ -839,6 +980,9 @@ def localize(
                 "a challenger drawn from the observations explained the frames better and the belief moved there at "
                 f"step(s) {', '.join(challenged)} (steps.csv: challenged)"
             )
+        skipped = skipped_frames_note(run)
+        if skipped is not None:
+            typer.echo(f"{skipped} (steps.csv: skipped)")
         metrics = run_metrics(run)
         if metrics is not None:
             typer.echo(_metrics_line(metrics))
@@ -858,6 +1002,7 @@ def refine(
     seed: SeedOption = None,
     initial_pose: InitialPoseOption = None,
     storey: StoreyOption = None,
+    force: ForceOption = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -891,15 +1036,16 @@ def refine(
         from bimfactor.bim.prior import BimPrior
         from bimfactor.evaluation.report import ensure_run_destination, run_metrics, track_metrics, write_refined
         from bimfactor.io.sequence import read_sequence
-        from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run, scan_matcher
+        from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run, scan_matcher, skipped_frames_note
 
         if cfg.localization.variant not in GRAPH_VARIANTS:
             raise InputError(
                 f"refine needs a pose-graph forward pass ({', '.join(GRAPH_VARIANTS)}), not {cfg.localization.variant}"
             )
-        ensure_run_destination(output)
+        ensure_run_destination(output, [prior_dir, sequence_dir])
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
+        _check_building(sequence.meta, prior, force)
         _warn_dense_steps(sequence, sequence_dir, cfg)
         matcher = scan_matcher(prior, cfg)
         run = localize_sequence(
@@ -911,9 +1057,12 @@ def refine(
             prior_dir=prior_dir,
             matcher=matcher,
         )
+        skipped = skipped_frames_note(run)
+        if skipped is not None:
+            typer.echo(f"{skipped} (forward pass)")
         refined = refine_run(run, prior, cfg, matcher, show_progress=True)
         title = f"{sequence.meta.name} refined against {prior_dir}"
-        write_refined(refined, prior, output, cfg.dump_yaml(), title=title)
+        write_refined(refined, prior, output, cfg.dump_yaml(), title=title, inputs=[prior_dir, sequence_dir])
         typer.echo(
             f"wrote {output}: {len(sequence)} steps, {len(refined.modes)} modes refined in {refined.refine_ms:.0f} ms"
         )
@@ -972,7 +1121,8 @@ def compare_registrars_cmd(
         cfg = _start(config, overrides, verbose)
         from bimfactor.registration.compare import format_summary_table, run_comparison
 
-        summary = run_comparison(prior_dir, output, cfg, list(methods) if methods else None, sequence_dir)
+        with _bench_dir(output, prior_dir, sequence_dir):
+            summary = run_comparison(prior_dir, output, cfg, list(methods) if methods else None, sequence_dir)
         typer.echo(format_summary_table(summary))
         typer.echo(f"results: {output / 'summary.json'}, figure: {output / 'basins.png'}")
 
@@ -1050,14 +1200,14 @@ def bench_paper(
         if prior_dir is not None:
             load_world_inputs(prior_dir, cfg)  # the prior and its IFC file, checked before OUT is made
 
-        output.mkdir(parents=True, exist_ok=True)
-        if prior_dir is None:
-            if ifc is None:
-                ifc = output / "paper-floor.ifc"
-                write_building("paper-floor", cfg.seed, ifc)
-            prior_dir = output / "prior"
-            build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
-        report = run_paper_bench(prior_dir, cfg, output, workers=workers)
+        with _bench_dir(output, prior_dir, ifc):
+            if prior_dir is None:
+                if ifc is None:
+                    ifc = output / "paper-floor.ifc"
+                    write_building("paper-floor", cfg.seed, ifc)
+                prior_dir = output / "prior"
+                build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
+            report = run_paper_bench(prior_dir, cfg, output, workers=workers)
         typer.echo(format_tables(report))
         typer.echo(f"results: {output / 'results.json'}")
         if (output / "error_by_step.png").is_file():
@@ -1092,28 +1242,30 @@ def bench_graph(
         cfg = _start(config, overrides, verbose)
         from bimfactor.perception.evaluate import run_graph_bench
 
-        result = run_graph_bench(building, cfg, output, preset, None, tour, None, true_odometry)
+        with _bench_dir(output, *([building] if Path(building).exists() else [])):
+            result = run_graph_bench(building, cfg, output, preset, None, tour, None, true_odometry)
         summary, speed = result["summary"], result["speed"]
         typer.echo(json.dumps({"summary": summary, "speed": speed}, indent=1, default=float))
         typer.echo(f"results: {output / 'report.json'}")
 
 
-def _bench_world(prior_dir: Path | None, output: Path, cfg: Config) -> tuple[BimPrior, IfcModel]:
-    """The prior and IFC model a simulation benchmark runs on: `prior_dir`'s, or (None) the paper-floor preset's,
-    written now to OUT/paper-floor.ifc and built into OUT/prior."""
+def _bench_world(prior_dir: Path | None, cfg: Config) -> tuple[BimPrior, IfcModel] | None:
+    """The prior and IFC model of `--prior`, loaded before OUT is made (a bad --prior leaves nothing behind); None
+    for the paper-floor preset, which `_paper_floor_world` builds into OUT."""
+    from bimfactor.sim.simulate import load_world_inputs
+
+    return None if prior_dir is None else load_world_inputs(prior_dir, cfg)
+
+
+def _paper_floor_world(output: Path, cfg: Config) -> tuple[BimPrior, IfcModel]:
+    """The paper-floor preset written to OUT/paper-floor.ifc and built into OUT/prior, with its IFC model."""
     from bimfactor.bim.prior import build_prior
     from bimfactor.bim.synth import write_building
     from bimfactor.sim.simulate import load_world_inputs
 
-    if prior_dir is not None:  # checked before OUT is made: a bad --prior leaves nothing behind
-        inputs = load_world_inputs(prior_dir, cfg)
-        output.mkdir(parents=True, exist_ok=True)
-        return inputs
-    output.mkdir(parents=True, exist_ok=True)
-    prior_dir = output / "prior"
     write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
-    build_prior(output / "paper-floor.ifc", cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
-    return load_world_inputs(prior_dir, cfg)
+    build_prior(output / "paper-floor.ifc", cfg).save(output / "prior", config_yaml=cfg.dump_yaml())
+    return load_world_inputs(output / "prior", cfg)
 
 
 def _echo_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) -> None:
@@ -1152,9 +1304,11 @@ def bench_registration(
         cfg = _start(config, overrides, verbose)
         from bimfactor.registration.compare import benchmark_registration
 
-        prior, model = _bench_world(prior_dir, output, cfg)
-        result = benchmark_registration(prior, model, cfg, method, n_keyframes=keyframes, repeats=repeats)
-        _echo_bench(output, "registration", result, cfg)
+        world = _bench_world(prior_dir, cfg)
+        with _bench_dir(output, prior_dir):
+            prior, model = world or _paper_floor_world(output, cfg)
+            result = benchmark_registration(prior, model, cfg, method, n_keyframes=keyframes, repeats=repeats)
+            _echo_bench(output, "registration", result, cfg)
 
 
 @bench_app.command("scanmatch", short_help="Scan matching against the BIM: accuracy, covariance honesty, time.")
@@ -1182,9 +1336,11 @@ def bench_scanmatch(
         cfg = _start(config, overrides, verbose)
         from bimfactor.registration.correlative import benchmark_scan_matching
 
-        prior, model = _bench_world(prior_dir, output, cfg)
-        result = benchmark_scan_matching(prior, model, cfg, every=every)
-        _echo_bench(output, "scanmatch", result, cfg)
+        world = _bench_world(prior_dir, cfg)
+        with _bench_dir(output, prior_dir):
+            prior, model = world or _paper_floor_world(output, cfg)
+            result = benchmark_scan_matching(prior, model, cfg, every=every)
+            _echo_bench(output, "scanmatch", result, cfg)
 
 
 @bench_app.command("smcl", short_help="Particle-filter step time (predict + update + resample) against M.")
@@ -1211,12 +1367,12 @@ def bench_smcl(
         from bimfactor.bim.synth import write_building
         from bimfactor.localization.smcl import benchmark_step
 
-        output.mkdir(parents=True, exist_ok=True)
-        write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
-        prior = build_prior(output / "paper-floor.ifc", cfg)
-        assert prior.visibility is not None
-        rows = benchmark_step(prior, prior.visibility, cfg.smcl, n_obs=observations)
-        results = _write_bench(output, "smcl", {"rows": rows}, cfg)
+        with _bench_dir(output):
+            write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
+            prior = build_prior(output / "paper-floor.ifc", cfg)
+            assert prior.visibility is not None
+            rows = benchmark_step(prior, prior.visibility, cfg.smcl, n_obs=observations)
+            results = _write_bench(output, "smcl", {"rows": rows}, cfg)
         for row in rows:
             typer.echo("  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
         typer.echo(f"results: {results}")
@@ -1245,6 +1401,7 @@ def bench_backend(
         cfg = _start(config, overrides, verbose)
         from bimfactor.backend import benchmark_backend
 
-        result = benchmark_backend(cfg.backend, n_modes=modes, n_keyframes=keyframes)
-        _write_bench(output, "backend", result, cfg)
+        with _bench_dir(output):
+            result = benchmark_backend(cfg.backend, n_modes=modes, n_keyframes=keyframes)
+            _write_bench(output, "backend", result, cfg)
         typer.echo(json.dumps(result, indent=1, default=float))

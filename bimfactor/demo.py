@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from bimfactor.config import Config
-from bimfactor.io.atomic import write_text_atomic
+from bimfactor.io.atomic import check_output_dir, container_dir, write_text_atomic
 
 if TYPE_CHECKING:
     from bimfactor.bim.prior import BimPrior
@@ -74,17 +74,19 @@ def _prior(ctx: DemoContext) -> str:
 
 
 def _simulate(ctx: DemoContext) -> str:
+    from bimfactor.io.atomic import output_dir
     from bimfactor.io.preview import write_preview
-    from bimfactor.io.sequence import read_sequence, write_sequence
+    from bimfactor.io.sequence import read_sequence, write_sequence_files
     from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
 
     assert ctx.prior_dir is not None, "the simulate step needs the prior step's folder"
     prior, model = load_world_inputs(ctx.prior_dir, ctx.cfg)
     result = simulate_sequence(prior, model, ctx.cfg, trajectory_index=0, seed=ctx.cfg.seed)
     ctx.sequence_dir = ctx.out_dir / "sequence"
-    write_sequence(ctx.sequence_dir, result.meta, result.frames, overwrite=True)
-    preview = write_preview(read_sequence(ctx.sequence_dir), ctx.sequence_dir / "preview.png")
-    ctx.figures.append(preview)
+    with output_dir(ctx.sequence_dir, "sequence", inputs=[ctx.prior_dir]) as folder:
+        write_sequence_files(folder, result.meta, result.frames, label=str(ctx.sequence_dir))
+        write_preview(read_sequence(folder), folder / "preview.png")
+    ctx.figures.append(ctx.sequence_dir / "preview.png")
     return f"wrote {ctx.sequence_dir}/: {len(result.frames)} RGB-D keyframes with odometry and ground truth"
 
 
@@ -100,7 +102,16 @@ def _localize(ctx: DemoContext) -> str:
         ctx.prior, sequence.meta, sequence, ctx.cfg, ctx.cfg.seed, snapshot_steps=sorted({0, n // 4, n // 2, n - 1})
     )
     run_dir = ctx.out_dir / "localize"
-    ctx.figures.extend(write_run(run, ctx.prior, run_dir, ctx.cfg.dump_yaml(), title=f"{sequence.meta.name}"))
+    ctx.figures.extend(
+        write_run(
+            run,
+            ctx.prior,
+            run_dir,
+            ctx.cfg.dump_yaml(),
+            title=sequence.meta.name,
+            inputs=[ctx.prior_dir, ctx.sequence_dir],
+        )
+    )
     m = run_metrics(run)
     assert m is not None
     return (
@@ -122,14 +133,24 @@ def run_demo(
     out_dir: str | Path,
     on_step: Callable[[int, str, float, str], None] | None = None,
 ) -> DemoContext:
-    """Run every step in order; `on_step(index, name, seconds, message)` is called after each one."""
+    """Run every step in order; `on_step(index, name, seconds, message)` is called after each one.
+
+    `out_dir` must be new, empty or an earlier demo's folder (`io.atomic.container_dir`); each step's output in it
+    is written atomically, and only bimfactor's own outputs are replaced.
+    """
+    from bimfactor.bim.synth import check_synth_output
+
     ctx = DemoContext(cfg=cfg, out_dir=Path(out_dir))
-    ctx.out_dir.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(ctx.out_dir / "config.yaml", cfg.dump_yaml())
-    for index, step in enumerate(STEPS):
-        started = time.perf_counter()
-        message = step.run(ctx)
-        ctx.step_seconds[step.name] = time.perf_counter() - started
-        if on_step is not None:
-            on_step(index, step.name, ctx.step_seconds[step.name], message)
+    check_output_dir(ctx.out_dir, "demo")
+    check_synth_output(ctx.out_dir / f"{DEMO_PRESET}.ifc")
+    for name, kind in (("prior", "prior"), ("sequence", "sequence"), ("localize", "run")):
+        check_output_dir(ctx.out_dir / name, kind)
+    with container_dir(ctx.out_dir, "demo"):
+        write_text_atomic(ctx.out_dir / "config.yaml", cfg.dump_yaml())
+        for index, step in enumerate(STEPS):
+            started = time.perf_counter()
+            message = step.run(ctx)
+            ctx.step_seconds[step.name] = time.perf_counter() - started
+            if on_step is not None:
+                on_step(index, step.name, ctx.step_seconds[step.name], message)
     return ctx

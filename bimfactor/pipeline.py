@@ -13,6 +13,18 @@ mostly the best mode's, and a wrong mode seldom passes the gate anyway (fitness,
 mode would multiply the step time by the number of modes for estimates nobody reads.
 
 `refine_run` is the offline pass over a localized sequence: every surviving mode's trajectory smoothed as a whole.
+
+Implausible frames are skipped (`FrameSkip`): a depth image with no return, or with every return at one depth beyond
+the farthest the localizer reads (a saturated or stuck sensor), and an odometry pose that moved faster than a ground
+robot can between two frames (`MAX_ODOMETRY_SPEED_MPS`). A skipped frame still takes a step, the filter predicting
+without weighing (its "nothing seen" would count against the places that should see objects): the run keeps one
+row per frame. Across an odometry jump the motion is unknown, so the step carries the previous step's increment
+(keyframes come at a steady spacing: one keyframe's travel is the best guess, where applying the jump would move
+every particle off the building and zero motion would lag a keyframe behind). When the next frame's odometry
+agrees with the last trusted frame again (a glitch of one message), its increment makes up what the guess missed;
+when it agrees only with the jumped frame (the odometry was reset or re-based), the localizer continues from the
+guess and maps the new odometry frame onto the old one, so perception and the submaps see one continuous odometry.
+`check_sequence_against_prior` and `building_mismatch` compare a sequence with the prior before any work.
 """
 
 from __future__ import annotations
@@ -45,6 +57,7 @@ from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import BackendConfig, Config
 from bimfactor.embed.text import TextEmbedder, make_text_embedder, text_model_name
 from bimfactor.errors import ConfigError, InputError
+from bimfactor.io.sequence import Sequence as SequenceFolder
 from bimfactor.localization.field import ScanLikelihood, frame_endpoints
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.modes import extract_modes
@@ -61,7 +74,7 @@ from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
 from bimfactor.registration.correlative import CorrelativeMatcher
 from bimfactor.registration.fine import FineRegistration, FineResult
-from bimfactor.types import Frame, Observations, SequenceMeta
+from bimfactor.types import Frame, Observations, SequenceMeta, se2_between, se2_compose, se2_inverse
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +84,14 @@ FINE_VARIANTS = ("full",)
 """Localizer variants that register each keyframe against the BIM walls and feed the fit back into the graph."""
 TWIN_YAW_DEG = 45.0
 """A particle is at the output pose's twin within `localization.output_mode_radius_m` of it and this of its heading."""
+MAX_ODOMETRY_SPEED_MPS = 5.0
+"""Odometry that moved faster than this between two frames jumped: a ground robot indoors drives at up to about
+2 m/s (a fast walk), so 5 m/s leaves room for wheel slip and timestamp jitter and still catches any glitch or reset."""
+ODOMETRY_JUMP_SLACK_M = 0.5
+"""Travel allowed between two frames on top of `MAX_ODOMETRY_SPEED_MPS` × their interval: frames with (nearly) the
+same timestamp, or stamped late, still move a keyframe's spacing."""
+SKIP_KINDS = ("empty_depth", "saturated_depth", "odometry_jump")
+"""Why a frame is skipped, in the order the summary lists them."""
 
 
 class _PerStep:
@@ -122,6 +143,52 @@ def rejection_kind(reason: str) -> str:
     return re.split(r"[:(<>]|\s[-+]?(?:\d|inf\b|nan\b)", reason, maxsplit=1)[0].strip()
 
 
+@dataclass(frozen=True)
+class FrameSkip:
+    """Why the localizer skipped a frame: `kind` one of `SKIP_KINDS`; for an odometry jump `jump_m`, how far the
+    odometry moved from the previous frame. `str()` is the reason as steps.csv's skipped column gives it."""
+
+    kind: str
+    jump_m: float = float("nan")
+
+    def __str__(self) -> str:
+        if self.kind == "odometry_jump":
+            return f"odometry jump of {_metres(self.jump_m)} m"
+        return self.kind.replace("_", " ")
+
+
+def _metres(value: float) -> str:
+    """A distance for people: 1.2, 350, 1e6."""
+    if value >= 1e4:
+        mantissa, exponent = f"{value:.1e}".split("e")
+        return f"{mantissa.removesuffix('.0')}e{int(exponent)}"
+    return f"{value:.3g}" if value < 100 else f"{value:.0f}"
+
+
+def depth_problem(depth_m: np.ndarray, cfg: Config) -> FrameSkip | None:
+    """Whether a depth image (metres, NaN / 0 = no return) is unusable: no return at all (`empty_depth`), or every
+    return at one and the same depth, at or beyond the farthest depth the localizer reads (`perception.max_depth_m`,
+    the scan ranges): a saturated or stuck sensor (`saturated_depth`; a real scene is never one depth everywhere,
+    and a wall straight ahead is at one depth only within those ranges). None: usable."""
+    depth = np.asarray(depth_m, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        valid = depth[np.isfinite(depth) & (depth > 0)]
+    if not valid.size:
+        return FrameSkip("empty_depth")
+    farthest = max(cfg.perception.max_depth_m, cfg.smcl.scan_max_range_m, cfg.registration.scan_max_range_m)
+    low, high = float(valid.min()), float(valid.max())
+    if low == high and low >= farthest:
+        return FrameSkip("saturated_depth")
+    return None
+
+
+def plausible_odometry_step(increment: np.ndarray, dt_s: float) -> bool:
+    """Whether a ground robot can travel an odometry `increment` (dx, dy, dyaw) in `dt_s` seconds: at most
+    `MAX_ODOMETRY_SPEED_MPS` × dt + `ODOMETRY_JUMP_SLACK_M`. (A turn cannot be told from its wrapped angle.)"""
+    travel = float(np.hypot(increment[0], increment[1]))
+    return travel <= MAX_ODOMETRY_SPEED_MPS * max(float(dt_s), 0.0) + ODOMETRY_JUMP_SLACK_M
+
+
 @dataclass
 class LocalizerStep:
     """One frame through the localizer: the filter's step, the back end's (None: smcl, or no mode yet), the
@@ -142,6 +209,7 @@ class LocalizerStep:
     fine_ms: float = 0.0
     twin_pose: np.ndarray | None = None
     twin_share: float = float("nan")
+    skipped: FrameSkip | None = None
 
 
 @dataclass
@@ -157,7 +225,8 @@ class LocalizationRun:
     `snapshots` maps step → (particles, weights). On a building with twin storeys (`bim.symmetry.twin_motions`;
     otherwise None), `twin_poses` (T, 3) is where each step's twin motion carries the output pose and `twin_share`
     (T,) the belief's weight there (`TWIN_YAW_DEG`, `localization.output_mode_radius_m`); NaN on storeys without a
-    twin.
+    twin. `skipped` (T,) says why each step's frame was skipped (`FrameSkip`; None: used); a run built without it
+    (empty) skipped nothing.
     """
 
     variant: str
@@ -184,10 +253,17 @@ class LocalizationRun:
     snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     twin_poses: np.ndarray | None = None
     twin_share: np.ndarray | None = None
+    skipped: list[FrameSkip | None] = field(default_factory=list)
 
     @property
     def output(self) -> Track:
         return self.graph if self.graph is not None else self.filter
+
+    @property
+    def skip_reasons(self) -> list[str]:
+        """(T,) why each step's frame was skipped ("empty depth", "odometry jump of 1e6 m"), "" where it was used."""
+        reasons = ["" if skip is None else str(skip) for skip in self.skipped]
+        return reasons + [""] * (len(self.timestamps_s) - len(reasons))
 
     @property
     def relocalized(self) -> np.ndarray:
@@ -282,7 +358,17 @@ class Localizer:
         self.fine = FineRegistration.for_prior(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None
         # The frames before the current one that a submap stitches in (registration.submap_keyframes − 1).
         self._recent: deque[Frame] = deque(maxlen=cfg.registration.submap_keyframes - 1)
+        # Odometry bookkeeping (`_odometry_step`): the last trusted frame's raw odometry pose and time, the previous
+        # frame's, the motion guessed across jumps since the trusted frame, the increment of the last trusted step,
+        # the odometry pose the filter believes at the last step, and the map of a re-based odometry onto the first.
         self._last_odom: np.ndarray | None = None
+        self._last_odom_s = 0.0
+        self._prev_odom = np.zeros(3)
+        self._prev_odom_s = 0.0
+        self._guessed: np.ndarray | None = None
+        self._last_increment = np.zeros(3)
+        self._believed_odom = np.zeros(3)
+        self._odom_offset: np.ndarray | None = None
 
     def _start_belief(self, pose: np.ndarray | list[float] | None, storey: int) -> None:
         """The filter's particles: about a (3,) pose guess on a storey (AMCL's initial pose, `smcl.initial_sigma_*`),
@@ -310,19 +396,26 @@ class Localizer:
 
     def step(self, frame: Frame) -> LocalizerStep:
         """One frame: perception, the filter, (graph variants) the back end on the filter's modes, and (full) the fine
-        stage on the best mode."""
+        stage on the best mode. An implausible frame (`FrameSkip`: unusable depth, an odometry jump) is skipped: the
+        filter only predicts, by the odometry increment or, across a jump, the previous step's."""
         if not np.all(np.isfinite(frame.odom_pose)):
             raise InputError(
                 f"frame {frame.index} has no odometry pose: the localizer predicts each step from wheel odometry "
                 "(a TUM RGB-D folder has none; convert a recording with an odometry topic)"
             )
+        increment, frame, skipped = self._odometry_step(frame)
+        skipped = skipped or depth_problem(frame.depth_m, self.cfg)
         started = time.perf_counter()
-        seen = self.perception.step(frame)
+        if skipped is None:
+            observations: Observations = self.perception.step(frame).observations
+            use_scan = self.cfg.smcl.scan_likelihood or self.matcher
+            scan = frame_endpoints(frame, self.meta, self.cfg) if use_scan else None
+        else:
+            log.info("frame %d skipped: %s", frame.index, skipped)
+            observations, scan = self._no_observations(), None
         perception_ms = (time.perf_counter() - started) * 1000
-        increment = None if self._last_odom is None else odometry_increment(self._last_odom, frame.odom_pose)
-        self._last_odom = np.asarray(frame.odom_pose, float)
-        scan = frame_endpoints(frame, self.meta, self.cfg) if self.cfg.smcl.scan_likelihood or self.matcher else None
-        filtered = self.filter.step(increment, seen.observations, scan)  # the filter ignores it without its scan term
+        # the filter ignores the scan without its scan term; a skipped frame brings no observation, not an empty one
+        filtered = self.filter.step(increment, observations if skipped is None else None, scan)
         out = LocalizerStep(
             filtered,
             None,
@@ -330,14 +423,15 @@ class Localizer:
             filtered.covariance,
             filtered.storey,
             filtered.room_id,
-            seen.observations,
+            observations,
             increment,
             perception_ms,
             scan,
+            skipped=skipped,
         )
         if self.backend is not None:
             self._graph_step(out)
-        if self.fine is not None and out.graph is not None:
+        if self.fine is not None and out.graph is not None and skipped is None:
             self._fine_step(frame, out)
         if self.backend is not None:
             self._report(out)
@@ -354,8 +448,57 @@ class Localizer:
                 np.deg2rad(TWIN_YAW_DEG),
             )
             out.twin_share = float(weights[near].sum() / weights.sum())
-        self._recent.append(frame)
+        if skipped is None:
+            self._recent.append(frame)
         return out
+
+    def _no_observations(self) -> Observations:
+        """What a skipped frame brought: no node, no text (the run's record; the filter is given None)."""
+        dim = self.prior.object_embeddings.shape[1]
+        return Observations(np.zeros((0, dim), np.float32), np.zeros(0), np.zeros(0), [], np.zeros(0, np.int64), None)
+
+    def _odometry_step(self, frame: Frame) -> tuple[np.ndarray | None, Frame, FrameSkip | None]:
+        """The odometry increment of this step (None: the first), the frame with its odometry pose continuous with the
+        earlier frames' (itself unless the odometry was re-based), and an odometry jump's `FrameSkip`.
+
+        The increment is checked against the last trusted frame (`plausible_odometry_step`). One that is implausible
+        is an odometry jump: the step carries the last trusted step's increment, and the frame is skipped. The next
+        frames are checked against the last trusted frame: one that agrees with it again (a glitch of one message)
+        takes the increment from it, less what the guesses covered; one that agrees only with the previous frame
+        (the odometry was reset or re-based at the jump) takes the increment from that frame, and later odometry
+        poses are mapped onto the filter's odometry frame."""
+        raw = np.asarray(frame.odom_pose, float)
+        t = float(frame.timestamp_s)
+        skipped = None
+        if self._last_odom is None:
+            increment = None
+        else:
+            from_trusted = odometry_increment(self._last_odom, raw)
+            from_previous = odometry_increment(self._prev_odom, raw)
+            if plausible_odometry_step(from_trusted, t - self._last_odom_s):
+                increment = from_trusted if self._guessed is None else se2_between(self._guessed, from_trusted)
+            elif self._guessed is not None and plausible_odometry_step(from_previous, t - self._prev_odom_s):
+                increment = from_previous
+                believed = se2_compose(self._believed_odom, increment)
+                self._odom_offset = se2_compose(believed, se2_inverse(raw))
+            else:
+                increment = self._last_increment.copy()
+                skipped = FrameSkip("odometry_jump", float(np.hypot(from_previous[0], from_previous[1])))
+        if skipped is None:
+            self._last_odom, self._last_odom_s, self._guessed = raw, t, None
+            if increment is not None:
+                self._last_increment = increment
+            if self._odom_offset is None:
+                believed = raw
+            else:
+                believed = se2_compose(self._odom_offset, raw)
+                frame = dataclasses.replace(frame, odom_pose=believed)
+        else:
+            assert increment is not None
+            self._guessed = increment if self._guessed is None else se2_compose(self._guessed, increment)
+            believed = se2_compose(self._believed_odom, increment)
+        self._prev_odom, self._prev_odom_s, self._believed_odom = raw, t, believed
+        return increment, frame, skipped
 
     def _graph_step(self, out: LocalizerStep) -> None:
         """The filter's modes update their pose graphs; the most probable mode becomes the step's output."""
@@ -448,8 +591,12 @@ def localize_sequence(
 
     `prior_dir`, the prior's folder, helps the full variant find a relative IFC `source_file`; `matcher` is the
     graph variants' scan matcher (`scan_matcher`; built when not given); `twins` the building's twin motions
-    (`bim.symmetry.twin_motions`; found when not given).
+    (`bim.symmetry.twin_motions`; found when not given). The frames are checked against the prior first
+    (`check_sequence_against_prior`: InputError); implausible frames are skipped (`LocalizationRun.skipped`).
     """
+    if not isinstance(frames, SequenceFolder):  # a sequence folder answers without loading its images
+        frames = list(frames)
+    check_sequence_against_prior(frames, prior)
     localizer = Localizer(prior, meta, cfg, seed, text_embedder, prior_dir, matcher, twins)
     frames = list(frames)
     snapshot_steps = set(snapshot_steps)
@@ -523,6 +670,72 @@ def localize_sequence(
         if localizer.twins
         else None,
         twin_share=np.asarray([r.twin_share for r in rows]) if localizer.twins else None,
+        skipped=[r.skipped for r in rows],
+    )
+
+
+def skipped_frames_note(run: LocalizationRun, max_steps: int = 10) -> str | None:
+    """One line on the frames a run skipped, e.g. "skipped 3 frames: 2 with empty depth (steps 4, 7), 1 with an
+    odometry jump of 1e6 m (step 12)"; None when it skipped none. Each kind lists up to `max_steps` steps."""
+    by_kind: dict[str, list[int]] = {kind: [] for kind in SKIP_KINDS}
+    jumps: list[float] = []
+    for step, skip in enumerate(run.skipped):
+        if skip is not None:
+            by_kind.setdefault(skip.kind, []).append(step)
+            if skip.kind == "odometry_jump":
+                jumps.append(skip.jump_m)
+    total = sum(len(steps) for steps in by_kind.values())
+    if not total:
+        return None
+    parts = []
+    for kind, steps in by_kind.items():
+        if not steps:
+            continue
+        n = len(steps)
+        if kind == "odometry_jump":
+            what = (
+                f"an odometry jump of {_metres(jumps[0])} m"
+                if n == 1
+                else f"odometry jumps of up to {_metres(max(jumps))} m"
+            )
+        else:
+            what = kind.replace("_", " ")
+        listed = ", ".join(map(str, steps[:max_steps])) + (f", … ({n} in all)" if n > max_steps else "")
+        parts.append(f"{n} with {what} ({'step' if n == 1 else 'steps'} {listed})")
+    return f"skipped {total} frame{'s' if total > 1 else ''}: " + ", ".join(parts)
+
+
+def check_sequence_against_prior(frames: Iterable[Frame], prior: BimPrior) -> None:
+    """InputError unless the sequence's frames fit the prior: every ground-truth storey (`Frame.gt_storey`) one of
+    the prior's storeys. Cheap for a sequence folder, which answers from its table without loading images."""
+    if isinstance(frames, SequenceFolder):
+        gt_storeys, frame_indices = frames.ground_truth_storeys(), [int(i) for i in frames.indices()]
+    else:
+        listed = list(frames)
+        gt_storeys, frame_indices = [f.gt_storey for f in listed], [f.index for f in listed]
+    n = len(prior.storeys)
+    for step, (index, storey) in enumerate(zip(frame_indices, gt_storeys, strict=True)):
+        if storey is not None and not 0 <= int(storey) < n:
+            valid = "0" if n == 1 else f"0–{n - 1}"
+            raise InputError(
+                f"frame {int(index)} (step {step}): gt_storey {int(storey)} is not a storey of the prior, which has "
+                f"{n} storey{'s' if n != 1 else ''} ({valid}); is the sequence from another building?"
+            )
+
+
+def building_mismatch(meta: SequenceMeta, prior: BimPrior) -> str | None:
+    """A one-line message when the sequence records the building it was simulated in (`SequenceMeta.prior_sha256`,
+    the SHA-256 of the IFC file its prior was built from) and that is not the file this prior was built from
+    (`BimPrior.source_sha256`); None when they match or either does not say (converted real recordings record
+    none)."""
+    recorded = str(meta.prior_sha256 or "").strip().lower()
+    built_from = str(prior.source_sha256 or "").strip().lower()
+    if not recorded or not built_from or recorded == built_from:
+        return None
+    return (
+        f"sequence {meta.name!r} was recorded in the building of IFC file sha256 {recorded[:12]}…, but the prior was "
+        f"built from {Path(prior.source_file).name or 'an IFC file'} (sha256 {built_from[:12]}…): another building, "
+        "or another version of it"
     )
 
 

@@ -58,3 +58,21 @@ def cli_config_args(config_overrides: list[str]) -> list[str]:
 def test_config(config_overrides: list[str]) -> Config:
     """The default configuration with the session's geometry cache."""
     return load_config(None, config_overrides)
+
+
+@pytest.fixture(scope="session")
+def paper_floor_prior(tmp_path_factory: pytest.TempPathFactory, cli_config_args: list[str]) -> Path:
+    """A prior of the paper-floor building (seed 0), built through the CLI once per session; read it, never write
+    into it (copy it first)."""
+    from typer.testing import CliRunner
+
+    from bimfactor.cli import app
+
+    folder = tmp_path_factory.mktemp("paper-floor")
+    runner = CliRunner()
+    assert runner.invoke(app, ["synth", "-o", str(folder / "paper-floor.ifc")]).exit_code == 0
+    result = runner.invoke(
+        app, ["prior", str(folder / "paper-floor.ifc"), "-o", str(folder / "prior"), *cli_config_args]
+    )
+    assert result.exit_code == 0, result.output
+    return folder / "prior"

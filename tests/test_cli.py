@@ -12,30 +12,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from bimfactor.cli import app
 from bimfactor.config import load_config
 from bimfactor.io.sequence import read_sequence, write_sequence
+from tests.cli import assert_one_line_error, invoke
 
-runner = CliRunner()
 PRIOR_FILES = ("prior.json", "arrays.npz", "config.yaml", "floorplan_0.png")
-
-
-def invoke(*args: str | Path) -> object:
-    return runner.invoke(app, [str(a) for a in args])
-
-
-def assert_one_line_error(result, exit_code: int = 2, contains: str = "") -> str:
-    """Exit code as given, exactly one `error:` line on stderr, no traceback anywhere."""
-    assert isinstance(result.exception, SystemExit), f"uncaught {result.exception!r}"
-    assert result.exit_code == exit_code, result.output
-    assert "Traceback" not in result.output
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("error: ")
-    assert contains in lines[0]
-    return lines[0]
 
 
 # ---------------------------------------------------------------------------------------- bad input files
@@ -344,7 +326,7 @@ def test_prior_refuses_to_replace_a_folder_that_is_not_a_prior(tmp_path: Path) -
     keep.mkdir()
     (keep / "thesis.txt").write_text("precious")
     result = invoke("prior", _old_schema(tmp_path, None), "-o", keep)
-    assert_one_line_error(result, contains="exists and is not a bimfactor prior")
+    assert_one_line_error(result, contains="holds no bimfactor output marker")
     assert (keep / "thesis.txt").read_text() == "precious"
 
 
@@ -441,13 +423,9 @@ def test_convert_keeps_a_sequences_keyframes(tmp_path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def demo_prior(tmp_path_factory: pytest.TempPathFactory, cli_config_args: list[str]) -> Path:
-    """A prior of the paper-floor building, built through the CLI once for this module."""
-    folder = tmp_path_factory.mktemp("cli-sim")
-    assert invoke("synth", "-o", folder / "paper-floor.ifc").exit_code == 0
-    result = invoke("prior", folder / "paper-floor.ifc", "-o", folder / "prior", *cli_config_args)
-    assert result.exit_code == 0, result.output
-    return folder / "prior"
+def demo_prior(paper_floor_prior: Path) -> Path:
+    """The session's paper-floor prior (tests/conftest.py)."""
+    return paper_floor_prior
 
 
 def test_localize_writes_the_run(demo_prior: Path, tmp_path: Path, cli_config_args: list[str]) -> None:
@@ -616,7 +594,9 @@ def test_refine_fails_cleanly_on_bad_input(demo_prior: Path, short_sequence: Pat
     notes = tmp_path / "notes"
     notes.mkdir()
     (notes / "todo.txt").write_text("keep me")
-    assert_one_line_error(invoke("refine", demo_prior, short_sequence, "-o", notes), contains="refusing to overwrite")
+    assert_one_line_error(
+        invoke("refine", demo_prior, short_sequence, "-o", notes), contains="holds no bimfactor output marker"
+    )
     assert (notes / "todo.txt").read_text() == "keep me"
     assert not out.exists()
 

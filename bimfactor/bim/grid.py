@@ -16,6 +16,7 @@ from scipy import ndimage
 
 from bimfactor.bim.ifc import IfcElement, IfcModel, Mesh, Storey
 from bimfactor.config import GridConfig
+from bimfactor.errors import IfcError
 
 _SUBPIXEL_BITS = 4
 
@@ -107,6 +108,8 @@ def grid_spec_for(model: IfcModel, cfg: GridConfig, exclude: Iterable[str]) -> G
     boxes = [e.mesh.bounds for e in model.elements if e.mesh is not None and not any(e.is_a(c) for c in excluded)]
     if not boxes:
         boxes = [e.mesh.bounds for e in model.elements if e.mesh is not None]
+    if not boxes:
+        raise IfcError(f"{model.source_path}: the model has no geometry to build an occupancy grid from")
     lo = np.min([b[0, :2] for b in boxes], axis=0) - cfg.padding_m
     hi = np.max([b[1, :2] for b in boxes], axis=0) + cfg.padding_m
     res = cfg.resolution_m

@@ -14,24 +14,29 @@ from __future__ import annotations
 import json
 import logging
 import time
+import typing
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pydantic
+import typing_extensions
 from scipy.spatial import cKDTree
 
 from bimfactor.bim import rooms as room_ops
 from bimfactor.bim.classify import classify_rooms, load_room_category_pool
 from bimfactor.bim.grid import GridSpec, StoreyGrid, build_storey_grid, grid_spec_for, rasterise_polygons
-from bimfactor.bim.ifc import IfcElement, Storey, load_ifc
+from bimfactor.bim.ifc import IfcElement, IfcModel, Storey, load_ifc
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.bim.vocabulary import Vocabulary, label_elements
 from bimfactor.config import Config, config_file
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
-from bimfactor.errors import FormatError, InputError
-from bimfactor.io.atomic import atomic_dir
+from bimfactor.errors import FormatError, IfcError, InputError
+from bimfactor.io.atomic import check_output_dir, output_dir
+from bimfactor.io.text import read_utf8
 from bimfactor.progress import progress
+from bimfactor.resources import check_grid_memory
 
 log = logging.getLogger(__name__)
 
@@ -211,13 +216,9 @@ class BimPrior:
     def save(self, out_dir: str | Path, config_yaml: str = "") -> None:
         """Write the prior folder atomically (a half-written prior never appears under `out_dir`).
 
-        An existing prior there is replaced; any other non-empty folder is refused, never overwritten.
+        Only a prior folder that bimfactor wrote is replaced, and never the folder holding the source IFC
+        (`io.atomic.output_dir`); anything else raises InputError and is left untouched.
         """
-        out_dir = Path(out_dir)
-        if out_dir.exists() and (
-            not out_dir.is_dir() or (any(out_dir.iterdir()) and not (out_dir / "prior.json").is_file())
-        ):
-            raise InputError(f"{out_dir}: exists and is not a bimfactor prior; refusing to overwrite it")
         meta = {
             "format": PRIOR_FORMAT,
             "version": PRIOR_VERSION,
@@ -241,7 +242,7 @@ class BimPrior:
         for layers in self.storeys:
             for name in _LAYERS:
                 arrays[f"storey{layers.storey.index}_{name}"] = getattr(layers, name)
-        with atomic_dir(out_dir) as tmp:
+        with output_dir(out_dir, "prior", inputs=[self.source_file]) as tmp:
             (tmp / "prior.json").write_text(json.dumps(meta, indent=1))
             np.savez_compressed(tmp / "arrays.npz", **arrays)
             if config_yaml:
@@ -250,60 +251,81 @@ class BimPrior:
 
     @classmethod
     def load(cls, prior_dir: str | Path) -> BimPrior:
+        """Read a prior folder; FormatError (one line, naming the file and what is wrong) for anything corrupt."""
         prior_dir = Path(prior_dir)
         meta_file, array_file = prior_dir / "prior.json", prior_dir / "arrays.npz"
         if not meta_file.is_file() or not array_file.is_file():
             raise FormatError(f"{prior_dir}: not a bimfactor prior (prior.json / arrays.npz missing)")
-        try:
-            meta = json.loads(meta_file.read_text())
-        except json.JSONDecodeError as exc:
-            raise FormatError(f"{meta_file}: corrupt JSON ({exc.msg})") from exc
-        if meta.get("format") != PRIOR_FORMAT or meta.get("version") != PRIOR_VERSION:
+        meta, text = _read_prior_json(meta_file)
+        fmt, version = meta.get("format"), meta.get("version")
+        for name in ("format", "version"):
+            if name not in meta:
+                raise FormatError(f"{meta_file}: not a bimfactor prior (no '{name}' field)")
+        if fmt != PRIOR_FORMAT:
             raise FormatError(
-                f"{prior_dir}: prior format {meta.get('format')} v{meta.get('version')}, "
+                f"{meta_file}: not a bimfactor prior ('format' is {_json_value(fmt)}, not {PRIOR_FORMAT})"
+            )
+        if isinstance(version, bool) or not isinstance(version, int):
+            raise FormatError(f"{meta_file}: 'version' must be an integer, found {_json_value(version)}")
+        if version != PRIOR_VERSION:
+            raise FormatError(
+                f"{prior_dir}: prior format {fmt} v{version}, "
                 f"this bimfactor reads {PRIOR_FORMAT} v{PRIOR_VERSION}; rebuild it with `bimfactor prior`"
             )
-        try:
-            with np.load(array_file) as arrays:
-                storeys = [
-                    StoreyLayers(Storey(**s), *(arrays[f"storey{s['index']}_{n}"] for n in _LAYERS))
-                    for s in meta["storeys"]
-                ]
-                embeddings = arrays["object_embeddings"]
-                visibility = VisibilityTable.from_arrays(arrays) if "visibility_meta" in arrays else None
-        except (KeyError, ValueError, OSError) as exc:
-            raise FormatError(f"{array_file}: unreadable or incomplete ({exc})") from exc
+        fields = _validate_prior_json(meta_file, text)
+        grid, storey_list, rooms, doors, objects = (
+            fields["grid"],
+            fields["storeys"],
+            fields["rooms"],
+            fields["doors"],
+            fields["objects"],
+        )
+
+        def fail(where: str, what: str) -> typing.NoReturn:
+            raise FormatError(f"{meta_file}: {where}: {what}")
+
+        if grid.resolution_m <= 0 or grid.rows <= 0 or grid.cols <= 0:
+            fail("grid", "resolution, rows and cols must be positive")
+        for i, storey in enumerate(storey_list):
+            if storey.index != i:
+                fail(f"storeys[{i}].index", f"is {storey.index}; storeys must be numbered 0, 1, ... in order")
+        n_storeys, n_objects = len(storey_list), len(objects)
+        for kind, items in (("rooms", rooms), ("doors", doors), ("objects", objects)):
+            for i, item in enumerate(items):
+                if not 0 <= item.storey_index < n_storeys:
+                    fail(f"{kind}[{i}].storey_index", f"{item.storey_index} is no storey (the prior has {n_storeys})")
+        for i, room in enumerate(rooms):
+            if any(not 0 <= o < n_objects for o in room.object_ids):
+                fail(f"rooms[{i}].object_ids", f"names an object that does not exist (the prior has {n_objects})")
+        for i, door in enumerate(doors):
+            if not -1 <= door.object_id < n_objects:
+                fail(f"doors[{i}].object_id", f"{door.object_id} is no object (the prior has {n_objects})")
+        for i, edge in enumerate(fields["object_edges"]):
+            if any(not 0 <= o < n_objects for o in edge):
+                fail(f"object_edges[{i}]", f"names an object that does not exist (the prior has {n_objects})")
+        storeys, embeddings, visibility = _read_prior_arrays(array_file, grid, storey_list, n_objects)
         return cls(
-            source_file=meta["source_file"],
-            source_sha256=meta["source_sha256"],
-            schema=meta["schema"],
-            embedding_model=meta["embedding_model"],
-            grid=GridSpec(**meta["grid"]),
+            source_file=fields["source_file"],
+            source_sha256=fields["source_sha256"],
+            schema=fields["schema"],
+            embedding_model=fields["embedding_model"],
+            grid=grid,
             storeys=storeys,
-            rooms=[Room(**{**r, "centroid_xy": tuple(r["centroid_xy"])}) for r in meta["rooms"]],
-            doors=[
-                Door(**{**d, "center_xy": tuple(d["center_xy"]), "axis_xy": tuple(d["axis_xy"])}) for d in meta["doors"]
-            ],
-            objects=[
-                BimObject(**{**o, "position_m": tuple(o["position_m"]), "size_m": tuple(o["size_m"])})
-                for o in meta["objects"]
-            ],
+            rooms=rooms,
+            doors=doors,
+            objects=objects,
             object_embeddings=embeddings,
-            room_edges=[tuple(e) for e in meta["room_edges"]],
-            object_edges=[tuple(e) for e in meta["object_edges"]],
-            room_matches=[RoomMatch(**m) for m in meta["room_matches"]],
-            timings_s=meta.get("timings_s", {}),
+            room_edges=fields["room_edges"],
+            object_edges=fields["object_edges"],
+            room_matches=fields["room_matches"],
+            timings_s=fields.get("timings_s", {}),
             visibility=visibility,
         )
 
 
-def ensure_prior_destination(out_dir: str | Path) -> None:
-    """Raise InputError unless `out_dir` is absent, empty, or a prior (saving replaces the whole folder)."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and (
-        not out_dir.is_dir() or (any(out_dir.iterdir()) and not (out_dir / "prior.json").is_file())
-    ):
-        raise InputError(f"{out_dir}: exists and is not a bimfactor prior; refusing to overwrite it")
+def ensure_prior_destination(out_dir: str | Path, ifc_path: str | Path) -> None:
+    """Raise InputError unless `BimPrior.save` of `ifc_path`'s prior may write `out_dir` (checked before building)."""
+    check_output_dir(out_dir, "prior", inputs=[ifc_path])
 
 
 def _save_extra_files(prior: BimPrior, folder: Path) -> None:
@@ -329,14 +351,11 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     bim = cfg.bim
     model = load_ifc(ifc_path, bim.ifc)
     lap("read_ifc")
-    embedder = embedder or make_text_embedder(cfg.embed)
-    vocabulary = Vocabulary.load(config_file(bim.objects.vocabulary_file))
-    object_elements = [e for e in model.of_class(*bim.objects.classes) if e.storey_index is not None]
-    labels = label_elements(object_elements, vocabulary, embedder, bim.objects.embedding_fallback_min_sim)
-    lap("label_objects")
 
     furniture_classes = [c for c in bim.objects.classes if c not in ("IfcDoor", "IfcWindow")]
     spec = grid_spec_for(model, bim.grid, bim.grid.obstacle_exclude_classes)
+    x0, x1, y0, y1 = spec.extent
+    check_grid_memory((x1 - x0, y1 - y0), len(model.storeys), cfg, padding_included=True)
     storeys, rooms, doors, matches = [], [], [], []
     door_elements = model.of_class("IfcDoor")
     spaces = model.of_class("IfcSpace")
@@ -357,7 +376,15 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
         doors.extend(storey_doors_out)
         if match is not None:
             matches.append(match)
+    _check_rooms(ifc_path, model, rooms, storeys, cfg)
     lap("grids_and_rooms")
+
+    # The text embedder loads a model: only once the building has proved usable.
+    embedder = embedder or make_text_embedder(cfg.embed)
+    vocabulary = Vocabulary.load(config_file(bim.objects.vocabulary_file))
+    object_elements = [e for e in model.of_class(*bim.objects.classes) if e.storey_index is not None]
+    labels = label_elements(object_elements, vocabulary, embedder, bim.objects.embedding_fallback_min_sim)
+    lap("label_objects")
 
     objects = _make_objects(object_elements, labels, storeys, spec)
     door_object = {o.guid: o.id for o in objects}
@@ -402,6 +429,29 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     prior.visibility = VisibilityTable.build(prior, cfg.smcl)
     lap("visibility")
     return prior
+
+
+def _check_rooms(
+    ifc_path: str | Path, model: IfcModel, rooms: list[Room], storeys: list[StoreyLayers], cfg: Config
+) -> None:
+    """IfcError for a building with no room, or no room a robot fits in: the localizer has nowhere to put it.
+
+    A prior without rooms is refused at build time rather than left for `localize` to fail on: rooms need doors
+    (or IfcSpace) to tell them from the outside, so a model of walls alone has none.
+    """
+    if not rooms:
+        if not model.of_class("IfcDoor") and not model.of_class("IfcSpace"):
+            why = "it has neither doors (IfcDoor) nor rooms (IfcSpace), so no space can be told apart from the outside"
+        else:
+            band = f"{cfg.bim.grid.band_min_m:g}-{cfg.bim.grid.band_max_m:g} m above each storey"
+            why = f"no space enclosed by walls {band} is reached by a door or modelled as an IfcSpace"
+        raise IfcError(f"{ifc_path}: no rooms found: {why}; nowhere to localize in")
+    if not any(layers.navigable.any() for layers in storeys):
+        raise IfcError(
+            f"{ifc_path}: none of its {len(rooms)} rooms has space for the robot "
+            f"(bim.grid.robot_radius_m {cfg.bim.grid.robot_radius_m:g} m clear of walls and furniture); "
+            "nowhere to localize in"
+        )
 
 
 def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_room_id: int, first_door_id: int):
@@ -534,3 +584,136 @@ def load_or_build(path: str | Path, cfg: Config) -> BimPrior:
     if path.suffix.lower() == ".ifc":
         return build_prior(path, cfg)
     raise InputError(f"{path}: neither a prior folder nor an .ifc file")
+
+
+# ------------------------------------------------------------------------------------------------ reading a prior
+
+
+def _read_prior_json(meta_file: Path) -> tuple[dict, str]:
+    """prior.json as a dict and its text; FormatError for unreadable bytes, bad UTF-8, bad JSON or another
+    top-level type."""
+    text = read_utf8(meta_file, FormatError, hint="the file is corrupt")
+    try:
+        meta = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise FormatError(f"{meta_file}: corrupt JSON ({exc.msg} at line {exc.lineno} column {exc.colno})") from exc
+    except RecursionError as exc:
+        raise FormatError(f"{meta_file}: corrupt JSON (nested too deeply)") from exc
+    if not isinstance(meta, dict):
+        raise FormatError(f"{meta_file}: expected a JSON object at the top, found {_json_value(meta)}")
+    return meta, text
+
+
+def _json_value(value: object) -> str:
+    """A JSON value as an error message names it: the string '2', the number 2, a list, an object, null."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return f"the boolean {str(value).lower()}"
+    if isinstance(value, str):
+        shown = value if len(value) <= 40 else value[:37] + "..."
+        return f"the string {json.dumps(shown, ensure_ascii=False)}"
+    if isinstance(value, int | float):
+        return f"the number {value}"
+    return "a list" if isinstance(value, list) else "an object"
+
+
+class _PriorJson(typing_extensions.TypedDict):  # pydantic needs typing_extensions' TypedDict before Python 3.12
+    """prior.json's fields and their types (`format` and `version` are checked first, with their own messages)."""
+
+    source_file: str
+    source_sha256: str
+    schema: str
+    embedding_model: str
+    grid: GridSpec
+    storeys: list[Storey]
+    rooms: list[Room]
+    doors: list[Door]
+    objects: list[BimObject]
+    room_edges: list[tuple[int, int, int]]
+    object_edges: list[tuple[int, int]]
+    room_matches: list[RoomMatch]
+    timings_s: typing_extensions.NotRequired[dict[str, float]]
+
+
+_PRIOR_JSON = pydantic.TypeAdapter(_PriorJson)
+
+
+def _validate_prior_json(meta_file: Path, text: str) -> _PriorJson:
+    """prior.json's fields as their dataclasses, validated strictly (no "2" for 2; unknown fields are ignored, so
+    that a newer bimfactor's additions do not break this one); FormatError naming the first mismatch's place."""
+    try:
+        return _PRIOR_JSON.validate_json(text, strict=True)
+    except pydantic.ValidationError as exc:
+        error = exc.errors(include_url=False)[0]
+        loc = error["loc"]
+        if len(loc) == 1 and error["type"] == "missing":
+            raise FormatError(f"{meta_file}: '{loc[0]}' is missing") from None
+        where = "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in loc).lstrip(".")
+        found = "" if error["type"] == "missing" else f", found {_json_value(error['input'])}"
+        raise FormatError(f"{meta_file}: {where}: {error['msg'][0].lower()}{error['msg'][1:]}{found}") from None
+
+
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+_LAYER_KINDS = {"structure": "b", "furniture": "b", "clearance_m": "f", "room_labels": "iu", "navigable": "b"}
+_KIND_NAMES = {"b": "bool", "f": "float", "iu": "integer"}
+
+
+def _read_prior_arrays(
+    array_file: Path, grid: GridSpec, storeys: list[Storey], n_objects: int
+) -> tuple[list[StoreyLayers], np.ndarray, VisibilityTable | None]:
+    """The grid layers, object embeddings and visibility table; FormatError for a corrupt or incomplete archive.
+
+    Loaded with allow_pickle=False: a prior never holds Python objects, and a pickle is never executed.
+    """
+    try:
+        with array_file.open("rb") as fh:
+            magic = fh.read(4)
+    except OSError as exc:
+        raise FormatError(f"{array_file}: cannot be read ({exc.strerror or type(exc).__name__})") from exc
+    if magic not in _ZIP_MAGIC:
+        raise FormatError(f"{array_file}: not a NumPy .npz archive (corrupt, or not written by bimfactor)")
+
+    def need(arrays, key: str, kinds: str, shape: tuple[int, ...] | None, ndim: int | None = None) -> np.ndarray:
+        if key not in arrays.files:
+            raise FormatError(f"{array_file}: array '{key}' is missing")
+        value = arrays[key]
+        if (
+            value.dtype.kind not in kinds
+            or (shape is not None and value.shape != shape)
+            or (ndim is not None and value.ndim != ndim)
+        ):
+            expected = f"shape {shape}" if shape is not None else f"{ndim} dimensions"
+            raise FormatError(
+                f"{array_file}: array '{key}' is {value.dtype} of shape {value.shape}, "
+                f"expected {_KIND_NAMES[kinds]} of {expected}"
+            )
+        return value
+
+    try:
+        with np.load(array_file, allow_pickle=False) as arrays:
+            layers = [
+                StoreyLayers(
+                    storey, *(need(arrays, f"storey{storey.index}_{n}", _LAYER_KINDS[n], grid.shape) for n in _LAYERS)
+                )
+                for storey in storeys
+            ]
+            embeddings = need(arrays, "object_embeddings", "f", None, ndim=2)
+            if len(embeddings) != n_objects:
+                raise FormatError(
+                    f"{array_file}: {len(embeddings)} object embeddings for {n_objects} objects in prior.json"
+                )
+            visibility = VisibilityTable.from_arrays(arrays) if "visibility_meta" in arrays.files else None
+    except FormatError:
+        raise
+    except Exception as exc:  # zipfile.BadZipFile, zlib.error, EOFError, ValueError, KeyError, OSError, ...
+        raise FormatError(f"{array_file}: corrupt or truncated ({_array_failure(exc)})") from exc
+    return layers, embeddings, visibility
+
+
+def _array_failure(exc: Exception) -> str:
+    """What went wrong reading the archive, in our words where numpy's would advise unsafe loading."""
+    text = " ".join(str(exc).split())
+    if not text or "pickle" in text.lower():
+        return type(exc).__name__
+    return f"{type(exc).__name__}: {text[:200]}"

@@ -36,12 +36,14 @@ import numpy as np
 from ifcopenshell.util.shape_builder import ShapeBuilder
 
 from bimfactor.errors import InputError
-from bimfactor.io.atomic import atomic_path
+from bimfactor.io.atomic import atomic_path, check_output_file
 
 log = logging.getLogger(__name__)
 
 Point = tuple[float, float]
 Box = tuple[float, float, float, float]  # x_min, y_min, x_max, y_max
+
+ORIGINATING_SYSTEM = "bimfactor.bim.synth"  # the IFC header's originating system: what `synth` recognises as its own
 
 WALL_THICKNESS_M = 0.2
 WALL_HEIGHT_M = 2.8
@@ -1106,6 +1108,17 @@ def build_ifc(spec: BuildingSpec) -> ifcopenshell.file:
     _sort_unordered_lists(file)
     _assign_guids(file, spec.seed)
     return file
+
+
+def check_synth_output(path: str | Path) -> None:
+    """Raise InputError unless `path` may receive a synthetic building: new, or an IFC file that synth wrote."""
+    path = Path(path)
+    check_output_file(path)
+    if path.exists():
+        with path.open("rb") as fh:
+            head = fh.read(2048)
+        if f"'{ORIGINATING_SYSTEM}'".encode() not in head:
+            raise InputError(f"{path}: exists and was not written by bimfactor synth; choose a new file name")
 
 
 def write_building(preset: str, seed: int, path: str | Path) -> BuildingSpec:

@@ -14,6 +14,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from bimfactor.io.atomic import atomic_path
+from bimfactor.io.preview import missing_glyphs_quiet
 
 if TYPE_CHECKING:
     from bimfactor.bim.prior import BimPrior
@@ -22,7 +23,7 @@ if TYPE_CHECKING:
 def save_figure(fig: Figure, path: str | Path, dpi: int = 120, tight: bool = True) -> Path:
     """Write a figure as PNG atomically and close it."""
     path = Path(path)
-    with atomic_path(path) as tmp:
+    with missing_glyphs_quiet(), atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format="png")
     plt.close(fig)
     return path

@@ -12,16 +12,12 @@ from pathlib import Path
 import numpy as np
 
 from bimfactor.bim.prior import BimPrior
-from bimfactor.errors import InputError
 from bimfactor.evaluation.metrics import TrajectoryMetrics, trajectory_metrics
 from bimfactor.evaluation.plots import save_estimate_plot, save_particle_snapshots
-from bimfactor.io.atomic import atomic_dir
+from bimfactor.io.atomic import check_output_dir, output_dir
 from bimfactor.io.tum import write_tum_trajectory
 from bimfactor.pipeline import LocalizationRun, RefinedRun, Track
 from bimfactor.types import Observations
-
-RUN_FILES = ("config.yaml", "estimate.txt")
-"""Every run folder (localize, refine) holds these; a folder without them is not a run and is never overwritten."""
 
 POSE_COLUMNS = [
     "x", "y", "yaw", "storey", "room", "cov_xx", "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw",
@@ -29,7 +25,7 @@ POSE_COLUMNS = [
 GT_COLUMNS = ["gt_x", "gt_y", "gt_yaw", "gt_room"]
 STEP_COLUMNS = [
     "step", "timestamp_s", *POSE_COLUMNS, "converged", "ess", "n_particles", "n_observations", "texts_read",
-    "scan_fit", "relocalized", "challenged", "filter_ms",
+    "scan_fit", "relocalized", "challenged", "skipped", "filter_ms",
     "perception_ms", "n_modes", "mode_id", "mode_probability", "graph_ms", "icp_accepted", "icp_ms", "twin_x",
     "twin_y", "twin_yaw", "twin_share", *GT_COLUMNS,
 ]  # fmt: skip
@@ -40,13 +36,10 @@ REFINED_COLUMNS = ["step", "timestamp_s", *POSE_COLUMNS, "n_matches", "segment",
                    "forward_yaw", *GT_COLUMNS]  # fmt: skip
 
 
-def ensure_run_destination(out_dir: str | Path) -> None:
-    """Raise InputError unless `out_dir` is absent, empty, or a run folder (which a new run replaces)."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and (
-        not out_dir.is_dir() or (any(out_dir.iterdir()) and not all((out_dir / f).is_file() for f in RUN_FILES))
-    ):
-        raise InputError(f"{out_dir}: exists and is not a bimfactor run; refusing to overwrite it")
+def ensure_run_destination(out_dir: str | Path, inputs: Sequence[str | Path] = ()) -> None:
+    """Raise InputError unless a run may be written to `out_dir`: absent, empty, or an earlier bimfactor run folder
+    holding nothing else, and none of `inputs` (the prior, the sequence) inside it."""
+    check_output_dir(out_dir, "run", inputs=inputs)
 
 
 def track_metrics(track: Track, gt_poses: np.ndarray | None, gt_rooms: np.ndarray | None) -> TrajectoryMetrics | None:
@@ -91,17 +84,26 @@ def _main_storey(storeys: np.ndarray) -> int:
     return int(np.bincount(storeys).argmax()) if len(storeys) else 0
 
 
-def write_run(run: LocalizationRun, prior: BimPrior, out_dir: str | Path, config_yaml: str, title: str) -> list[Path]:
+def write_run(
+    run: LocalizationRun,
+    prior: BimPrior,
+    out_dir: str | Path,
+    config_yaml: str,
+    title: str,
+    inputs: Sequence[str | Path] = (),
+) -> list[Path]:
     """Write estimate.txt (TUM), steps.csv, modes.csv (graph variants), metrics.json (with ground truth; the full
     variant adds the fine stage's acceptance and rejection counts under "icp"), snapshots.npz, config.yaml and the
     figures. steps.csv's icp_accepted is 1 or 0 where the fine stage ran (variant full, a mode existed), else empty;
     on storeys with a twin (`bim.symmetry`) twin_x, twin_y, twin_yaw are the estimate's twin pose and twin_share the
     belief's weight there, else empty. scan_fit is the belief's predicted scan fit (empty without a scan) and
     relocalized 1 where the filter spread its particles over the building again (`smcl.relocalize`), challenged 1
-    where it took the particles of a challenger that explained the frames better (`smcl.challenger`).
+    where it took the particles of a challenger that explained the frames better (`smcl.challenger`); skipped is why
+    the localizer skipped the step's frame ("empty depth", "odometry jump of 1e6 m"; `LocalizationRun.skipped`), empty
+    where it used it.
     """
     out_dir = Path(out_dir)
-    with atomic_dir(out_dir) as tmp:
+    with output_dir(out_dir, "run", inputs=inputs) as tmp:
         figures = _write_run_files(run, prior, tmp, config_yaml, title)
     return [out_dir / figure.name for figure in figures]
 
@@ -114,6 +116,7 @@ def _write_run_files(run: LocalizationRun, prior: BimPrior, out_dir: Path, confi
     fine_ms = fine.time_ms if fine is not None else np.zeros(len(out.poses))
     graph_ms = out.step_ms - run.filter.step_ms - fine_ms
     rows = []
+    skipped = run.skip_reasons
     for i in range(len(out.poses)):
         modes = run.modes[i] if run.graph is not None else None
         best = [modes[0].mode_id, _num(modes[0].probability)] if modes else ["", ""]
@@ -127,7 +130,7 @@ def _write_run_files(run: LocalizationRun, prior: BimPrior, out_dir: Path, confi
             [i, _num(run.timestamps_s[i]), *_pose_cells(out.poses[i], out.storeys[i], out.rooms[i], out.covariances[i]),
              int(run.converged[i]), _num(run.ess[i]), int(run.n_particles[i]), int(run.n_observations[i]),
              _texts_read(run.observations[i]), "" if np.isnan(run.scan_fit[i]) else f"{run.scan_fit[i]:.4f}",
-             int(run.relocalized[i]), int(run.challenged[i]),
+             int(run.relocalized[i]), int(run.challenged[i]), skipped[i],
              f"{run.filter.step_ms[i]:.3f}", f"{run.perception_ms[i]:.3f}", "" if modes is None else len(modes), *best,
              "" if modes is None else f"{graph_ms[i]:.3f}", *icp, *twin,
              *_gt_cells(run.gt_poses, run.gt_rooms, i)]
@@ -196,7 +199,12 @@ def _mode_rows(run: LocalizationRun, prior: BimPrior) -> list[list[object]]:
 
 
 def write_refined(
-    refined: RefinedRun, prior: BimPrior, out_dir: str | Path, config_yaml: str, title: str
+    refined: RefinedRun,
+    prior: BimPrior,
+    out_dir: str | Path,
+    config_yaml: str,
+    title: str,
+    inputs: Sequence[str | Path] = (),
 ) -> list[Path]:
     """Write a refinement run as one folder, atomically: estimate.txt (refined, TUM), forward.txt (the forward
     pass, TUM), steps.csv (refined pose and covariance per step, with the stretch it lies on and the refined mode
@@ -207,7 +215,7 @@ def write_refined(
     refined metrics and the forward pass's), config.yaml, trajectory.png.
     """
     out_dir = Path(out_dir)
-    ensure_run_destination(out_dir)
+    ensure_run_destination(out_dir, inputs)
     run, est = refined.forward, refined.estimate
     segment_of = np.zeros(len(est.poses), np.int64)
     for index, steps in enumerate(refined.segments):
@@ -240,7 +248,7 @@ def write_refined(
         }
         for m, fit in zip(refined.modes, refined.fits, strict=True)
     ]
-    with atomic_dir(out_dir) as tmp:
+    with output_dir(out_dir, "run", inputs=inputs) as tmp:
         (tmp / "config.yaml").write_text(config_yaml)
         write_tum_trajectory(tmp / "estimate.txt", run.timestamps_s, est.poses, comment="bimfactor refine")
         write_tum_trajectory(tmp / "forward.txt", run.timestamps_s, run.poses, comment=f"bimfactor {run.variant}")

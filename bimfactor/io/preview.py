@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import matplotlib
@@ -36,6 +39,21 @@ def instance_colours(ids: np.ndarray, seed: int = 0) -> np.ndarray:
     return palette[np.clip(ids, -1, top) + 1]
 
 
+MISSING_GLYPH_WARNING = r"Glyph \d+ .*missing from (current )?font"
+"""matplotlib's UserWarning, once per character and rendering, for text its fonts cannot draw (a CJK file name)."""
+
+
+@contextlib.contextmanager
+def missing_glyphs_quiet() -> Iterator[None]:
+    """Lay out and render figures whose text has characters no installed font can draw (a building or sequence named
+    in Chinese) without matplotlib's warning per character: they show as empty boxes, and the text is the user's own,
+    so the warning says nothing they could act on. Other warnings pass as before. Wrap whatever renders the figure
+    (`savefig`, `tight_layout`); `save_figure` does."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=MISSING_GLYPH_WARNING, category=UserWarning)
+        yield
+
+
 def write_preview(sequence: Sequence, path_png: str | Path, max_frames: int = 12) -> Path:
     """Write a PNG contact sheet of up to `max_frames` evenly spaced frames; returns the path. Atomic.
 
@@ -59,9 +77,10 @@ def write_preview(sequence: Sequence, path_png: str | Path, max_frames: int = 12
     for row, frame in zip(axes, rows, strict=True):
         _draw_row(row, frame, depth_max, with_instances)
     fig.suptitle(f"{sequence.meta.name} ({sequence.meta.source}, {len(sequence)} frames)", fontsize=10)
-    fig.tight_layout()
-    with atomic_path(path_png) as tmp:
-        fig.savefig(tmp, format="png", dpi=DPI)
+    with missing_glyphs_quiet():
+        fig.tight_layout()
+        with atomic_path(path_png) as tmp:
+            fig.savefig(tmp, format="png", dpi=DPI)
     log.info("wrote preview %s (%d frames)", path_png, len(rows))
     return path_png
 

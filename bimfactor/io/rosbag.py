@@ -34,6 +34,7 @@ from bimfactor.io.sequence import (
     FrameImages,
     Sequence,
     associate_nearest,
+    camera_problem,
     depth_from_mm,
     level_camera_mount,
 )
@@ -85,6 +86,9 @@ def read_rosbag(
     path = Path(path)
     if not path.exists():
         raise InputError(f"no such ROS 2 bag: {path}")
+    not_a_bag = _not_a_bag(path)
+    if not_a_bag:
+        raise InputError(f"{path}: not a readable ROS 2 bag: {not_a_bag}")
     wanted = {
         config.rgb_topic: IMAGE_TYPE,
         config.depth_topic: IMAGE_TYPE,
@@ -116,12 +120,17 @@ def read_rosbag(
                 elif camera_info is None:
                     camera_info = msg
     except (FileNotFoundError, ReaderError) as exc:
-        raise InputError(f"{path}: not a readable ROS 2 bag ({exc})") from None
+        said = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+        raise InputError(f"{path}: not a readable ROS 2 bag ({said})") from None
 
     if intrinsics is None:
         if camera_info is None:
             raise InputError(f"{path}: no message on {config.camera_info_topic}; pass the intrinsics instead")
         intrinsics = _intrinsics_from_camera_info(camera_info, path)
+    mount = level_camera_mount() if T_base_camera is None else T_base_camera
+    problem = camera_problem(intrinsics, mount)
+    if problem:
+        raise InputError(f"{path}: {problem}")
 
     # pair colour ↔ depth one-to-one, colour → odometry nearest, all by header stamp
     rgb_refs = _sorted_unique(refs[config.rgb_topic], path)
@@ -168,7 +177,7 @@ def read_rosbag(
         name=path.stem if path.is_file() else path.name,
         source="rosbag",
         intrinsics=intrinsics,
-        T_base_camera=level_camera_mount() if T_base_camera is None else np.asarray(T_base_camera, dtype=float),
+        T_base_camera=np.asarray(mount, dtype=float),
         extras={
             "bag": str(path),
             "rgb_topic": config.rgb_topic,
@@ -306,6 +315,28 @@ def _sorted_unique(refs: list[_MessageRef], path: Path) -> list[_MessageRef]:
     return out
 
 
+def _not_a_bag(path: Path) -> str | None:
+    """Why an existing path cannot be a ROS 2 bag the reader opens (None: it may be one): a folder needs the
+    metadata.yaml that `ros2 bag record` writes, a single file must be a .db3 or .mcap storage file."""
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            return None
+        storage = sorted(p.name for p in path.iterdir() if p.suffix in (".db3", ".mcap"))
+        if storage:
+            return f"no metadata.yaml in the folder (open the storage file {path / storage[0]} instead)"
+        ros1 = [p.name for p in path.iterdir() if p.suffix == ".bag"]
+        if ros1:
+            return f"it holds a ROS 1 bag ({ros1[0]}); convert it to ROS 2 first (rosbags-convert)"
+        return "the folder has no metadata.yaml (a ROS 2 bag is a folder with metadata.yaml, or a .db3 or .mcap file)"
+    if path.suffix == ".bag":
+        return "a ROS 1 bag; convert it to ROS 2 first (rosbags-convert)"
+    if path.suffix not in (".db3", ".mcap"):
+        return (
+            f"a {path.suffix or 'suffix-less'} file; expected a bag folder with metadata.yaml, or a .db3 or .mcap file"
+        )
+    return None
+
+
 def _check_topics(path: Path, wanted: dict[str, str], present: dict[str, str | None]) -> None:
     missing = sorted(t for t in wanted if t not in present)
     if missing:
@@ -318,7 +349,7 @@ def _check_topics(path: Path, wanted: dict[str, str], present: dict[str, str | N
 
 def _intrinsics_from_camera_info(info: Any, path: Path) -> CameraIntrinsics:
     K = np.asarray(info.k, dtype=float)
-    if K.size != 9 or K[0] <= 0 or K[4] <= 0 or info.width <= 0 or info.height <= 0:
+    if K.size != 9 or not K[0] > 0 or not K[4] > 0 or info.width <= 0 or info.height <= 0:
         raise InputError(f"{path}: camera info has no valid K / image size (K = {K.tolist()})")
     if np.any(np.asarray(info.d, dtype=float) != 0):
         log.warning("%s: camera info distortion %s ignored (pinhole model)", path, list(info.d))

@@ -27,15 +27,19 @@ rejected). Every image has the size given by the intrinsics.
     format          "bimfactor-sequence"
     version         1
     name, source    strings ("sim", "tum", "rosbag", ...)
-    intrinsics      {"width", "height", "fx", "fy", "cx", "cy"}: pinhole model in pixels
-    T_base_camera   4×4 nested list: camera (OpenCV: x right, y down, z forward) into base (x forward, z up)
+    intrinsics      {"width", "height", "fx", "fy", "cx", "cy"}: pinhole model in pixels; width and height positive
+                    integers, fx and fy positive, cx and cy finite
+    T_base_camera   4×4 nested list: camera (OpenCV: x right, y down, z forward) into base (x forward, z up); a
+                    rigid transform (rotation part orthonormal with determinant +1, last row 0 0 0 1)
     depth_unit      "millimetre" (the only value of version 1)
-    prior_sha256    SHA-256 of the BimPrior the sequence was simulated over; "" when none
+    prior_sha256    the building the sequence was simulated in: the SHA-256 of the IFC file its prior was built from
+                    (the prior's `source_sha256`); "" when none (converted real recordings)
     instances       list of {"id", "guid", "ifc_class", "object_id", "label"} (simulation; [] otherwise)
     extras          free-form JSON object (numpy arrays / scalars are stored as lists / numbers)
     frame_count     number of rows in frames.csv
 
-`frames.csv` is comma-separated (RFC 4180 quoting) with this header line and one row per frame::
+`frames.csv` is UTF-8 (a leading byte-order mark is accepted), comma-separated (RFC 4180 quoting) with this header
+line and one row per frame::
 
     index,timestamp_s,rgb,depth,instances,odom_x,odom_y,odom_yaw,gt_x,gt_y,gt_yaw,gt_storey[,extra.<key>...]
 
@@ -62,16 +66,17 @@ Every problem with the input is one `InputError` (or its subclass `FormatError`)
 names the file, and the row or frame where there is one; never a raw numpy / OpenCV traceback:
 
 - the folder missing → InputError; `sequence.json` missing, JSON corrupt, another format name, a newer
-  version, a key missing → FormatError;
+  version, a key missing, intrinsics or a camera mount that is not a camera (`camera_problem`) → FormatError;
 - `frames.csv` missing, a wrong header, a row with the wrong column count, a cell that is not a number,
   odometry on some rows only, out-of-order or duplicate timestamps (naming the first bad row), a row count
   that differs from `frame_count` → FormatError;
 - a frame file named in frames.csv that does not exist → FormatError when the sequence is opened; a
   truncated or corrupt PNG, or one of the wrong size / channels / bit depth → FormatError when that frame
-  is loaded.
-- writer: NaN depth → no return (0); negative depth, images of the wrong shape or type, non-finite or
-  partly-NaN poses, out-of-order or duplicate timestamps, instance ids outside -1..65534, metadata that is
-  not JSON, an existing target folder without `overwrite=True`, no frames at all → InputError.
+  is loaded. Decoding never lets the PNG library print to stderr (`decode_png`).
+- writer: NaN depth → no return (0); bad intrinsics or camera mount (`camera_problem`), negative depth, images
+  of the wrong shape or type, non-finite or partly-NaN poses, out-of-order or duplicate timestamps, instance ids
+  outside -1..65534, metadata that is not JSON, an existing target folder without `overwrite=True`, no frames at
+  all → InputError.
 
 `read_sequence(path, on_bad_frame="skip")` instead drops, with a logged warning each, every frame whose
 files are missing or fail a structural PNG check (PNG signature and closing IEND chunk present) when the
@@ -81,10 +86,15 @@ sequence is opened; a file that passes that check but still does not decode rais
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import logging
 import math
+import os
+import sys
+import tempfile
+import zlib
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal, NamedTuple
@@ -93,7 +103,7 @@ import cv2
 import numpy as np
 
 from bimfactor.errors import FormatError, InputError
-from bimfactor.io.atomic import atomic_dir
+from bimfactor.io.atomic import output_dir
 from bimfactor.io.tum import format_tum_trajectory
 from bimfactor.progress import progress
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
@@ -232,6 +242,10 @@ class Sequence:
         """(N, 3) T_world_base as x, y, yaw with NaN rows where unknown; None when no frame has ground truth."""
         return None if self._gt is None else self._gt.copy()
 
+    def indices(self) -> np.ndarray:
+        """(N,) each frame's index (as in the source stream)."""
+        return self._indices.copy()
+
     def ground_truth_storeys(self) -> list[int | None]:
         """Storey index of each frame's ground truth, None where unknown."""
         return list(self._gt_storeys)
@@ -327,10 +341,73 @@ def level_camera_mount(height_m: float = 0.0) -> np.ndarray:
     return T
 
 
+MOUNT_TOLERANCE = 1e-3
+"""How far a camera mount may be from rigid: each entry of RᵀR − I, det R − 1 and the last row's difference from
+0 0 0 1. A rotation written with four decimals passes; a scaled, sheared or mirrored one does not."""
+
+
+def intrinsics_problem(values: dict[str, Any]) -> str | None:
+    """What is wrong with pinhole intrinsics given as {"width", "height", "fx", "fy", "cx", "cy"} (as read from JSON,
+    or `dataclasses.asdict` of a `CameraIntrinsics`), e.g. "intrinsics.fx must be a positive finite number, got 0";
+    None when they describe a camera: width and height positive integers, fx and fy positive and finite, cx and cy
+    finite."""
+    if not isinstance(values, dict):
+        return f"intrinsics must be an object with width, height, fx, fy, cx, cy, got {values!r}"
+    for key in ("width", "height", "fx", "fy", "cx", "cy"):
+        if key not in values:
+            return f"intrinsics.{key} is missing"
+        value = values[key]
+        value = value.item() if isinstance(value, np.generic) else value
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        finite = number and math.isfinite(value)
+        if key in ("width", "height"):
+            if not finite or value != int(value) or value < 1:
+                return f"intrinsics.{key} must be a positive integer, got {value!r}"
+        elif key in ("fx", "fy"):
+            if not finite or value <= 0:
+                return f"intrinsics.{key} must be a positive finite number, got {value!r}"
+        elif not finite:
+            return f"intrinsics.{key} must be a finite number, got {value!r}"
+    return None
+
+
+def mount_problem(T_base_camera: Any) -> str | None:
+    """What is wrong with a camera mount T_base_camera, e.g. "T_base_camera's rotation part is not a rotation"; None
+    for a finite 4×4 rigid transform (rotation part orthonormal with determinant +1 and last row 0 0 0 1, both
+    within `MOUNT_TOLERANCE`)."""
+    try:
+        T = np.asarray(T_base_camera, dtype=np.float64)
+    except (TypeError, ValueError):
+        return "T_base_camera must be a 4x4 matrix of numbers"
+    if T.shape != (4, 4):
+        return f"T_base_camera must be a 4x4 matrix, got shape {T.shape}"
+    if not np.isfinite(T).all():
+        row, col = np.argwhere(~np.isfinite(T))[0]
+        return f"T_base_camera must be finite, got {float(T[row, col])!r} in row {row}, column {col}"
+    R = T[:3, :3]
+    off = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if off > MOUNT_TOLERANCE or abs(det - 1.0) > MOUNT_TOLERANCE:
+        return (
+            "T_base_camera's rotation part is not a rotation (it must be orthonormal with determinant +1; "
+            f"max |RᵀR − I| = {off:.3g}, det = {det:.3g})"
+        )
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > MOUNT_TOLERANCE:
+        return f"T_base_camera's last row must be 0 0 0 1, got {' '.join(f'{v:g}' for v in T[3])}"
+    return None
+
+
+def camera_problem(intrinsics: CameraIntrinsics, T_base_camera: Any) -> str | None:
+    """`intrinsics_problem` or `mount_problem` of a camera model, the first found; None when it is a camera."""
+    return intrinsics_problem(dataclasses.asdict(intrinsics)) or mount_problem(T_base_camera)
+
+
 def decode_png(path: Path, *, channels: int, dtype: type, size: tuple[int, int] | None = None) -> np.ndarray:
     """Read a PNG with `channels` channels of `dtype`; colour comes back as RGB. (W, H) `size` is checked.
 
-    Any failure is a one-line FormatError naming the file.
+    Any failure is a one-line FormatError naming the file. The chunks and their CRCs are checked here first
+    (`png_chunk_problem`), so that a damaged file never reaches libpng; what libpng would still print about a file
+    that passes (its C code writes to file descriptor 2 itself) is caught and goes into the error, or the debug log.
     """
     try:
         data = path.read_bytes()
@@ -340,9 +417,16 @@ def decode_png(path: Path, *, channels: int, dtype: type, size: tuple[int, int] 
         raise FormatError(f"{path}: not a PNG file")
     if not data.endswith(_PNG_END):
         raise FormatError(f"{path}: truncated PNG (no closing IEND chunk)")
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    problem = png_chunk_problem(data)
+    if problem:
+        raise FormatError(f"{path}: corrupt PNG ({problem})")
+    image, native = _decode_quietly(data)
     if image is None:
-        raise FormatError(f"{path}: corrupt PNG (cannot be decoded)")
+        said = next((line.strip() for line in native.splitlines() if line.strip()), "")
+        said = said.removeprefix("libpng error:").strip()
+        raise FormatError(f"{path}: corrupt PNG ({said or 'cannot be decoded'})")
+    if native.strip():
+        log.debug("%s: the PNG decoder said: %s", path, " | ".join(native.split("\n")).strip())
     got_channels = 1 if image.ndim == 2 else image.shape[2]
     if got_channels != channels or image.dtype != dtype:
         raise FormatError(
@@ -353,6 +437,52 @@ def decode_png(path: Path, *, channels: int, dtype: type, size: tuple[int, int] 
     if channels == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     return image
+
+
+def png_chunk_problem(data: bytes) -> str | None:
+    """The first structural fault of a PNG file's bytes after the signature: a chunk that runs past the end, a CRC
+    that does not match its chunk, IHDR not first, no IDAT before IEND, no IEND; None when every chunk is sound."""
+    view = memoryview(data)
+    pos, has_data = len(_PNG_SIGNATURE), False
+    while pos + 12 <= len(data):
+        length = int.from_bytes(view[pos : pos + 4], "big")
+        kind = bytes(view[pos + 4 : pos + 8])
+        name = kind.decode("ascii", "replace")
+        end = pos + 12 + length
+        if end > len(data):
+            return f"the {name} chunk at byte {pos} runs past the end of the file"
+        if zlib.crc32(view[pos + 4 : end - 4]) != int.from_bytes(view[end - 4 : end], "big"):
+            return f"CRC mismatch in the {name} chunk at byte {pos}"
+        if pos == len(_PNG_SIGNATURE) and kind != b"IHDR":
+            return f"the first chunk is {name}, not IHDR"
+        has_data = has_data or kind == b"IDAT"
+        if kind == b"IEND":
+            return None if has_data else "no IDAT chunk"
+        pos = end
+    return "no IEND chunk"
+
+
+def _decode_quietly(data: bytes) -> tuple[np.ndarray | None, str]:
+    """`cv2.imdecode` of PNG bytes, with what native code writes to file descriptor 2 meanwhile (libpng's "libpng
+    error: ..." lines) caught instead of printed: (image or None, the text caught). While it runs, anything another
+    thread writes to stderr is caught too (bimfactor decodes on the thread that reports)."""
+    buffer = np.frombuffer(data, np.uint8)
+    try:
+        if sys.stderr is not None:
+            sys.stderr.flush()
+        saved = os.dup(2)
+    except OSError:  # no file descriptor 2 (a windowed process): nothing can be printed
+        return cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED), ""
+    with tempfile.TemporaryFile() as sink:
+        try:
+            os.dup2(sink.fileno(), 2)
+            image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        sink.seek(0)
+        said = sink.read(4096).decode("utf-8", "replace")
+    return image, said
 
 
 def png_looks_complete(path: Path) -> bool:
@@ -386,15 +516,30 @@ def _json_default(value: Any) -> Any:
 # ------------------------------------------------------------------------------------------ writer
 
 
-def write_sequence(path: str | Path, meta: SequenceMeta, frames: Iterable[Frame], *, overwrite: bool = False) -> None:
+def write_sequence(
+    path: str | Path,
+    meta: SequenceMeta,
+    frames: Iterable[Frame],
+    *,
+    overwrite: bool = False,
+    inputs: Iterable[str | Path] = (),
+) -> None:
     """Write `frames` as a sequence folder at `path` (format above); the folder appears only when complete.
 
-    Frames are consumed one at a time (a generator is fine); their images are written as they come.
-    Raises InputError for frames that cannot be written exactly (see the module's error contract).
+    An existing sequence folder is replaced only with `overwrite`; any other non-empty folder, or one that holds an
+    input path, is refused (`io.atomic.output_dir`). Raises InputError for frames that cannot be written exactly.
     """
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise InputError(f"{path} exists already (pass overwrite=True to replace it)")
+    with output_dir(path, "sequence", inputs=inputs, replace=overwrite) as tmp:
+        write_sequence_files(tmp, meta, frames, label=str(path))
+
+
+def write_sequence_files(folder: Path, meta: SequenceMeta, frames: Iterable[Frame], label: str = "") -> None:
+    """Write the sequence's files into the new, empty `folder` (for a command that adds files of its own to the
+    same output folder before it appears; `write_sequence` otherwise).
+
+    Frames are consumed one at a time (a generator is fine); their images are written as they come.
+    """
+    label = label or folder.name
     header = _meta_json(meta)  # fails early on metadata that JSON cannot hold
     K = meta.intrinsics
     size = (K.width, K.height)
@@ -406,88 +551,86 @@ def write_sequence(path: str | Path, meta: SequenceMeta, frames: Iterable[Frame]
     gt_rows: list[np.ndarray] = []
     has_odometry: bool | None = None
     clamped_pixels = clamped_frames = 0
-    with atomic_dir(path) as tmp:
-        for sub in ("rgb", "depth"):
-            (tmp / sub).mkdir()
-        for k, frame in enumerate(progress(frames, desc=f"write {path.name}", total=total, unit="frame")):
-            where = f"frame {k} (index {frame.index})"
-            t = float(frame.timestamp_s)
-            if not math.isfinite(t):
-                raise InputError(f"{where}: timestamp {t!r} is not finite")
-            if rows and t <= float(rows[-1]["timestamp_s"]):
-                raise InputError(f"{where}: timestamp {t!r} is not after the previous one ({rows[-1]['timestamp_s']})")
-            odom = _pose_or_none(frame.odom_pose, f"{where}: odom_pose")
-            if has_odometry is None:
-                has_odometry = odom is not None
-            elif has_odometry != (odom is not None):
-                raise InputError(f"{where}: odometry must be known for every frame or for none")
-            gt = _pose_or_none(frame.gt_pose, f"{where}: gt_pose")
+    for sub in ("rgb", "depth"):
+        (folder / sub).mkdir()
+    for k, frame in enumerate(progress(frames, desc=f"write {Path(label).name}", total=total, unit="frame")):
+        where = f"frame {k} (index {frame.index})"
+        t = float(frame.timestamp_s)
+        if not math.isfinite(t):
+            raise InputError(f"{where}: timestamp {t!r} is not finite")
+        if rows and t <= float(rows[-1]["timestamp_s"]):
+            raise InputError(f"{where}: timestamp {t!r} is not after the previous one ({rows[-1]['timestamp_s']})")
+        odom = _pose_or_none(frame.odom_pose, f"{where}: odom_pose")
+        if has_odometry is None:
+            has_odometry = odom is not None
+        elif has_odometry != (odom is not None):
+            raise InputError(f"{where}: odometry must be known for every frame or for none")
+        gt = _pose_or_none(frame.gt_pose, f"{where}: gt_pose")
 
-            name = f"{k:06d}.png"
-            row = {c: "" for c in FRAME_COLUMNS}
-            row.update(index=str(int(frame.index)), timestamp_s=_num(t), rgb=f"rgb/{name}", depth=f"depth/{name}")
-            _write_png(tmp / "rgb" / name, _rgb_to_disk(frame.rgb, size, where), where)
-            try:
-                depth_mm, clamped = _depth_to_mm(_depth_image(frame.depth_m, size, where))
-            except ValueError as exc:
-                raise InputError(f"{where}: {exc}") from None
-            if clamped:
-                clamped_pixels += clamped
-                clamped_frames += 1
-            _write_png(tmp / "depth" / name, depth_mm, where)
-            if frame.instance_ids is not None:
-                (tmp / "instances").mkdir(exist_ok=True)
-                _write_png(tmp / "instances" / name, _instances_to_disk(frame.instance_ids, size, where), where)
-                row["instances"] = f"instances/{name}"
-            if odom is not None:
-                row.update(odom_x=_num(odom[0]), odom_y=_num(odom[1]), odom_yaw=_num(odom[2]))
-                odom_rows.append(odom)
-            if gt is not None:
-                row.update(gt_x=_num(gt[0]), gt_y=_num(gt[1]), gt_yaw=_num(gt[2]))
-                gt_times.append(t)
-                gt_rows.append(gt)
-            if frame.gt_storey is not None:
-                row["gt_storey"] = str(int(frame.gt_storey))
-            for key, value in frame.extras.items():
-                column = EXTRA_PREFIX + str(key)
-                if column not in extra_keys:
-                    extra_keys.append(column)
-                row[column] = _num(value)
-            rows.append(row)
-        if not rows:
-            raise InputError(f"{path}: no frames to write")
+        name = f"{k:06d}.png"
+        row = {c: "" for c in FRAME_COLUMNS}
+        row.update(index=str(int(frame.index)), timestamp_s=_num(t), rgb=f"rgb/{name}", depth=f"depth/{name}")
+        _write_png(folder / "rgb" / name, _rgb_to_disk(frame.rgb, size, where), where)
+        try:
+            depth_mm, clamped = _depth_to_mm(_depth_image(frame.depth_m, size, where))
+        except ValueError as exc:
+            raise InputError(f"{where}: {exc}") from None
+        if clamped:
+            clamped_pixels += clamped
+            clamped_frames += 1
+        _write_png(folder / "depth" / name, depth_mm, where)
+        if frame.instance_ids is not None:
+            (folder / "instances").mkdir(exist_ok=True)
+            _write_png(folder / "instances" / name, _instances_to_disk(frame.instance_ids, size, where), where)
+            row["instances"] = f"instances/{name}"
+        if odom is not None:
+            row.update(odom_x=_num(odom[0]), odom_y=_num(odom[1]), odom_yaw=_num(odom[2]))
+            odom_rows.append(odom)
+        if gt is not None:
+            row.update(gt_x=_num(gt[0]), gt_y=_num(gt[1]), gt_yaw=_num(gt[2]))
+            gt_times.append(t)
+            gt_rows.append(gt)
+        if frame.gt_storey is not None:
+            row["gt_storey"] = str(int(frame.gt_storey))
+        for key, value in frame.extras.items():
+            column = EXTRA_PREFIX + str(key)
+            if column not in extra_keys:
+                extra_keys.append(column)
+            row[column] = _num(value)
+        rows.append(row)
+    if not rows:
+        raise InputError(f"{label}: no frames to write")
 
-        with (tmp / FRAMES_FILE).open("w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=[*FRAME_COLUMNS, *extra_keys], restval="", lineterminator="\n")
-            writer.writeheader()
-            writer.writerows(rows)
-        timestamps = np.array([float(r["timestamp_s"]) for r in rows])
-        if has_odometry:
-            (tmp / "odometry.txt").write_text(format_tum_trajectory(timestamps, np.array(odom_rows), "T_odom_base"))
-        if gt_rows:
-            (tmp / "groundtruth.txt").write_text(
-                format_tum_trajectory(np.array(gt_times), np.array(gt_rows), "T_world_base")
-            )
-        header["frame_count"] = len(rows)
-        (tmp / META_FILE).write_text(json.dumps(header, indent=2, default=_json_default) + "\n")
+    with (folder / FRAMES_FILE).open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=[*FRAME_COLUMNS, *extra_keys], restval="", lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+    timestamps = np.array([float(r["timestamp_s"]) for r in rows])
+    if has_odometry:
+        (folder / "odometry.txt").write_text(format_tum_trajectory(timestamps, np.array(odom_rows), "T_odom_base"))
+    if gt_rows:
+        (folder / "groundtruth.txt").write_text(
+            format_tum_trajectory(np.array(gt_times), np.array(gt_rows), "T_world_base")
+        )
+    header["frame_count"] = len(rows)
+    (folder / META_FILE).write_text(json.dumps(header, indent=2, default=_json_default) + "\n")
     if clamped_pixels:
         log.warning(
             "%s: %d depth pixels in %d frames beyond %.3f m written as no return",
-            path,
+            label,
             clamped_pixels,
             clamped_frames,
             MAX_DEPTH_MM / DEPTH_SCALE_PER_M,
         )
-    log.info("wrote sequence %s: %d frames", path, len(rows))
+    log.info("wrote sequence %s: %d frames", label, len(rows))
 
 
 def _meta_json(meta: SequenceMeta) -> dict[str, Any]:
     K = meta.intrinsics
-    if K.width < 1 or K.height < 1:
-        raise InputError(f"intrinsics: image size {K.width}x{K.height} is not positive")
+    problem = camera_problem(K, meta.T_base_camera)
+    if problem:
+        raise InputError(f"sequence {meta.name!r}: {problem}")
     T = np.asarray(meta.T_base_camera, dtype=float)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise InputError(f"T_base_camera must be a finite 4x4 matrix, got shape {T.shape}")
     header = {
         "format": SEQUENCE_FORMAT,
         "version": SEQUENCE_VERSION,
@@ -640,17 +783,18 @@ def _read_meta(folder: Path) -> tuple[SequenceMeta, int]:
         raise FormatError(f"{meta_file}: missing key(s) {', '.join(missing)}")
     if data["depth_unit"] != DEPTH_UNIT:
         raise FormatError(f"{meta_file}: depth_unit {data['depth_unit']!r}, expected {DEPTH_UNIT!r}")
+    problem = intrinsics_problem(data["intrinsics"]) or mount_problem(data["T_base_camera"])
+    if problem:
+        raise FormatError(f"{meta_file}: {problem}")
+    K = data["intrinsics"]
+    intrinsics = CameraIntrinsics(
+        int(K["width"]), int(K["height"]), float(K["fx"]), float(K["fy"]), float(K["cx"]), float(K["cy"])
+    )
+    T = np.array(data["T_base_camera"], dtype=np.float64)
     try:
-        K = data["intrinsics"]
-        intrinsics = CameraIntrinsics(
-            int(K["width"]), int(K["height"]), float(K["fx"]), float(K["fy"]), float(K["cx"]), float(K["cy"])
-        )
-        T = np.array(data["T_base_camera"], dtype=np.float64)
         frame_count = int(data["frame_count"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise FormatError(f"{meta_file}: bad intrinsics, T_base_camera or frame_count ({exc!r})") from None
-    if T.shape != (4, 4):
-        raise FormatError(f"{meta_file}: T_base_camera has shape {T.shape}, expected (4, 4)")
+    except (TypeError, ValueError):
+        raise FormatError(f"{meta_file}: frame_count {data['frame_count']!r} is not an integer") from None
     if not isinstance(data.get("instances", []), list) or not isinstance(data.get("extras", {}), dict):
         raise FormatError(f"{meta_file}: instances must be a list and extras an object")
     meta = SequenceMeta(
@@ -680,7 +824,7 @@ def _read_frames_table(folder: Path, frame_count: int) -> _FramesTable:
     if not frames_file.is_file():
         raise FormatError(f"{folder}: {FRAMES_FILE} missing")
     try:
-        with frames_file.open(newline="", encoding="utf-8") as f:
+        with frames_file.open(newline="", encoding="utf-8-sig") as f:  # a byte-order mark is not part of the header
             lines = list(csv.reader(f))
     except (UnicodeDecodeError, csv.Error) as exc:
         raise FormatError(f"{frames_file}: unreadable CSV ({exc})") from None

@@ -187,6 +187,7 @@ def read_tum_rgbd(
         FrameImages,
         Sequence,
         associate_nearest,
+        camera_problem,
         decode_png,
         depth_from_mm,
         level_camera_mount,
@@ -201,8 +202,11 @@ def read_tum_rgbd(
         raise FormatError(f"{folder}: not a TUM RGB-D folder ({', '.join(missing)} missing)")
     rgb_times, rgb_files = _read_file_list(folder, "rgb.txt")
     depth_times, depth_files = _read_file_list(folder, "depth.txt")
-    T_base_camera = level_camera_mount() if T_base_camera is None else np.asarray(T_base_camera, dtype=float)
     intrinsics = intrinsics or tum_default_intrinsics(folder.name)
+    problem = camera_problem(intrinsics, level_camera_mount() if T_base_camera is None else T_base_camera)
+    if problem:
+        raise InputError(f"{folder}: {problem}")
+    T_base_camera = level_camera_mount() if T_base_camera is None else np.asarray(T_base_camera, dtype=float)
 
     i_rgb, i_depth = associate_nearest(rgb_times, depth_times, max_sync_dt_s, one_to_one=True)
     if len(i_rgb) == 0:

@@ -290,6 +290,7 @@ def plot_basins(records: list[dict], path: str | Path, title: str = "") -> Path:
     import matplotlib.pyplot as plt
 
     from bimfactor.evaluation.plots import save_figure
+    from bimfactor.io.preview import missing_glyphs_quiet
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
     for name in dict.fromkeys(r["registrar"] for r in records):
@@ -304,7 +305,8 @@ def plot_basins(records: list[dict], path: str | Path, title: str = "") -> Path:
         ax.grid(alpha=0.3)
     axes[1].legend(loc="lower left", fontsize=8)
     fig.suptitle(title or "basin of convergence")
-    fig.tight_layout()
+    with missing_glyphs_quiet():
+        fig.tight_layout()
     return save_figure(fig, path, dpi=120, tight=False)
 
 

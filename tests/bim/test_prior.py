@@ -145,6 +145,7 @@ def test_save_and_load_round_trip(prior_of, tmp_path) -> None:
     prior = prior_of("duplex.ifc")
     prior.save(tmp_path / "prior", config_yaml="seed: 0\n")
     assert sorted(p.name for p in (tmp_path / "prior").iterdir()) == [
+        ".bimfactor.json",
         "arrays.npz",
         "config.yaml",
         *[f"floorplan_{i}.png" for i in range(len(prior.storeys))],
@@ -169,7 +170,7 @@ def test_save_and_load_round_trip(prior_of, tmp_path) -> None:
 
 def test_save_refuses_to_replace_a_folder_that_is_not_a_prior(prior_of, tmp_path) -> None:
     (tmp_path / "notes.txt").write_text("mine")
-    with pytest.raises(InputError, match="not a bimfactor prior"):
+    with pytest.raises(InputError, match="holds no bimfactor output marker"):
         prior_of("AC20-FZK-Haus.ifc").save(tmp_path)
     assert (tmp_path / "notes.txt").read_text() == "mine"
 
