@@ -105,7 +105,8 @@ ConfigOption = Annotated[
         "--config",
         "-c",
         metavar="PRESET_OR_FILE",
-        help="A preset name from configs/ or a YAML file, merged over configs/default.yaml.",
+        help="paper, default, fast, or a YAML file: the paper's filter alone, the recommended pipeline (default), "
+        "the fewest milliseconds per keyframe, or your own overrides; merged over bimfactor/configs/default.yaml.",
     ),
 ]
 SetOption = Annotated[
@@ -392,7 +393,9 @@ def prior(
             ensure_prior_destination(out_dir, model)
             started = time.perf_counter()
             built = build_prior(model, cfg)
-            built.save(out_dir, config_yaml=cfg.dump_yaml())
+            from bimfactor.evaluation.plots import save_floorplans
+
+            built.save(out_dir, config_yaml=cfg.dump_yaml(), extra_files=save_floorplans)
             log.info("prior built and saved in %.1f s", time.perf_counter() - started)
         summary = _prior_summary(built, out_dir)
         if as_json:
@@ -773,8 +776,8 @@ def convert(
         from bimfactor.io.preview import write_preview
         from bimfactor.io.rosbag import read_rosbag
         from bimfactor.io.sequence import read_sequence, write_sequence_files
-        from bimfactor.io.tum import read_tum_rgbd
-        from bimfactor.localization.motion import keyframe_indices
+        from bimfactor.io.tum_rgbd import read_tum_rgbd
+        from bimfactor.odometry import keyframe_indices
 
         if kind not in ("tum", "rosbag", "sequence"):
             raise InputError(f"unknown recording kind '{kind}' (expected tum, rosbag or sequence)")
@@ -851,7 +854,7 @@ def _write_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) -
 
 def _warn_dense_steps(sequence: Any, path: Path, cfg: Any) -> None:
     """One warning line when a sequence's frames are much closer than the localizer's keyframes."""
-    from bimfactor.localization.motion import dense_steps_note
+    from bimfactor.odometry import dense_steps_note
 
     odometry, steps = sequence.odometry(), cfg.localization
     note = (
@@ -1119,7 +1122,7 @@ def compare_registrars_cmd(
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
-        from bimfactor.registration.compare import format_summary_table, run_comparison
+        from bimfactor.evaluation.registrars import format_summary_table, run_comparison
 
         with _bench_dir(output, prior_dir, sequence_dir):
             summary = run_comparison(prior_dir, output, cfg, list(methods) if methods else None, sequence_dir)
@@ -1192,6 +1195,7 @@ def bench_paper(
         from bimfactor.bim.prior import build_prior
         from bimfactor.bim.synth import write_building
         from bimfactor.evaluation.paper import check_protocol, format_tables, run_paper_bench
+        from bimfactor.evaluation.plots import save_floorplans
         from bimfactor.sim.simulate import load_world_inputs
 
         check_protocol(cfg)
@@ -1206,7 +1210,7 @@ def bench_paper(
                     ifc = output / "paper-floor.ifc"
                     write_building("paper-floor", cfg.seed, ifc)
                 prior_dir = output / "prior"
-                build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
+                build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml(), extra_files=save_floorplans)
             report = run_paper_bench(prior_dir, cfg, output, workers=workers)
         typer.echo(format_tables(report))
         typer.echo(f"results: {output / 'results.json'}")
@@ -1240,7 +1244,7 @@ def bench_graph(
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
-        from bimfactor.perception.evaluate import run_graph_bench
+        from bimfactor.evaluation.graph import run_graph_bench
 
         with _bench_dir(output, *([building] if Path(building).exists() else [])):
             result = run_graph_bench(building, cfg, output, preset, None, tour, None, true_odometry)
@@ -1261,10 +1265,12 @@ def _paper_floor_world(output: Path, cfg: Config) -> tuple[BimPrior, IfcModel]:
     """The paper-floor preset written to OUT/paper-floor.ifc and built into OUT/prior, with its IFC model."""
     from bimfactor.bim.prior import build_prior
     from bimfactor.bim.synth import write_building
+    from bimfactor.evaluation.plots import save_floorplans
     from bimfactor.sim.simulate import load_world_inputs
 
     write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
-    build_prior(output / "paper-floor.ifc", cfg).save(output / "prior", config_yaml=cfg.dump_yaml())
+    prior = build_prior(output / "paper-floor.ifc", cfg)
+    prior.save(output / "prior", config_yaml=cfg.dump_yaml(), extra_files=save_floorplans)
     return load_world_inputs(output / "prior", cfg)
 
 
@@ -1302,7 +1308,7 @@ def bench_registration(
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
-        from bimfactor.registration.compare import benchmark_registration
+        from bimfactor.evaluation.registrars import benchmark_registration
 
         world = _bench_world(prior_dir, cfg)
         with _bench_dir(output, prior_dir):
@@ -1334,7 +1340,7 @@ def bench_scanmatch(
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
-        from bimfactor.registration.correlative import benchmark_scan_matching
+        from bimfactor.evaluation.speed import benchmark_scan_matching
 
         world = _bench_world(prior_dir, cfg)
         with _bench_dir(output, prior_dir):
@@ -1365,7 +1371,7 @@ def bench_smcl(
         cfg = _start(config, overrides, verbose)
         from bimfactor.bim.prior import build_prior
         from bimfactor.bim.synth import write_building
-        from bimfactor.localization.smcl import benchmark_step
+        from bimfactor.evaluation.speed import benchmark_step
 
         with _bench_dir(output):
             write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
@@ -1399,7 +1405,7 @@ def bench_backend(
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
-        from bimfactor.backend import benchmark_backend
+        from bimfactor.evaluation.speed import benchmark_backend
 
         with _bench_dir(output):
             result = benchmark_backend(cfg.backend, n_modes=modes, n_keyframes=keyframes)

@@ -1,8 +1,9 @@
 """The configuration tree: validated pydantic models, one sub-model per stage.
 
-`configs/default.yaml` is the single source of the default values (the paper's hyperparameters);
-the models here say what each field means and check it. Presets are YAML files that override part
-of the default; `--set a.b=value` on the command line overrides single fields.
+`bimfactor/configs/default.yaml` (shipped inside the package) is the single source of the default values (the
+paper's hyperparameters plus the recommended extensions); the models here say what each field means and check it.
+Presets are YAML files that override part of the default: the named ones (`PRESETS`: `paper`, `fast`) lie beside
+it, and any other file can be given by path; `--set a.b=value` on the command line overrides single fields.
 """
 
 from __future__ import annotations
@@ -16,11 +17,15 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, PositiveFloat, ValidationError, model_validator
 
 from bimfactor.errors import ConfigError
-from bimfactor.io.text import read_utf8
 from bimfactor.resources import check_particle_memory
+from bimfactor.textfile import read_utf8
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+"""The package's config folder: default.yaml, the named presets and the data tables (package data in a wheel)."""
 DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
+PRESETS = ("paper", "default", "fast")
+"""The named presets in CONFIG_DIR: the paper's filter alone, the recommended pipeline (default.yaml itself) and the
+fewest milliseconds per keyframe."""
 
 
 class _Strict(BaseModel):
@@ -73,14 +78,14 @@ class RoomsConfig(_Strict):
 class ObjectsConfig(_Strict):
     classes: list[str] = Field(description="IFC classes (and their subclasses) that become object nodes.")
     proximity_edge_m: float = Field(gt=0.0, description="Objects closer than this are joined by an edge.")
-    vocabulary_file: str = Field(description="Label table, relative to configs/.")
+    vocabulary_file: str = Field(description="Label table, relative to bimfactor/configs/.")
     embedding_fallback_min_sim: float = Field(
         description="Minimum cosine similarity for the nearest-embedding label fallback."
     )
 
 
 class ClassifyConfig(_Strict):
-    room_categories_file: str = Field(description="Room-category pool, relative to configs/.")
+    room_categories_file: str = Field(description="Room-category pool, relative to bimfactor/configs/.")
     min_objects: int = Field(ge=0, description="Rooms with fewer labelled objects are typed 'unknown'.")
     hallway_min_doors: int = Field(
         ge=0, description="A room with no labelled objects but doors to at least this many places is a hallway; 0: off."
@@ -107,7 +112,7 @@ class EmbedConfig(_Strict):
 
 
 class SimPerceptionErrors(_Strict):
-    """One named error preset of the simulated perception backend (configs/perception_sim.yaml)."""
+    """One named error preset of the simulated perception backend (bimfactor/configs/perception_sim.yaml)."""
 
     range_half_m: float = Field(gt=0.0, description="Distance at which the detection quality falls to one half.")
     range_width_m: float = Field(gt=0.0, description="Width of that logistic fall-off with distance.")
@@ -192,7 +197,7 @@ class PerceptionConfig(_Strict):
     )
     device: str = Field(description="torch device of the vlm backend ('cpu', 'cuda', 'cuda:1').")
     sim_preset: str = Field(description="Error preset of the sim backend: a name in `sim_presets_file`.")
-    sim_presets_file: str = Field(description="Table of sim error presets, relative to configs/.")
+    sim_presets_file: str = Field(description="Table of sim error presets, relative to bimfactor/configs/.")
     vlm: VlmConfig
     box_threshold: float = Field(ge=0.0, le=1.0, description="Detector box score threshold (paper: 0.25).")
     text_threshold: float = Field(ge=0.0, le=1.0, description="Detector text score threshold (paper: 0.25).")
@@ -817,7 +822,7 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         kind = _yaml_kind(data)
         raise ConfigError(
-            f"{path}: top level must be a mapping of config keys (as in configs/default.yaml), not a {kind}"
+            f"{path}: top level must be a mapping of config keys (as in bimfactor/configs/default.yaml), not a {kind}"
         )
     return data
 
@@ -889,16 +894,21 @@ def _first_error(exc: ValidationError) -> str:
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
-    """Load `configs/default.yaml`, then a preset or user file on top, then `key=value` overrides.
+    """Load `bimfactor/configs/default.yaml`, then a preset or user file on top, then `key=value` overrides.
 
-    A preset can be named by file path or by its name in `configs/` (e.g. "fast"). A configuration whose particle
-    sets cannot fit in the memory available now is refused (`resources.check_particle_memory`).
+    A preset can be named by file path or by its name in `bimfactor/configs/` (`PRESETS`: "paper", "default",
+    "fast"). A configuration whose particle sets cannot fit in the memory available now is refused
+    (`resources.check_particle_memory`).
     """
     data = _read_yaml(DEFAULT_CONFIG)
     if path is not None:
         candidate = Path(path)
         if not candidate.exists() and not candidate.suffix:
             candidate = CONFIG_DIR / f"{path}.yaml"
+            if not candidate.is_file():
+                raise ConfigError(
+                    f"config file not found: {path} (no such file, and the presets are {', '.join(PRESETS)})"
+                )
         data = _merge(data, _read_yaml(candidate))
     for assignment in overrides:
         _apply_override(data, assignment)
@@ -911,7 +921,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
 
 
 def config_file(name: str) -> Path:
-    """Path of a data table shipped in configs/ (vocabulary, room categories)."""
+    """Path of a data table shipped in bimfactor/configs/ (vocabulary, room categories)."""
     path = CONFIG_DIR / name
     if not path.is_file():
         raise ConfigError(f"config table not found: {path}")

@@ -60,11 +60,12 @@ def _synth(ctx: DemoContext) -> str:
 
 def _prior(ctx: DemoContext) -> str:
     from bimfactor.bim.prior import build_prior
+    from bimfactor.evaluation.plots import save_floorplans
 
     assert ctx.ifc_path is not None, "the prior step needs the synth step's IFC"
     ctx.prior_dir = ctx.out_dir / "prior"
     ctx.prior = build_prior(ctx.ifc_path, ctx.cfg)
-    ctx.prior.save(ctx.prior_dir, config_yaml=ctx.cfg.dump_yaml())
+    ctx.prior.save(ctx.prior_dir, config_yaml=ctx.cfg.dump_yaml(), extra_files=save_floorplans)
     ctx.figures.extend(sorted(ctx.prior_dir.glob("floorplan_*.png")))
     summary = ctx.prior.summary()
     return (

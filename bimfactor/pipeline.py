@@ -61,7 +61,6 @@ from bimfactor.io.sequence import Sequence as SequenceFolder
 from bimfactor.localization.field import ScanLikelihood, frame_endpoints
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.modes import extract_modes
-from bimfactor.localization.motion import odometry_increment
 from bimfactor.localization.smcl import (
     SemanticMCL,
     StepResult,
@@ -70,6 +69,7 @@ from bimfactor.localization.smcl import (
     near_pose,
     weighted_geometric_median,
 )
+from bimfactor.odometry import odometry_increment
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
 from bimfactor.registration.correlative import CorrelativeMatcher

@@ -69,7 +69,7 @@ def test_every_config_model_refuses_inf_and_nan() -> None:
 
 
 def test_shipped_configs_are_finite_and_fit(config_overrides: list[str]) -> None:
-    """The default, every config preset in configs/ and every sim perception preset validate under the rule."""
+    """The default, every preset in bimfactor/configs/ and every sim perception preset validate under the rule."""
     load_config(None, config_overrides)
     for path in sorted(CONFIG_DIR.glob("*.yaml")):
         data = yaml.safe_load(path.read_text())

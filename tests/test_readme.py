@@ -12,7 +12,7 @@ import pytest
 
 from bimfactor.errors import ConfigError, DependencyError
 from bimfactor.io.sequence import write_sequence
-from bimfactor.localization.motion import keyframe_indices
+from bimfactor.odometry import keyframe_indices
 from bimfactor.sim.simulate import simulate_sequence
 from tests.sim import conftest as sim_fixtures
 from tests.sim.conftest import Building

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib.util
+import json
+import re
 import sys
 from pathlib import Path
 
@@ -65,3 +67,114 @@ def test_text_reader_calibration_fits_the_sim_readers_rates() -> None:
     chance = fit["read_probability"], fit["read_char_px"], fit["read_char_scale_px"]
     assert fit["read_probability"] > 0.95 and 3.0 < fit["read_char_px"] < 15.0
     assert read_probability(15.0, *chance) > 0.9 and read_probability(3.0, *chance) < 0.1
+
+
+def _bench_paper_report(trans: float, *, variants: tuple[str, ...] = ("smcl", "smcl+graph")) -> dict:
+    """A results.json of `bimfactor bench paper` cut down to what the renderer reads: two routes of one repeat."""
+
+    def cell(t: float, runs: int) -> dict:
+        return {
+            "trans_err_m": t,
+            "trans_err_std_m": t / 2,
+            "orient_err_deg": 10 * t,
+            "orient_err_std_deg": 5 * t,
+            "room_acc": 0.95,
+            "room_acc_std": 0.2,
+            "step_ms_median": 4.6,
+            "steps_to_converge": [3] * runs,
+            "scored_from_steps": [4, 7][:runs],
+            "converged_runs": runs,
+            "runs": runs,
+            "relocalized_runs": 0,
+            "challenged_runs": 0,
+            "trans_err_conv_m": t / 4,
+            "orient_err_conv_deg": t,
+            "trans_err_conv_run_mean_m": t / 4,
+            "ellipse_coverage": 0.97,
+            "from_start": {
+                "trans_err_m": 3 * t,
+                "trans_err_std_m": t,
+                "orient_err_deg": 30 * t,
+                "orient_err_std_deg": t,
+                "room_acc": 0.9,
+            },
+        }
+
+    report: dict = {
+        "benchmark": "paper",
+        "created_utc": "2025-01-01T00:00:00+00:00",
+        "prior": "runs/bench-paper/prior",
+        "protocol": {
+            "trajectories": 2,
+            "steps": 50,
+            "repeats": 1,
+            "score_from": "filter_converged",
+            "warmup_max_steps": 30,
+            "scenario": "global",
+        },
+        "variants": list(variants),
+        "storeys": 1,
+        "twins": {},
+    }
+    for i, variant in enumerate(variants):
+        t = trans / (i + 1)
+        average = {
+            **cell(t, 2),
+            "trans_err_ci95_m": [t / 2, 2 * t],
+            "orient_err_ci95_deg": [1.0, 9.0],
+            "room_acc_ci95": [0.9, 1.0],
+        }
+        report[variant] = {"average": average, "per_trajectory": {"0": cell(t, 1), "1": cell(t, 1)}}
+    return report
+
+
+def test_render_results_writes_table_one_into_the_readme_and_the_full_tables_into_a_page(tmp_path: Path) -> None:
+    render = _load("render_results")
+    results = tmp_path / "docs/results"
+    results.mkdir(parents=True)
+    (results / "paper-floor-seed0-default.json").write_text(json.dumps(_bench_paper_report(0.3)))
+    (results / "paper-floor-seed1-default.json").write_text(json.dumps(_bench_paper_report(0.5)))
+    readme, page = tmp_path / "README.md", tmp_path / "docs/results.md"
+    readme.write_text("# x\n\nbefore\n<!-- results:begin -->\nold table\n<!-- results:end -->\nafter\n")
+    args = ["--results", str(results), "--readme", str(readme), "--page", str(page)]
+
+    assert render.main(args) == 0
+    text = readme.read_text()
+    assert text.startswith("# x\n\nbefore\n<!-- results:begin -->\n") and text.endswith("<!-- results:end -->\nafter\n")
+    assert "old table" not in text
+    assert (
+        "| Variant | [seed 0, default](docs/results/paper-floor-seed0-default.json) "
+        "| [seed 1, default](docs/results/paper-floor-seed1-default.json) |" in text
+    )
+    assert "| smcl | 0.30 m / 3.0° / 95.0 % | 0.50 m / 5.0° / 95.0 % |" in text
+    assert "| smcl+graph | 0.15 m / 1.5° / 95.0 % | 0.25 m / 2.5° / 95.0 % |" in text
+    # The command that regenerates each file: the default preset needs no -c, seed 1 its --set, 2 x 1 runs theirs.
+    seed1 = re.search(r"- seed 1, default \(2 runs, .*\): `(.*)`", text)[1]
+    assert seed1.startswith(".venv/bin/bimfactor bench paper --set seed=1 --set evaluation.num_trajectories=2")
+    assert "-c " not in seed1 and "--variant smcl --variant smcl+graph" in seed1
+    assert seed1.endswith(
+        "-o runs/paper-floor-seed1-default && cp runs/paper-floor-seed1-default/results.json "
+        "docs/results/paper-floor-seed1-default.json"
+    )
+
+    full = page.read_text()
+    row = "| [seed 0, default](results/paper-floor-seed0-default.json) | smcl | 0.30 [0.15–0.60] | 3.0 [1.0–9.0] "
+    assert row in full
+    assert "| 0.075 m / 0.30° | 2 / 2 | 97 % | 0.90 m / 9.0° / 90.0 % |" in full
+    assert "| 2 | 0.30 ± 0.15 | 3.0 ± 1.5 | 95.0 ± 20.0 | 1 / 1 | 0.075 m / 0.30° | 97 % |" in full
+    assert "- the same runs from their first frame (the uniform cloud included): 0.90 m / 9.0° / 90.0 %" in full
+    assert "- scored from the step the filter first reported itself converged: median step 5.5 (range 4–7)" in full
+
+    # Rendering again changes nothing; --check agrees.
+    before = readme.read_text(), page.read_text()
+    assert render.main(args) == 0 and (readme.read_text(), page.read_text()) == before
+    assert render.main([*args, "--check"]) == 0
+
+    # A run of the paper preset gets its own column beside the default one, with -c in its command.
+    (results / "paper-floor-seed0-paper.json").write_text(json.dumps(_bench_paper_report(0.7, variants=("smcl",))))
+    assert render.main([*args, "--check"]) == 1
+    render.main(args)
+    text = readme.read_text()
+    assert re.search(r"\| Variant \| \[seed 0, default\]\(.*\) \| \[seed 0, paper\]\(.*\) \| \[seed 1, default\]", text)
+    assert "| smcl+graph | 0.15 m / 1.5° / 95.0 % | – | 0.25 m / 2.5° / 95.0 % |" in text
+    assert "bimfactor bench paper -c paper " in text

@@ -7,7 +7,6 @@ from bimfactor.backend.posegraph import (
     ModeGraph,
     MultiHypothesisBackend,
     batch_refine,
-    benchmark_backend,
     semantic_associator,
 )
 
@@ -18,6 +17,5 @@ __all__ = [
     "ModeGraph",
     "MultiHypothesisBackend",
     "batch_refine",
-    "benchmark_backend",
     "semantic_associator",
 ]

@@ -19,7 +19,7 @@ from gtsam.symbol_shorthand import L, X
 
 from bimfactor.bim.plates import PLATE_REACH_M, door_plates
 from bimfactor.config import BackendConfig
-from bimfactor.localization.motion import odometry_covariance
+from bimfactor.odometry import odometry_covariance
 from bimfactor.types import Observations
 
 __all__ = [
@@ -104,7 +104,7 @@ def covariance_body_to_world(covariance: np.ndarray, yaw: float) -> np.ndarray:
 
 def odometry_noise_covariance(increment: np.ndarray, cfg: BackendConfig) -> np.ndarray:
     """(3, 3) covariance of one (3,) robot-frame odometry increment: the odometry motion model's (α1..α4 =
-    `odom_alpha`, `localization.motion.odometry_covariance`) plus a diagonal floor."""
+    `odom_alpha`, `odometry.odometry_covariance`) plus a diagonal floor."""
     floor = np.array([cfg.odom_sigma_trans_m, cfg.odom_sigma_trans_m, np.deg2rad(cfg.odom_sigma_rot_deg)]) ** 2
     return odometry_covariance(increment, cfg.odom_alpha) + np.diag(floor)
 

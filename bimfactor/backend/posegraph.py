@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import statistics
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -697,60 +696,6 @@ def _pose_covariances(marginals: gtsam.Marginals, poses: np.ndarray) -> np.ndarr
     return np.array(
         [covariance_body_to_world(marginals.marginalCovariance(X(t)), float(p[2])) for t, p in enumerate(poses)]
     )
-
-
-# ------------------------------------------------------------------------------------------ benchmark
-
-
-def benchmark_backend(
-    cfg: BackendConfig,
-    n_modes: int = 5,
-    n_keyframes: int = 60,
-    n_landmarks: int = 12,
-    n_obs: int = 6,
-    seed: int = 0,
-) -> dict[str, Any]:
-    """Median ms of `MultiHypothesisBackend.step` (all modes' ISAM2 updates) per keyframe on a synthetic loop.
-
-    A symmetric building: `n_modes` copies of the loop world 100 m apart, one mode in each, every mode matching
-    `n_obs` landmarks per keyframe in its own copy, so all modes stay alive (none is pruned or merged).
-    """
-    from bimfactor.backend.synthetic import loop_scenario
-
-    rng = np.random.default_rng(seed)
-    scenario = loop_scenario(rng, cfg, n_poses=n_keyframes, n_landmarks=n_landmarks, n_obs=n_obs)
-    spacing_m = 100.0
-    offsets = [np.array([spacing_m * k, 0.0]) for k in range(n_modes)]
-    landmark_xy = np.concatenate([scenario.landmark_xy + off for off in offsets])
-    backend = MultiHypothesisBackend(landmark_xy, cfg)
-    per_step, per_graph = [], []
-    for t in range(n_keyframes):
-        clusters = [
-            Mode(scenario.true_poses[t] + np.append(off, 0.0), np.diag([0.01, 0.01, 0.001]), 1.0 / n_modes)
-            for off in offsets
-        ]
-        assoc = scenario.associations[t]
-
-        def associate(pose: np.ndarray, storey: int, assoc: list[tuple[int, int]] = assoc) -> list[tuple[int, int]]:
-            copy = int(np.floor(pose[0] / spacing_m + 0.5))
-            return [(k, j + copy * n_landmarks) for k, j in assoc]
-
-        increment = None if t == 0 else scenario.increments[t - 1]
-        step = backend.step(clusters, increment, scenario.observations[t], associate)
-        assert step is not None, "every keyframe brings a cluster per copy of the world"
-        per_step.append(step.timings_ms["total"])
-        per_graph.append(step.timings_ms["graphs"])
-    row = {
-        "n_modes": n_modes,
-        "n_keyframes": n_keyframes,
-        "n_obs": n_obs,
-        "step_ms_median": statistics.median(per_step[1:]),
-        "step_ms_p90": float(np.percentile(per_step[1:], 90)),
-        "graphs_ms_median": statistics.median(per_graph[1:]),
-        "modes_alive_end": len(backend.graphs),
-    }
-    log.info("back end, %d modes: %.2f ms median per keyframe", n_modes, row["step_ms_median"])
-    return row
 
 
 def _log_restart(mode_id: int, keyframe: int, error: RuntimeError, how: str) -> None:

@@ -2,9 +2,9 @@
 
 The object labels inside a room are joined into one sentence ("sink, toilet, bathtub"), encoded with a
 sentence encoder, and matched by cosine similarity against a pool of room-category embeddings; the best
-match is the room's type. The pool lives in `configs/room_categories.yaml`.
+match is the room's type. The pool lives in `bimfactor/configs/room_categories.yaml`.
 
-`configs/room_names_eval.yaml` maps architects' room names to the same categories. It is for evaluation
+`bimfactor/configs/room_names_eval.yaml` maps architects' room names to the same categories. It is for evaluation
 only (scoring the classifier on real IFC models); the classifier never reads room names.
 """
 
@@ -113,7 +113,7 @@ class RoomCategoryPool:
 
     @classmethod
     def load(cls, path: str | Path, embedder: TextEmbedder) -> RoomCategoryPool:
-        """Read the pool file (format: the header of `configs/room_categories.yaml`) and embed its prompts."""
+        """Read the pool file (format: the header of `bimfactor/configs/room_categories.yaml`) and embed its prompts."""
         path = Path(path)
         data = _read_yaml_mapping(path)
         categories = data.get("categories")
@@ -145,7 +145,7 @@ class RoomCategoryPool:
 
 
 def load_room_category_pool(cfg: ClassifyConfig, embedder: TextEmbedder) -> RoomCategoryPool:
-    """The pool that `bim.classify.room_categories_file` names (relative to configs/)."""
+    """The pool that `bim.classify.room_categories_file` names (relative to bimfactor/configs/)."""
     return RoomCategoryPool.load(config_file(cfg.room_categories_file), embedder)
 
 
@@ -225,7 +225,7 @@ class RoomNameTable:
 
 
 def load_room_name_table(path: str | Path | None = None) -> RoomNameTable:
-    """Read the evaluation table of room names (default `configs/room_names_eval.yaml`)."""
+    """Read the evaluation table of room names (default `bimfactor/configs/room_names_eval.yaml`)."""
     path = Path(path) if path is not None else config_file(ROOM_NAMES_EVAL_FILE)
     return _load_room_name_table(path.resolve())
 

@@ -7,6 +7,9 @@ keep it on disk in a versioned folder format (see `PRIOR_FORMAT`):
     arrays.npz   grid layers per storey (structure, furniture, clearance_m, room_labels, navigable),
                  the object text embeddings (N, D) float32, and the visible-object table (visibility_*)
     config.yaml  the resolved configuration that built it
+
+and whatever else the caller of `save` writes into the folder (`extra_files`: the CLI, the demo and the benchmarks
+add `evaluation.plots.save_floorplans`'s floorplan_<storey>.png).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import logging
 import time
 import typing
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -34,9 +38,9 @@ from bimfactor.config import Config, config_file
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
 from bimfactor.errors import FormatError, IfcError, InputError
 from bimfactor.io.atomic import check_output_dir, output_dir
-from bimfactor.io.text import read_utf8
 from bimfactor.progress import progress
 from bimfactor.resources import check_grid_memory
+from bimfactor.textfile import read_utf8
 
 log = logging.getLogger(__name__)
 
@@ -213,11 +217,17 @@ class BimPrior:
 
     # -------------------------------------------------------------------------------- disk
 
-    def save(self, out_dir: str | Path, config_yaml: str = "") -> None:
+    def save(
+        self,
+        out_dir: str | Path,
+        config_yaml: str = "",
+        extra_files: Callable[[BimPrior, Path], object] | None = None,
+    ) -> None:
         """Write the prior folder atomically (a half-written prior never appears under `out_dir`).
 
         Only a prior folder that bimfactor wrote is replaced, and never the folder holding the source IFC
-        (`io.atomic.output_dir`); anything else raises InputError and is left untouched.
+        (`io.atomic.output_dir`); anything else raises InputError and is left untouched. `extra_files(prior,
+        folder)` writes more files into the folder before it appears (e.g. `evaluation.plots.save_floorplans`).
         """
         meta = {
             "format": PRIOR_FORMAT,
@@ -247,7 +257,8 @@ class BimPrior:
             np.savez_compressed(tmp / "arrays.npz", **arrays)
             if config_yaml:
                 (tmp / "config.yaml").write_text(config_yaml)
-            _save_extra_files(self, tmp)
+            if extra_files is not None:
+                extra_files(self, tmp)
 
     @classmethod
     def load(cls, prior_dir: str | Path) -> BimPrior:
@@ -326,12 +337,6 @@ class BimPrior:
 def ensure_prior_destination(out_dir: str | Path, ifc_path: str | Path) -> None:
     """Raise InputError unless `BimPrior.save` of `ifc_path`'s prior may write `out_dir` (checked before building)."""
     check_output_dir(out_dir, "prior", inputs=[ifc_path])
-
-
-def _save_extra_files(prior: BimPrior, folder: Path) -> None:
-    from bimfactor.evaluation.plots import save_floorplans
-
-    save_floorplans(prior, folder)
 
 
 # ------------------------------------------------------------------------------------------------ build

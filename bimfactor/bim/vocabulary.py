@@ -1,6 +1,6 @@
 """Open-vocabulary labels for BIM objects, from the texts an IFC element carries.
 
-The rule table lives in `configs/vocabulary.yaml` (English and German names, IFC predefined types).
+The rule table lives in `bimfactor/configs/vocabulary.yaml` (English and German names, IFC predefined types).
 Resolution order: rules on name / type name / object type / predefined type, then the label shared by
 the element's type siblings, then the nearest vocabulary label by text embedding, then the IFC class.
 """

@@ -116,6 +116,7 @@ def run_prior_bench(
     """
     from bimfactor.bim.prior import BimPrior, build_prior
     from bimfactor.embed.text import make_text_embedder
+    from bimfactor.evaluation.plots import save_floorplans
     from bimfactor.evaluation.rooms import ifcspace_matched_share, room_type_accuracy
 
     out_dir = Path(out_dir)
@@ -139,7 +140,7 @@ def run_prior_bench(
             cold_build_s = time.perf_counter() - started
         prior_dir = out_dir / "priors" / path.stem
         started = time.perf_counter()
-        prior.save(prior_dir, config_yaml=cfg.dump_yaml())
+        prior.save(prior_dir, config_yaml=cfg.dump_yaml(), extra_files=save_floorplans)
         save_s = time.perf_counter() - started
         reload_runs = []
         for _ in range(reload_repeats):
@@ -224,7 +225,7 @@ def run_sim_bench(ifc_paths: list[Path], cfg: Config, out_dir: str | Path, n_fra
     """Render speed of the simulator (RGB, depth, instance ids, noise) per building; writes OUT/results.json."""
     from bimfactor.bim.ifc import load_ifc
     from bimfactor.bim.prior import build_prior
-    from bimfactor.sim.simulate import benchmark_render
+    from bimfactor.evaluation.speed import benchmark_render
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -3,7 +3,7 @@
 `write_sequence` writes it (atomically: the folder appears under its name only when complete),
 `read_sequence` opens it as a `Sequence` whose images load on access; `Sequence.from_frames` wraps frames
 already in memory (e.g. the simulator's) in the same interface. The TUM RGB-D and ROS 2 bag readers
-(`bimfactor.io.tum`, `bimfactor.io.rosbag`) return the same `Sequence` interface.
+(`bimfactor.io.tum_rgbd`, `bimfactor.io.rosbag`) return the same `Sequence` interface.
 
 On-disk format, version 1
 -------------------------

@@ -2,7 +2,7 @@
 
 from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.modes import Mode, ModeTracker, TrackedMode, extract_modes
-from bimfactor.localization.smcl import PoseEstimate, SemanticMCL, StepResult, benchmark_step
+from bimfactor.localization.smcl import PoseEstimate, SemanticMCL, StepResult
 
 __all__ = [
     "Mode",
@@ -12,6 +12,5 @@ __all__ = [
     "SemanticMCL",
     "StepResult",
     "TrackedMode",
-    "benchmark_step",
     "extract_modes",
 ]

@@ -20,8 +20,26 @@ from scipy import ndimage
 
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import Config, SmclConfig
-from bimfactor.registration.scan import backproject_depth, height_band
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
+
+
+def backproject_depth(
+    depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, max_range_m: float = np.inf
+) -> np.ndarray:
+    """(H, W) depth (NaN: no return) → (N, 3) points in the base frame; depth is the camera z (OpenCV)."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    v, u = np.nonzero(np.isfinite(depth) & (depth > 0) & (depth <= max_range_m))
+    z = depth[v, u]
+    x = (u - intrinsics.cx) / intrinsics.fx * z
+    y = (v - intrinsics.cy) / intrinsics.fy * z
+    points_camera = np.column_stack([x, y, z])
+    return points_camera @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
+
+
+def height_band(points: np.ndarray, min_z_m: float, max_z_m: float) -> np.ndarray:
+    """The (N, 3) base-frame points whose height above the floor lies in [min_z_m, max_z_m]."""
+    keep = (points[:, 2] >= min_z_m) & (points[:, 2] <= max_z_m)
+    return points[keep]
 
 
 def scan_endpoints(

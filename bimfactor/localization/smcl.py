@@ -32,11 +32,9 @@ particles (`Challenger`).
 from __future__ import annotations
 
 import logging
-import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
@@ -45,7 +43,7 @@ from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import SmclConfig
 from bimfactor.errors import InputError
 from bimfactor.localization.field import ScanLikelihood
-from bimfactor.localization.likelihood import SemanticLikelihood, polar_coordinates
+from bimfactor.localization.likelihood import SemanticLikelihood
 from bimfactor.localization.motion import propagate
 from bimfactor.types import Observations, TextObservations, wrap_angle
 
@@ -861,94 +859,3 @@ class SemanticMCL:
     def _require_initialized(self) -> None:
         if not self._initialized:
             raise RuntimeError("SemanticMCL.initialize() must run before the filter is used")
-
-
-# ------------------------------------------------------------------------------------------ benchmark
-
-
-def _benchmark_observations(
-    prior: BimPrior, visibility: VisibilityTable, cfg: SmclConfig, n_obs: int, rng: np.random.Generator
-) -> tuple[Observations, np.ndarray, int]:
-    """n_obs observations at a navigable pose that sees many objects: the objects in its view, then others.
-
-    Returns the observations, the (3,) pose and its storey. Embeddings are the BIM label embeddings plus noise.
-    """
-    sampler = SemanticMCL(prior, visibility, cfg, rng, num_particles=1)
-    poses, storeys = sampler.sample_free_space(400)
-    scorer = sampler.likelihood
-    offsets, ids = visibility.candidates(poses[:, :2], storeys)
-    owner = np.repeat(np.arange(len(poses)), np.diff(offsets))
-    d, alpha = polar_coordinates(poses[owner], scorer.object_xy[ids])
-    in_view = (d <= scorer.radius_m) & (np.abs(alpha) <= scorer.half_fov_rad)
-    best = int(np.argmax(np.bincount(owner[in_view], minlength=len(poses))))
-    pick = in_view & (owner == best)
-    seen_ids, ranges, bearings = ids[pick][:n_obs], d[pick][:n_obs], alpha[pick][:n_obs]
-    extra = n_obs - len(seen_ids)
-    if extra > 0:  # distractors: random BIM objects at random places in the view
-        seen_ids = np.concatenate([seen_ids, rng.integers(0, len(prior.objects), extra)])
-        ranges = np.concatenate([ranges, rng.uniform(0.5, scorer.radius_m, extra)])
-        bearings = np.concatenate([bearings, rng.uniform(-scorer.half_fov_rad, scorer.half_fov_rad, extra)])
-    noise = 0.02 * rng.standard_normal((n_obs, prior.object_embeddings.shape[1]))
-    embeddings = prior.object_embeddings[seen_ids] + noise
-    embeddings /= np.linalg.norm(embeddings, axis=1, keepdims=True)
-    observations = Observations(
-        embeddings.astype(np.float32),
-        ranges + 0.1 * rng.standard_normal(n_obs),
-        wrap_angle(bearings + np.deg2rad(3.0) * rng.standard_normal(n_obs)),
-        labels=[prior.objects[i].label for i in seen_ids],
-    )
-    return observations, poses[best], int(storeys[best])
-
-
-def benchmark_step(
-    prior: BimPrior,
-    visibility: VisibilityTable,
-    cfg: SmclConfig,
-    n_particles_list: tuple[int, ...] = (100, 1000, 5000, 20000),
-    n_obs: int = 12,
-    repeats: int = 20,
-    seed: int = 0,
-) -> list[dict[str, Any]]:
-    """Median milliseconds of predict + update + resample per particle count, from a uniform (global) start.
-
-    Every repeat starts from freshly spread particles (not timed), the hardest case: particles everywhere, every
-    candidate list different. The observations are `n_obs` objects seen from one pose (padded with distractors);
-    with `scan_likelihood`, the update also scores a scan of one endpoint per `scan_beam_deg` of the view.
-    `*_ms_*` are wall-clock; `total_cpu_ms_median` is this thread's CPU time (robust to a busy machine).
-    """
-    rng = np.random.default_rng(seed)
-    observations, _, _ = _benchmark_observations(prior, visibility, cfg, n_obs, rng)
-    # With the scan term: one endpoint per bearing bin of the view (timing does not depend on where they land).
-    n_beams = int(np.ceil(cfg.fov_deg / cfg.scan_beam_deg)) if cfg.scan_likelihood else 0
-    bearings = np.linspace(-0.5, 0.5, n_beams) * np.deg2rad(cfg.fov_deg)
-    ranges = rng.uniform(0.5, cfg.scan_max_range_m, n_beams)
-    scan = np.column_stack([ranges * np.cos(bearings), ranges * np.sin(bearings)])
-    increment = np.array([0.5, 0.0, np.deg2rad(5.0)])
-    rows = []
-    for M in n_particles_list:
-        mcl = SemanticMCL(prior, visibility, cfg, np.random.default_rng(seed + M), num_particles=M)
-        parts: dict[str, list[float]] = {"predict": [], "update": [], "resample": [], "total": [], "total_cpu": []}
-        calls, resampled = [], 0
-        for _ in range(repeats + 1):  # the first round warms caches and is dropped
-            mcl.initialize()
-            cpu0, t0 = time.thread_time(), time.perf_counter()
-            mcl.predict(increment)
-            t1 = time.perf_counter()
-            mcl.update(observations, scan)
-            t2 = time.perf_counter()
-            did, _ = mcl.resample_if_needed()
-            t3, cpu3 = time.perf_counter(), time.thread_time()
-            for name, value in (("predict", t1 - t0), ("update", t2 - t1), ("resample", t3 - t2), ("total", t3 - t0)):
-                parts[name].append(value * 1e3)
-            parts["total_cpu"].append((cpu3 - cpu0) * 1e3)
-            calls.append(mcl.likelihood.last_stats.hungarian_calls)
-            resampled += int(did)
-        row: dict[str, Any] = {"n_particles": M, "n_obs": len(observations), "n_scan": n_beams, "repeats": repeats}
-        for name, values in parts.items():
-            row[f"{name}_ms_median"] = statistics.median(values[1:])
-        row["total_ms_p90"] = float(np.percentile(parts["total"][1:], 90))
-        row["hungarian_calls_median"] = statistics.median(calls[1:])
-        row["resampled_share"] = resampled / (repeats + 1)
-        rows.append(row)
-        log.info("S-MCL step, M=%d, K=%d: %.2f ms median", M, len(observations), row["total_ms_median"])
-    return rows

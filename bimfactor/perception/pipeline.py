@@ -30,7 +30,7 @@ DETECTOR_STREAM, SEGMENTER_STREAM, EMBEDDER_STREAM, READER_STREAM = 0xDE7, 0x5E6
 
 
 def household_vocabulary(cfg: Config) -> list[str]:
-    """The open-vocabulary detector's classes: every label of configs/vocabulary.yaml's rules, in table order."""
+    """The open-vocabulary detector's classes: the labels of bimfactor/configs/vocabulary.yaml, in table order."""
     return Vocabulary.load(config_file(cfg.bim.objects.vocabulary_file)).labels
 
 

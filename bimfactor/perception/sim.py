@@ -2,7 +2,7 @@
 
 The simulator renders, per pixel, which instance the ray hit (`Frame.instance_ids`, `SequenceMeta.instances`).
 This backend turns that ground truth into what a YOLO-World + SAM + CLIP front end would report, with errors
-drawn from a named preset (`configs/perception_sim.yaml`, chosen by `perception.sim_preset`):
+drawn from a named preset (`bimfactor/configs/perception_sim.yaml`, chosen by `perception.sim_preset`):
 
 Detection (SimDetector). Each BIM object (and as-built clutter) instance in view gets a quality
     q = σ((range_half − d)/range_width) · σ((v − visible_half)/visible_width) · σ((ln A − ln area_half)/width)
@@ -41,7 +41,7 @@ furniture tour): recall of objects within 6 m (≥ 50 pixels) 0.65 / 0.75, poole
 0.18; false positives 0.29 / 0.31 per frame; crop-to-text cosines in `MEASURED_PAPER` (d' ≈ 3.2); crop-to-crop
 0.90 same object, 0.79 same class, 0.58 other class. `clean`: recall 1.0, no confusion or false positive,
 d' ≈ 6; `harsh`: recall 0.54, confusion 0.38, 0.68 false positives per frame, d' ≈ 1.9 (duplex). Reproduce
-with `bimfactor.perception.evaluate.sim_detector_statistics` (`python -m bimfactor.perception.evaluate`).
+with `bimfactor.evaluation.graph.sim_detector_statistics` (`bimfactor bench graph`).
 In CLIP-like terms the `paper` preset wants a matched crop to score above an unmatched one by ~3 σ; the
 localizer's `smcl.semantic_threshold` must then sit between the two means (≈ 0.08), not at MiniLM
 text-to-text values such as 0.7.
@@ -78,7 +78,7 @@ OCCLUSION_MARGIN_REL = 0.03
 _APPEARANCE_STREAM, _CLASS_STREAM, _MODALITY_STREAM = 0xA99, 0xC1A, 0x30D
 
 # Crop-to-text cosines of the `paper` preset with MiniLM against the 28 vocabulary labels, measured by
-# `bimfactor.perception.evaluate.sim_detector_statistics` on the duplex's six standard trajectories and a
+# `bimfactor.evaluation.graph.sim_detector_statistics` on the duplex's six standard trajectories and a
 # 100-frame paper-floor furniture tour (677 true detections; the standard paper-floor trajectories come
 # within 6 m of only 2 objects). d' = (0.116 − 0.039) / 0.0245 ≈ 3.2 (2.8 on the tour, 3.4 on the duplex).
 MEASURED_PAPER: dict[str, float] = {
@@ -91,7 +91,7 @@ MEASURED_PAPER: dict[str, float] = {
 
 
 def load_sim_errors(cfg: PerceptionConfig, preset: str | None = None) -> SimPerceptionErrors:
-    """The error preset `preset` (default `cfg.sim_preset`) from `cfg.sim_presets_file` in configs/."""
+    """The error preset `preset` (default `cfg.sim_preset`) from `cfg.sim_presets_file` in bimfactor/configs/."""
     name = preset if preset is not None else cfg.sim_preset
     path = Path(cfg.sim_presets_file)
     path = path if path.is_absolute() else config_file(cfg.sim_presets_file)

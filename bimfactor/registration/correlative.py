@@ -40,24 +40,17 @@ has), or when the best coarse pose still lies on the window's edge after the las
 
 from __future__ import annotations
 
-import re
-import time
-from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from bimfactor.backend.factors import covariance_world_to_body
-from bimfactor.bim.ifc import IfcModel
 from bimfactor.bim.prior import BimPrior
-from bimfactor.config import BackendConfig, Config
+from bimfactor.config import BackendConfig
 from bimfactor.localization.field import LikelihoodField, face_distances
-from bimfactor.progress import progress
 from bimfactor.types import wrap_angle
 
-CHI2_3DOF_95 = 7.815
 LAPLACE_DEPTH = 8.0  # the quadratic is fitted to the fine cells within this much log-likelihood of the peak
 
 
@@ -238,56 +231,3 @@ class CorrelativeMatcher:
             covariance += self._coarse_floor
         covariance = covariance + np.diag(np.maximum(np.diag(self._min_cov) - np.diag(covariance), 0.0))
         return ScanMatch(mean, covariance, inliers, True)
-
-
-def benchmark_scan_matching(
-    prior: BimPrior, model: IfcModel, cfg: Config, every: int = 2, trans_m: float = 0.3, rot_deg: float = 5.0
-) -> dict:
-    """Accuracy, covariance honesty and time of `CorrelativeMatcher.match` on simulated keyframes.
-
-    Every `every`-th keyframe of the evaluation's simulated trajectories (the config seed's), matched from its true
-    pose moved `trans_m` in a random direction and turned ±`rot_deg` (the seeded `compare.perturb`). Reports the
-    accepted share and the rejection reasons; over the accepted matches the median and p90 position and yaw errors
-    and the share whose true pose lies inside the 95 % ellipsoid (χ² with 3 DoF); the median and p90 time of all.
-    """
-    from bimfactor.localization.field import frame_endpoints
-    from bimfactor.registration.compare import perturb
-    from bimfactor.sim.simulate import build_world, simulate_sequence
-
-    matcher = CorrelativeMatcher(prior, cfg.backend)
-    world = build_world(prior, model, cfg, cfg.seed)
-    rng = np.random.default_rng([cfg.seed, 0xC5])
-    times, errors_m, errors_deg, inside, reasons = [], [], [], [], Counter()
-    for k in progress(range(cfg.evaluation.num_trajectories), desc="scan matching", unit="trajectory"):
-        sim = simulate_sequence(prior, model, cfg, k, cfg.seed, progress=False, world=world)
-        for frame in sim.frames[::every]:
-            truth = np.asarray(frame.gt_pose, np.float64)
-            start = perturb(truth, trans_m, np.deg2rad(rot_deg), rng)
-            endpoints = frame_endpoints(frame, sim.meta, cfg)
-            clock = time.perf_counter()
-            found = matcher.match(start, frame.gt_storey or 0, endpoints)
-            times.append((time.perf_counter() - clock) * 1000)
-            if not found.accepted:
-                reasons[re.sub(r"^\d+ ", "", found.reason)] += 1  # "7 endpoints on the BIM" → its kind
-                continue
-            delta = found.pose - truth
-            delta[2] = wrap_angle(delta[2])
-            errors_m.append(float(np.hypot(delta[0], delta[1])))
-            errors_deg.append(float(np.rad2deg(abs(delta[2]))))
-            inside.append(float(delta @ np.linalg.solve(found.covariance, delta)) <= CHI2_3DOF_95)
-    n = len(times)
-    return {
-        "building": Path(prior.source_file).name,
-        "keyframes": n,
-        "start_error_m": trans_m,
-        "start_error_deg": rot_deg,
-        "accepted": len(errors_m) / n if n else None,
-        "rejections": dict(reasons.most_common()),
-        "trans_err_median_m": float(np.median(errors_m)) if errors_m else None,
-        "trans_err_p90_m": float(np.percentile(errors_m, 90)) if errors_m else None,
-        "orient_err_median_deg": float(np.median(errors_deg)) if errors_deg else None,
-        "orient_err_p90_deg": float(np.percentile(errors_deg, 90)) if errors_deg else None,
-        "coverage_95": float(np.mean(inside)) if inside else None,
-        "median_ms": float(np.median(times)) if times else None,
-        "p90_ms": float(np.percentile(times, 90)) if times else None,
-    }

@@ -9,23 +9,11 @@ from __future__ import annotations
 import numpy as np
 
 from bimfactor.config import RegistrationConfig
-from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta, se2_between, se2_to_matrix
+from bimfactor.localization.field import backproject_depth, height_band
+from bimfactor.types import Frame, SequenceMeta, se2_between, se2_to_matrix
 
 # A scan with fewer points is not registered (the fine stage) nor used (the comparison's keyframes).
 MIN_SCAN_POINTS = 100
-
-
-def backproject_depth(
-    depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, max_range_m: float = np.inf
-) -> np.ndarray:
-    """(H, W) depth (NaN: no return) → (N, 3) points in the base frame; depth is the camera z (OpenCV)."""
-    depth = np.asarray(depth_m, dtype=np.float64)
-    v, u = np.nonzero(np.isfinite(depth) & (depth > 0) & (depth <= max_range_m))
-    z = depth[v, u]
-    x = (u - intrinsics.cx) / intrinsics.fx * z
-    y = (v - intrinsics.cy) / intrinsics.fy * z
-    points_camera = np.column_stack([x, y, z])
-    return points_camera @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
 
 
 def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -36,12 +24,6 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
         return np.zeros((0, 3))
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64)))
     return np.asarray(cloud.voxel_down_sample(voxel_m).points)
-
-
-def height_band(points: np.ndarray, min_z_m: float, max_z_m: float) -> np.ndarray:
-    """The (N, 3) base-frame points whose height above the floor lies in [min_z_m, max_z_m]."""
-    keep = (points[:, 2] >= min_z_m) & (points[:, 2] <= max_z_m)
-    return points[keep]
 
 
 def frame_scan(frame: Frame, meta: SequenceMeta, cfg: RegistrationConfig, voxel_m: float | None = None) -> np.ndarray:

@@ -14,7 +14,7 @@ import numpy as np
 from scipy import special
 
 from bimfactor.config import CameraSimConfig, DepthNoiseConfig
-from bimfactor.localization.motion import odometry_increment_variances, odometry_increments
+from bimfactor.odometry import odometry_increment_variances, odometry_increments
 from bimfactor.sim.world import SimWorld
 from bimfactor.types import CameraIntrinsics, se2_to_matrix, wrap_angle
 

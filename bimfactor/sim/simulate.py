@@ -1,4 +1,4 @@
-"""Simulate a whole RGB-D + odometry sequence over a BIM prior, and benchmark the renderer.
+"""Simulate a whole RGB-D + odometry sequence over a BIM prior.
 
 `simulate_sequence` is what `bimfactor simulate` runs: it builds the world from the IFC model, drives a
 trajectory, takes odometry between keyframes and renders one RGB-D frame per keyframe. Nothing is written
@@ -8,8 +8,6 @@ to disk here (the sequence format is `bimfactor.io.sequence`'s job).
 from __future__ import annotations
 
 import logging
-import statistics
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -187,36 +185,3 @@ def source_model(prior: BimPrior, cfg: Config, prior_dir: str | Path | None = No
     if file_sha256(path) != prior.source_sha256:
         raise InputError(f"{path} changed since {where} was built from it; rebuild the prior")
     return load_ifc(path, cfg.bim.ifc)
-
-
-def benchmark_render(prior: BimPrior, model: IfcModel, cfg: Config, n_frames: int = 200) -> dict:
-    """Render speed with noise and instance ids at the configured image size, over poses of trajectory 0."""
-    t0 = time.perf_counter()
-    world = build_world(prior, model, cfg, cfg.seed)
-    world_s = time.perf_counter() - t0
-    trajectory = TrajectorySimulator(prior, cfg).trajectory(0, cfg.seed)
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
-    elevation = prior.storeys[trajectory.storey_index].storey.elevation_m
-    poses = trajectory.poses[np.linspace(0, len(trajectory.poses) - 1, n_frames).astype(int)]
-    rng = np.random.default_rng(cfg.seed)
-    camera.render(poses[0], elevation, rng)  # warm-up: the scene's BVH is built on the first query
-    times_ms = []
-    start = time.perf_counter()
-    for pose in progress_bar(poses, desc="rendering", unit="frame"):
-        t = time.perf_counter()
-        camera.render(pose, elevation, rng)
-        times_ms.append((time.perf_counter() - t) * 1000)
-    total = time.perf_counter() - start
-    k = camera.intrinsics
-    return {
-        "building": Path(prior.source_file).name,
-        "width": k.width,
-        "height": k.height,
-        "n_frames": n_frames,
-        "frames_per_s": n_frames / total,
-        "median_ms": statistics.median(times_ms),
-        "p90_ms": float(np.percentile(times_ms, 90)),
-        "instances": len(world.instances),
-        "triangles": sum(len(m.faces) for m in world.meshes),
-        "world_build_s": world_s,
-    }

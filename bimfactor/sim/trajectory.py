@@ -5,7 +5,7 @@ radius) joined through its doorways. Paths are planned by Dijkstra on a coarse g
 block, at the block's cell farthest from obstacles; edges checked at full resolution, cost grown near
 obstacles closer than `inflation_m`), then shortcut at full resolution. A unicycle pure-pursuit controller
 with the robot's speed and turn-rate limits follows them; a keyframe is taken every
-`localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn (`motion.keyframe_due`), and a
+`localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn (`odometry.keyframe_due`), and a
 trajectory has exactly T keyframes: when a goal is reached first, a next goal in another room is chosen.
 
 Routes (`sim.trajectory.route`): `viewpoints` (the default) starts and stops where at least
@@ -32,7 +32,7 @@ from bimfactor.bim.rooms import OUTSIDE
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config, load_config
 from bimfactor.errors import BimfactorError, InputError
-from bimfactor.localization.motion import keyframe_due
+from bimfactor.odometry import keyframe_due
 from bimfactor.types import wrap_angle
 
 log = logging.getLogger(__name__)
@@ -527,7 +527,7 @@ def make_trajectory(
 def standard_trajectories(prior: BimPrior, n: int = 6, seed: int = 0, cfg: Config | None = None) -> list[SimTrajectory]:
     """The n benchmark trajectories of a prior for a seed, with distinct starts (different rooms where possible).
 
-    `cfg` defaults to the default configuration (configs/default.yaml).
+    `cfg` defaults to the default configuration (bimfactor/configs/default.yaml).
     """
     sim = TrajectorySimulator(prior, cfg if cfg is not None else load_config())
     return [sim.trajectory(k, seed) for k in range(n)]

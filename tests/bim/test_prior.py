@@ -10,6 +10,7 @@ import pytest
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.rooms import NO_ROOM, OUTSIDE
 from bimfactor.errors import FormatError, InputError
+from bimfactor.evaluation.plots import save_floorplans
 from bimfactor.evaluation.rooms import ifcspace_matched_share, room_type_accuracy
 
 REAL = ["AC20-FZK-Haus.ifc", "AC11-FZK-Haus-IFC.ifc", "SampleHouse4.ifc", "duplex.ifc", "AC11-Institute-Var-2-IFC.ifc"]
@@ -143,7 +144,7 @@ def test_navigable_space_is_inside_rooms_with_clearance(prior_of) -> None:
 
 def test_save_and_load_round_trip(prior_of, tmp_path) -> None:
     prior = prior_of("duplex.ifc")
-    prior.save(tmp_path / "prior", config_yaml="seed: 0\n")
+    prior.save(tmp_path / "prior", config_yaml="seed: 0\n", extra_files=save_floorplans)
     assert sorted(p.name for p in (tmp_path / "prior").iterdir()) == [
         ".bimfactor.json",
         "arrays.npz",

@@ -184,7 +184,7 @@ def test_localize_refuses_a_bad_camera_in_one_line(sequence: Path, tmp_path: Pat
 
 
 def test_the_tum_and_rosbag_readers_check_a_camera_passed_in(tmp_path: Path, test_config) -> None:
-    from bimfactor.io.tum import read_tum_rgbd
+    from bimfactor.io.tum_rgbd import read_tum_rgbd
     from tests.io.test_tum import H, W, _write_tum_folder
 
     _write_tum_folder(tmp_path / "tum")

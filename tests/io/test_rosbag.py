@@ -27,7 +27,7 @@ N_FRAMES = 5
 
 @pytest.fixture(scope="module")
 def config(test_config: Config) -> RosbagConfig:
-    """The default topics of configs/default.yaml."""
+    """The default topics of bimfactor/configs/default.yaml."""
     return test_config.io.rosbag
 
 

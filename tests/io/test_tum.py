@@ -11,18 +11,12 @@ import pytest
 
 from bimfactor.errors import FormatError, InputError
 from bimfactor.io.sequence import level_camera_mount, read_sequence, write_sequence
-from bimfactor.io.tum import (
-    TUM_ROS_DEFAULT,
-    read_tum_poses,
-    read_tum_rgbd,
-    read_tum_trajectory,
-    tum_default_intrinsics,
-    write_tum_trajectory,
-)
+from bimfactor.io.tum import read_tum_poses, read_tum_trajectory, write_tum_trajectory
+from bimfactor.io.tum_rgbd import TUM_ROS_DEFAULT, read_tum_rgbd, tum_default_intrinsics
 from bimfactor.types import CameraIntrinsics, se2_to_matrix, wrap_angle
 
 W, H = 32, 24
-MAX_DT = 0.02  # configs/default.yaml io.tum_max_sync_dt_s
+MAX_DT = 0.02  # bimfactor/configs/default.yaml io.tum_max_sync_dt_s
 
 
 def test_trajectory_round_trip(tmp_path: Path) -> None:

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bimfactor.localization.motion import (
+from bimfactor.localization.motion import propagate, propagate_velocity, velocity_increment
+from bimfactor.odometry import (
     dense_steps_note,
     keyframe_due,
     keyframe_indices,
@@ -14,9 +15,6 @@ from bimfactor.localization.motion import (
     odometry_increment,
     odometry_increment_variances,
     odometry_increments,
-    propagate,
-    propagate_velocity,
-    velocity_increment,
 )
 
 SIGMA_TRANS_M = 0.2

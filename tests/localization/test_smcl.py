@@ -8,11 +8,11 @@ import pytest
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import SmclConfig
 from bimfactor.errors import InputError
+from bimfactor.evaluation.speed import benchmark_step
 from bimfactor.localization.likelihood import polar_coordinates
 from bimfactor.localization.smcl import (
     SemanticMCL,
     StepResult,
-    benchmark_step,
     circular_mean,
     effective_sample_size,
     kld_particle_count,

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from bimfactor.config import Config
-from bimfactor.perception.evaluate import benchmark_graph_update, evaluate_sequence, labels_match
+from bimfactor.evaluation.graph import benchmark_graph_update, evaluate_sequence, labels_match
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.sim.simulate import SimResult
 
@@ -77,7 +77,7 @@ def test_graph_update_benchmark_reports_medians(test_config: Config, text_embedd
 def test_both_frame_alignments_evaluate(
     alignment: str, test_config: Config, text_embedder, paper_floor, meeting_orbit: SimResult
 ) -> None:
-    from bimfactor.perception.evaluate import GraphEvalParams
+    from bimfactor.evaluation.graph import GraphEvalParams
 
     report = evaluate_sequence(
         meeting_orbit, paper_floor.prior, test_config, text_embedder, params=GraphEvalParams(alignment=alignment)

@@ -7,8 +7,8 @@ import pytest
 
 from bimfactor.config import Config, SimPerceptionErrors
 from bimfactor.errors import ConfigError, InputError
+from bimfactor.evaluation.graph import sim_detector_statistics
 from bimfactor.perception.base import Detector, Embedder, Segmenter
-from bimfactor.perception.evaluate import sim_detector_statistics
 from bimfactor.perception.pipeline import household_vocabulary, make_perception
 from bimfactor.perception.sim import (
     MEASURED_PAPER,

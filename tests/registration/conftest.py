@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from bimfactor.registration.compare import Keyframe, select_keyframes
+from bimfactor.evaluation.registrars import Keyframe, select_keyframes
 from bimfactor.registration.surface import SurfaceModel, build_surface_models
 from tests.sim.conftest import Building, paper_floor, text_embedder  # noqa: F401  (fixtures, re-exported)
 

@@ -10,7 +10,7 @@ import pytest
 
 from bimfactor.backend.factors import X, covariance_body_to_world, information_pose_factor
 from bimfactor.config import Config
-from bimfactor.registration.compare import perturb
+from bimfactor.evaluation.registrars import perturb
 from bimfactor.registration.fine import FineRegistration, factor_information, surface_models_for
 from bimfactor.registration.scan import frame_scan
 from bimfactor.registration.surface import SurfaceModel

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from bimfactor.config import Config
-from bimfactor.registration.scan import backproject_depth, frame_scan, stitch_submap
+from bimfactor.localization.field import backproject_depth
+from bimfactor.registration.scan import frame_scan, stitch_submap
 from bimfactor.sim.sensors import camera_mount
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta, se2_inverse, se2_to_matrix
 

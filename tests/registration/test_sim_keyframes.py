@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bimfactor.registration.compare import (
+from bimfactor.evaluation.registrars import (
     compare_registrars,
     initial_error_sweep,
     make_registrars,

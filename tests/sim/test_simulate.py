@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from bimfactor.errors import InputError
-from bimfactor.sim.simulate import SimResult, benchmark_render, load_world_inputs, simulate_sequence
+from bimfactor.evaluation.speed import benchmark_render
+from bimfactor.sim.simulate import SimResult, load_world_inputs, simulate_sequence
 from bimfactor.types import CameraIntrinsics, se2_between
 
 from .conftest import Building, config_with

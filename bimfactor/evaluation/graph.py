@@ -10,16 +10,15 @@ frame), label accuracy the share of matches with the exact label. Over-segmentat
 the majority of ≥ 2 nodes' voxels; under-segmentation counts nodes with ≥ 20 % of their voxels on each of
 ≥ 2 objects (a voxel belongs to the nearest object box within `box_margin_m`).
 
-Reproduce the reported numbers (paper preset, six standard trajectories each):
-    python -m bimfactor.perception.evaluate --building paper-floor --out runs/perception/paper-floor
-    python -m bimfactor.perception.evaluate --building ../shared/data/ifc/duplex.ifc --out runs/perception/duplex
+Reproduce the reported numbers (paper preset, six standard trajectories each) with `bimfactor bench graph`:
+    bimfactor bench graph --building paper-floor -o runs/perception/paper-floor
+    bimfactor bench graph --building ../shared/data/ifc/duplex.ifc -o runs/perception/duplex
 (`--preset clean|harsh` for the other error presets, `--true-odometry` to take odometry drift out,
 `--tour 12` to orbit each furniture group with 12 frames instead: see `bimfactor.perception.scenes`.)
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import statistics
@@ -33,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from bimfactor.config import Config, load_config
+from bimfactor.config import Config
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
 from bimfactor.io.atomic import write_text_atomic
 from bimfactor.perception.pipeline import Perception, household_vocabulary, make_perception
@@ -494,7 +493,7 @@ def benchmark_graph_update(
     }
 
 
-# ------------------------------------------------------------------------------------------ command line
+# ------------------------------------------------------------------------------------------ one building
 
 
 def _simulate_building(
@@ -519,30 +518,6 @@ def _simulate_building(
         return prior, [furniture_tour(prior, model, cfg, tour, storey, seed)]
     world = build_world(prior, model, cfg, seed)
     return prior, [simulate_sequence(prior, model, cfg, t, seed, progress=False, world=world) for t in range(n)]
-
-
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """`python -m bimfactor.perception.evaluate`: the perception report of one building over its trajectories."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--building", default="paper-floor", help="synth preset name or IFC path")
-    parser.add_argument("--out", required=True, help="output folder (report.json, one PNG per sequence)")
-    parser.add_argument("--preset", default=None, help="sim error preset (default: perception.sim_preset)")
-    parser.add_argument("--trajectories", type=int, default=None, help="default: evaluation.num_trajectories")
-    parser.add_argument(
-        "--tour", type=int, default=0, help="orbit every furniture group with this many frames each instead"
-    )
-    parser.add_argument("--seed", type=int, default=None)
-    parser.add_argument("--config", default=None)
-    parser.add_argument("--set", dest="overrides", action="append", default=[])
-    parser.add_argument(
-        "--true-odometry", action="store_true", help="feed ground-truth poses as odometry (no drift; a diagnostic)"
-    )
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    cfg = load_config(args.config, args.overrides)
-    return run_graph_bench(
-        args.building, cfg, args.out, args.preset, args.trajectories, args.tour, args.seed, args.true_odometry
-    )
 
 
 def run_graph_bench(
@@ -572,7 +547,3 @@ def run_graph_bench(
     log.info("detector: %s", json.dumps({k: v for k, v in result["detector"].items() if not isinstance(v, dict)}))
     log.info("speed: %s", json.dumps(result["speed"]))
     return result
-
-
-if __name__ == "__main__":
-    main()

@@ -1,0 +1,148 @@
+"""The named presets (`-c paper`, `-c default`, `-c fast`) and the config folder that ships inside the wheel."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from bimfactor.config import CONFIG_DIR, PRESETS, Config, load_config
+from bimfactor.errors import ConfigError
+from tests.cli import assert_one_line_error, invoke
+
+REPO = Path(__file__).resolve().parent.parent
+DATA_TABLES = ("perception_sim.yaml", "room_categories.yaml", "room_names_eval.yaml", "vocabulary.yaml")
+
+
+@pytest.fixture(scope="module")
+def paper(config_overrides: list[str]) -> Config:
+    return load_config("paper", config_overrides)
+
+
+@pytest.fixture(scope="module")
+def fast(config_overrides: list[str]) -> Config:
+    return load_config("fast", config_overrides)
+
+
+@pytest.fixture(scope="module")
+def default(config_overrides: list[str]) -> Config:
+    return load_config(None, config_overrides)
+
+
+# ------------------------------------------------------------------------------------------------ the wheel
+
+
+def test_the_wheel_ships_the_config_folder(tmp_path: Path) -> None:
+    """A non-editable install reads its configs from the package: default.yaml, the presets and the data tables are
+    in the wheel (built offline from a copy of the sources, so the checkout gets no build/ folder)."""
+    source = tmp_path / "src"
+    source.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(REPO / name, source / name)
+    shutil.copytree(REPO / "bimfactor", source / "bimfactor", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    offline = ["--no-deps", "--no-build-isolation", "--no-index", "-q"]
+    built = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", str(source), *offline, "-w", str(tmp_path / "dist")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert built.returncode == 0, built.stdout + built.stderr
+    (wheel,) = (tmp_path / "dist").glob("bimfactor-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    expected = {"default.yaml", *(f"{p}.yaml" for p in PRESETS), *DATA_TABLES}
+    expected |= {path.name for path in CONFIG_DIR.glob("*.yaml")}  # whatever else the folder holds ships too
+    missing = sorted(f"bimfactor/configs/{n}" for n in expected if f"bimfactor/configs/{n}" not in names)
+    assert not missing, f"not in {wheel.name}: {missing}"
+
+
+def test_the_config_folder_is_inside_the_package() -> None:
+    assert CONFIG_DIR == REPO / "bimfactor" / "configs"
+    assert not (REPO / "configs").exists()
+    for name in ("default.yaml", *DATA_TABLES, *(f"{p}.yaml" for p in PRESETS)):
+        assert (CONFIG_DIR / name).is_file(), name
+
+
+# ------------------------------------------------------------------------------------------------ the presets
+
+
+def test_default_is_default_yaml(default: Config, config_overrides: list[str]) -> None:
+    assert load_config("default", config_overrides) == default
+
+
+def test_every_preset_key_says_why() -> None:
+    """Every value a preset sets carries a comment on its line (the paper's section or equation, or the reason)."""
+    for name in ("paper", "fast"):
+        for number, line in enumerate((CONFIG_DIR / f"{name}.yaml").read_text().splitlines(), 1):
+            if re.match(r"^\s*[a-z_]+:\s*[^\s#]", line):  # `key: value`, not a section header
+                assert "#" in line, f"{name}.yaml line {number} has no comment: {line.strip()}"
+
+
+def test_paper_turns_every_extension_off(paper: Config) -> None:
+    s = paper.smcl
+    assert not s.kld_sampling  # M particles throughout
+    assert not s.fov_extent and not s.footprint_match  # the objects' centres
+    assert s.semantic == "cosine"  # φ_sem = cos(f_j, C_k)
+    assert s.score_count_exponent == 1.0  # the mean of the matched scores
+    assert s.confidence_full == 0.0 and s.confidence_zero == 0.0  # every observation counts 1
+    assert s.detection_probability == 0.0  # no missed-detection term
+    assert s.off_map_weight == 1.0  # the prediction weighs nothing
+    assert not s.scan_likelihood
+    assert not s.augmented
+    assert not s.relocalize
+    assert not s.challenger
+    assert s.text_reset_share == 0.0 and not paper.perception.text.enabled
+    assert s.initial_pose is None and s.global_storeys is None  # uniform over the navigable space
+    assert paper.localization.variant == "smcl"
+    assert paper.evaluation.variants == ["smcl"]
+    assert paper.evaluation.scenario == "global"
+
+
+def test_paper_has_the_papers_constants(paper: Config) -> None:
+    """Sec. III's hyperparameters."""
+    s = paper.smcl
+    assert (s.num_particles, s.fov_deg, s.ess_threshold) == (1000, 90.0, 0.5)
+    assert (s.sigma_trans_m, s.sigma_rot_deg, s.sigma_d_m, s.kappa_alpha) == (0.2, 10.0, 1.2, 5.0)
+    p = paper.perception
+    assert (p.box_threshold, p.text_threshold, p.sim_threshold, p.iou_threshold) == (0.25, 0.25, 0.7, 0.7)
+    ev = paper.evaluation
+    assert (ev.num_trajectories, ev.trajectory_length, ev.repeats) == (6, 50, 3)
+
+
+def test_fast_cuts_costs_and_keeps_every_stage(fast: Config, default: Config) -> None:
+    f, d = fast.smcl, default.smcl
+    assert f.num_particles < d.num_particles
+    assert f.challenger_particles < d.challenger_particles
+    assert fast.backend.max_modes < default.backend.max_modes
+    assert fast.perception.max_points < default.perception.max_points
+    for key in ("kld_sampling", "scan_likelihood", "augmented", "relocalize", "challenger"):
+        assert getattr(f, key) == getattr(d, key), key
+    assert fast.backend.scan_factor == default.backend.scan_factor
+    assert fast.localization.variant == default.localization.variant
+    assert fast.bim == default.bim  # the same prior serves both
+
+
+def test_an_unknown_preset_names_the_presets(config_overrides: list[str]) -> None:
+    with pytest.raises(ConfigError, match="the presets are paper, default, fast"):
+        load_config("papr", config_overrides)
+
+
+def test_the_config_option_names_the_presets() -> None:
+    result = invoke("localize", "--help")
+    assert result.exit_code == 0
+    assert "paper, default, fast, or a YAML file" in " ".join(result.output.split())
+
+
+def test_the_cli_takes_a_preset_by_name(tmp_path: Path, cli_config_args: list[str]) -> None:
+    """`-c paper` loads (`synth`, the cheapest command) and passes bench paper's protocol checks; a typo is one line."""
+    from bimfactor.evaluation.paper import check_protocol
+
+    check_protocol(load_config("paper"))
+    result = invoke("synth", "-o", tmp_path / "x.ifc", "-c", "paper", *cli_config_args)
+    assert result.exit_code == 0, result.output
+    assert_one_line_error(invoke("synth", "-o", tmp_path / "y.ifc", "-c", "papr"), contains="config file not found")
