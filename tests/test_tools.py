@@ -162,7 +162,7 @@ def test_render_results_writes_table_one_into_the_readme_and_the_full_tables_int
     assert row in full
     assert "| 0.075 m / 0.30° | 2 / 2 | 97 % | 0.90 m / 9.0° / 90.0 % |" in full
     assert "| 2 | 0.30 ± 0.15 | 3.0 ± 1.5 | 95.0 ± 20.0 | 1 / 1 | 0.075 m / 0.30° | 97 % |" in full
-    assert "- the same runs from their first frame (the uniform cloud included): 0.90 m / 9.0° / 90.0 %" in full
+    assert "- the same runs from their first frame (the uniform cloud included): 0.90 m, 9.0°, 90.0 %" in full
     assert "- scored from the step the filter first reported itself converged: median step 5.5 (range 4–7)" in full
 
     # Rendering again changes nothing; --check agrees.

@@ -28,6 +28,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from bimfactor.evaluation.paper import table_notes
+
 ROOT = Path(__file__).resolve().parent.parent
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 NAME = re.compile(r"^(?P<building>.+?)-seed(?P<seed>\d+)-(?P<preset>[A-Za-z0-9_]+)(?:-(?P<tag>[A-Za-z0-9_.-]+))?$")
@@ -213,43 +215,9 @@ def _trajectory_table(report: dict, variant: str) -> list[str]:
 
 
 def _notes(report: dict, variant: str) -> list[str]:
-    """The lines `bimfactor bench paper` prints under a variant's table, from the same keys."""
-    average, notes = report[variant]["average"], []
-    if "trans_err_ci95_m" in average:
-        notes.append(
-            f"95 % interval of the average (bootstrap over the {average['runs']} runs): "
-            f"{_interval(average, 'trans_err_ci95_m', 1, 2)} m, {_interval(average, 'orient_err_ci95_deg', 1, 1)}°, "
-            f"{_interval(average, 'room_acc_ci95', 100, 1)} %"
-        )
-    starts = average.get("scored_from_steps") or []
-    if report["protocol"]["score_from"] == "filter_converged" and starts:
-        ordered = sorted(starts)
-        mid = len(ordered) // 2
-        median = ordered[mid] if len(ordered) % 2 else (ordered[mid - 1] + ordered[mid]) / 2
-        notes.append(
-            f"scored from the step the filter first reported itself converged: median step {median:g} "
-            f"(range {ordered[0]}–{ordered[-1]})"
-        )
-    if "from_start" in average:
-        notes.append(f"the same runs from their first frame (the uniform cloud included): {_from_start(average)}")
-    if "storey_acc" in average and report.get("storeys", 1) > 1:
-        notes.append(f"on the true storey: {100 * average['storey_acc']:.1f} % of the steps")
-    if "trans_err_up_to_twin_m" in average:
-        notes.append(
-            f"up to the building's twin places: {average['trans_err_up_to_twin_m']:.2f} m, "
-            f"{average['orient_err_up_to_twin_deg']:.1f}°"
-        )
-    if "tracking_before_kidnap_runs" in average:
-        median = average.get("steps_to_recover_median")
-        notes.append(
-            f"kidnapped: {average['tracking_before_kidnap_runs']} of {average['runs']} runs tracking when carried off "
-            f"({average['trans_err_before_kidnap_m']:.2f} m before it); {average['converged_runs']} recovered, in a "
-            f"median {'–' if median is None else f'{median:g}'} steps"
-        )
-    if average.get("relocalized_runs"):
-        notes.append(f"relocalized (particles spread over the building again) in {average['relocalized_runs']} runs")
-    if average.get("challenged_runs"):
-        notes.append(f"the belief moved to a challenger in {average['challenged_runs']} runs")
+    """The lines `bimfactor bench paper` prints under a variant's table (`table_notes`), and its step time."""
+    average = report[variant]["average"]
+    notes = [*table_notes(report, variant)]
     if "icp_accepted_share" in average and average["icp_accepted_share"] is not None:
         notes.append(f"ICP fits accepted on {100 * average['icp_accepted_share']:.0f} % of the keyframes")
     notes.append(f"step time (median): {average['step_ms_median']:.0f} ms")

@@ -498,6 +498,14 @@ def format_table_one(report: dict, variant: str) -> str:
         lines.append(row(str(int(k) + 1), cell))
     average = report[variant]["average"]
     lines.append(row("Avg.", average))
+    lines.extend(table_notes(report, variant))
+    return "\n".join(lines)
+
+
+def table_notes(report: dict, variant: str) -> list[str]:
+    """The lines under a variant's Table I: bootstrap intervals, storey and twin accuracy, kidnap recovery,
+    relocalizations, challenger hand-overs, where scoring began, and the same runs from their first frame."""
+    average, lines = report[variant]["average"], []
     if "trans_err_ci95_m" in average:
         (t0, t1), (o0, o1), (r0, r1) = (
             average["trans_err_ci95_m"],
@@ -541,7 +549,7 @@ def format_table_one(report: dict, variant: str) -> str:
             f"the same runs from their first frame (the uniform cloud included): {first['trans_err_m']:.2f} m, "
             f"{first['orient_err_deg']:.1f}°, {100 * first['room_acc']:.1f} %"
         )
-    return "\n".join(lines)
+    return lines
 
 
 def format_tables(report: dict) -> str:
