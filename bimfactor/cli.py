@@ -248,10 +248,9 @@ def _start(config: str | None, overrides: list[str] | None, verbose: bool) -> Co
 
 
 def _one_blas_thread() -> None:
-    """Run BLAS and OpenMP on one thread, so that results do not depend on the machine's core count (a threaded
-    BLAS sums in another order: estimates differed by up to 6e-9 m); the per-keyframe matrices are too small to gain
-    from threads (localize of the demo sequence: 16.6 s on one thread, 16.9 s on two). The environment variables
-    reach the libraries loaded later; threadpoolctl limits those already loaded."""
+    """Run BLAS and OpenMP on one thread, so that results do not depend on the machine's core count (a threaded BLAS
+    sums in another order; measured in docs/reliability.md). The environment variables reach the libraries loaded
+    later, threadpoolctl limits those already loaded; a user's own setting wins."""
     for variable in BLAS_THREAD_VARIABLES:
         os.environ.setdefault(variable, "1")
     from threadpoolctl import threadpool_limits

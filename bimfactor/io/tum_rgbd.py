@@ -80,10 +80,10 @@ def read_tum_rgbd(
     rgb_times, rgb_files = _read_file_list(folder, "rgb.txt")
     depth_times, depth_files = _read_file_list(folder, "depth.txt")
     intrinsics = intrinsics or tum_default_intrinsics(folder.name)
-    problem = camera_problem(intrinsics, level_camera_mount() if T_base_camera is None else T_base_camera)
+    T_base_camera = level_camera_mount() if T_base_camera is None else np.asarray(T_base_camera, dtype=float)
+    problem = camera_problem(intrinsics, T_base_camera)
     if problem:
         raise InputError(f"{folder}: {problem}")
-    T_base_camera = level_camera_mount() if T_base_camera is None else np.asarray(T_base_camera, dtype=float)
 
     i_rgb, i_depth = associate_nearest(rgb_times, depth_times, max_sync_dt_s, one_to_one=True)
     if len(i_rgb) == 0:
