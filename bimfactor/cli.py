@@ -140,7 +140,7 @@ InitialPoseOption = Annotated[
         "--initial-pose",
         metavar="X,Y,YAW_DEG[,STOREY]",
         help="Start from a pose guess in the BIM's frame (m, m, degrees), AMCL-style: particles from a Gaussian "
-        "of smcl.initial_sigma_xy_m / initial_sigma_yaw_deg about it. Default: uniform over the building.",
+        "of smcl.start.sigma_xy_m / sigma_yaw_deg about it. Default: uniform over the building.",
     ),
 ]
 StoreyOption = Annotated[
@@ -150,7 +150,7 @@ StoreyOption = Annotated[
         metavar="N",
         min=0,
         help="The storey the robot is known to start on (an elevator tells it): without --initial-pose the start is "
-        "uniform over that storey only (smcl.global_storeys).",
+        "uniform over that storey only (smcl.start.storeys).",
     ),
 ]
 
@@ -818,9 +818,9 @@ def _variant_overrides(name: str, variants: list[str] | str | None) -> list[str]
 
 
 def _start_overrides(text: str | None, storey: int | None) -> list[str]:
-    """`--initial-pose X,Y,YAW_DEG[,STOREY]` as the overrides of smcl.initial_pose (and initial_storey), and
-    `--storey N` as smcl.global_storeys."""
-    known = [] if storey is None else [f"smcl.global_storeys=[{storey}]"]
+    """`--initial-pose X,Y,YAW_DEG[,STOREY]` as the overrides of smcl.start.pose (and storey), and
+    `--storey N` as smcl.start.storeys."""
+    known = [] if storey is None else [f"smcl.start.storeys=[{storey}]"]
     if text is None:
         return known
     parts = [p.strip() for p in text.split(",")]
@@ -830,8 +830,8 @@ def _start_overrides(text: str | None, storey: int | None) -> list[str]:
         values = []
     if len(values) not in (3, 4) or (len(values) == 4 and not values[3].is_integer()):
         raise InputError(f"--initial-pose '{text}': expected X,Y,YAW_DEG or X,Y,YAW_DEG,STOREY (metres, degrees)")
-    on = [f"smcl.initial_storey={int(values[3])}"] if len(values) == 4 else []
-    return [f"smcl.initial_pose={json.dumps(values[:3])}", *on, *known]
+    on = [f"smcl.start.storey={int(values[3])}"] if len(values) == 4 else []
+    return [f"smcl.start.pose={json.dumps(values[:3])}", *on, *known]
 
 
 def _bench_dir(output: Path, *inputs: Path | str | None) -> contextlib.AbstractContextManager[Path]:
@@ -1038,7 +1038,8 @@ def refine(
         from bimfactor.bim.prior import BimPrior
         from bimfactor.evaluation.report import ensure_run_destination, run_metrics, track_metrics, write_refined
         from bimfactor.io.sequence import read_sequence
-        from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run, scan_matcher, skipped_frames_note
+        from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, scan_matcher, skipped_frames_note
+        from bimfactor.refine import refine_run
 
         if cfg.localization.variant not in GRAPH_VARIANTS:
             raise InputError(
@@ -1376,7 +1377,7 @@ def bench_smcl(
             write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
             prior = build_prior(output / "paper-floor.ifc", cfg)
             assert prior.visibility is not None
-            rows = benchmark_step(prior, prior.visibility, cfg.smcl, n_obs=observations)
+            rows = benchmark_step(prior, prior.visibility, cfg.smcl, cfg.sensor.max_range_m, n_obs=observations)
             results = _write_bench(output, "smcl", {"rows": rows}, cfg)
         for row in rows:
             typer.echo("  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
@@ -1407,6 +1408,6 @@ def bench_backend(
         from bimfactor.evaluation.speed import benchmark_backend
 
         with _bench_dir(output):
-            result = benchmark_backend(cfg.backend, n_modes=modes, n_keyframes=keyframes)
+            result = benchmark_backend(cfg.backend, cfg.odometry, n_modes=modes, n_keyframes=keyframes)
             _write_bench(output, "backend", result, cfg)
         typer.echo(json.dumps(result, indent=1, default=float))

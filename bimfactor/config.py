@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import copy
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 import yaml
@@ -95,12 +95,20 @@ class ClassifyConfig(_Strict):
     )
 
 
+class VisibilityConfig(_Strict):
+    """The prior's table of the objects in line of sight from each lattice cell (`bim.visibility`)."""
+
+    cell_m: float = Field(gt=0.0, description="Lattice of the precomputed visible-object table.")
+    radius_m: float = Field(gt=0.0, description="The visibility sector's radius r (not given in the paper).")
+
+
 class BimConfig(_Strict):
     ifc: IfcReadConfig
     grid: GridConfig
     rooms: RoomsConfig
     objects: ObjectsConfig
     classify: ClassifyConfig
+    visibility: VisibilityConfig
 
 
 class EmbedConfig(_Strict):
@@ -243,30 +251,80 @@ class DepthSigmaConfig(_Strict):
         return self.sigma0_m + self.k_per_m * (np.asarray(depth_m) - self.z0_m) ** 2
 
 
-class SmclConfig(_Strict):
-    num_particles: int = Field(ge=1, description="M (paper: 1000); with `kld_sampling` the fewest particles.")
-    kld_sampling: bool = Field(
-        description="KLD-sampling (Fox 2003, as in AMCL), beyond the paper: start with `max_particles` and resample "
-        "as many as the occupied pose bins need, between M and `max_particles`; false: M throughout."
+class SensorConfig(_Strict):
+    """The RGB-D camera's depth: the simulator renders with this noise, and the estimator models it and uses the same
+    band of depth."""
+
+    depth_noise: DepthSigmaConfig = Field(description="Axial depth noise σ(z) of the camera.")
+    min_z_m: float = Field(
+        description="Depth points below this height above the floor are floor, not obstacles (scan and ICP alike)."
     )
-    max_particles: int = Field(ge=1, description="KLD-sampling: the initial and largest particle count.")
-    initial_pose: Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)] | None = Field(
+    max_range_m: float = Field(gt=0.0, description="Depth returns beyond this horizontal range are not used.")
+
+
+class ScanConfig(_Strict):
+    """The depth frame's horizontal 2-D scan (`localization.measurements.scan.scan_endpoints`), for the filter's
+    scan term and the pose graphs' scan factor."""
+
+    beam_deg: float = Field(gt=0.0, description="One endpoint (the nearest surface) per bearing bin this wide.")
+    surface_m: float = Field(
+        gt=0.0,
+        description="A bin's returns within surface_sigmas σ(r) of its nearest one (r), at least surface_min_m and "
+        "at most this, are its surface; the endpoint is their median.",
+    )
+    surface_min_m: float = Field(gt=0.0, description="The nearest surface's least depth (see above).")
+    surface_sigmas: float = Field(gt=0.0, description="The nearest surface's depth in σ of the depth noise.")
+
+
+class OdometryConfig(_Strict):
+    """The robot's odometry noise: the simulator draws it, the pose graphs weigh by it."""
+
+    alpha: list[FiniteFloat] = Field(
+        min_length=4,
+        max_length=4,
+        description="α1..α4 of the odometry motion model (Thrun et al., Table 5.6): rot←rot, rot←trans, "
+        "trans←trans, trans←rot, as variance ratios.",
+    )
+
+
+class StartConfig(_Strict):
+    pose: Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)] | None = Field(
         description="x, y (m, the BIM's world frame), yaw (°) of a pose guess: M particles start from a Gaussian "
         "about it (AMCL's initial pose); null: uniform over all navigable space (global localization, the paper)."
     )
-    initial_storey: int = Field(ge=0, description="The storey index of `initial_pose`.")
-    global_storeys: Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=1)] | None = Field(
+    storey: int = Field(ge=0, description="The storey index of `pose`.")
+    storeys: Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=1)] | None = Field(
         description="Without a pose guess: the storeys the uniform start covers (a robot that knows its floor, as "
         "an elevator tells it); null: every storey. A relocalization still spreads over the whole building.",
     )
-    initial_sigma_xy_m: float = Field(gt=0.0, description="Standard deviation of the start in x and y.")
-    initial_sigma_yaw_deg: float = Field(gt=0.0, description="Standard deviation of the start in yaw.")
-    kld_epsilon: float = Field(gt=0.0, lt=1.0, description="KLD-sampling: bound ε on the KL divergence.")
-    kld_z: float = Field(gt=0.0, description="KLD-sampling: z_(1−δ), the standard normal quantile (2.33: δ = 0.01).")
-    kld_bin_m: float = Field(gt=0.0, description="KLD-sampling: bin size in x and y.")
-    kld_bin_deg: float = Field(gt=0.0, description="KLD-sampling: bin size in yaw.")
-    fov_deg: float = Field(gt=0.0, le=360.0, description="Visibility sector field of view (paper: 90°).")
-    visible_radius_m: float = Field(gt=0.0, description="Visibility sector radius r.")
+    sigma_xy_m: float = Field(gt=0.0, description="Standard deviation of the start about `pose` in x and y.")
+    sigma_yaw_deg: float = Field(gt=0.0, description="Standard deviation of the start about `pose` in yaw.")
+
+
+class MotionConfig(_Strict):
+    sigma_trans_m: float = Field(ge=0.0, description="σ_trans, motion noise per step (paper: 0.2 m).")
+    sigma_rot_deg: float = Field(ge=0.0, description="σ_rot, motion noise per step (paper: 10°).")
+    off_map_weight: float = Field(
+        ge=0.0, le=1.0, description="Weight factor for a particle outside navigable space after a prediction (1: none)."
+    )
+
+
+class ResamplerConfig(_Strict):
+    kind: Literal["systematic", "kld"] = Field(
+        description="systematic: low-variance resampling of M particles (the paper); kld: KLD-sampling (Fox 2003, "
+        "as in AMCL), start with `max_particles` and resample as many as the occupied pose bins need, M at least."
+    )
+    max_particles: int = Field(ge=1, description="kld: the initial and largest particle count.")
+    epsilon: float = Field(gt=0.0, lt=1.0, description="kld: bound ε on the KL divergence.")
+    z: float = Field(gt=0.0, description="kld: z_(1−δ), the standard normal quantile (2.33: δ = 0.01).")
+    bin_m: float = Field(gt=0.0, description="kld: bin size in x and y.")
+    bin_deg: float = Field(gt=0.0, description="kld: bin size in yaw.")
+
+
+class SemanticTermConfig(_Strict):
+    """The paper's measurement model (Sec. II.C, Eqs. 1-4)."""
+
+    fov_deg: float = Field(gt=0.0, le=360.0, description="The visibility sector's field of view (paper: 90°).")
     fov_extent: bool = Field(
         description="An object is in view when any of its footprint is (false: its centre, the literal reading)."
     )
@@ -274,167 +332,150 @@ class SmclConfig(_Strict):
         description="A node is expected at the point of its object's footprint nearest to it, the seen part's "
         "centroid lying anywhere on a large object (false: at the object's centre, the literal reading)."
     )
-    ess_threshold: float = Field(gt=0.0, le=1.0, description="δ_ess, resample when ESS < δ_ess·M (paper: 0.5).")
-    sigma_trans_m: float = Field(ge=0.0, description="σ_trans, motion noise (paper: 0.2 m).")
-    sigma_rot_deg: float = Field(ge=0.0, description="σ_rot, motion noise (paper: 10°).")
     sigma_d_m: float = Field(gt=0.0, description="σ_d, distance similarity scale (paper: 1.2).")
     kappa_alpha: float = Field(ge=0.0, description="κ_α, bearing similarity concentration (paper: 5).")
-    visibility_cell_m: float = Field(gt=0.0, description="Lattice of the precomputed visible-object table.")
-    semantic: Literal["cosine", "softmax"] = Field(
+    similarity: Literal["cosine", "softmax"] = Field(
         description="φ_sem: the paper's cosine, or the softmax class probability over the prior's labels."
     )
-    semantic_softmax_temperature: float = Field(gt=0.0, description="τ of the softmax φ_sem (CLIP: 0.01).")
-    semantic_threshold: float = Field(
-        ge=0.0,
-        le=1.0,
-        description="Pairs whose φ_sem is below this score 0 (depends on `semantic` and the embeddings).",
+    softmax_temperature: float = Field(gt=0.0, description="τ of the softmax φ_sem (CLIP: 0.01).")
+    threshold: float = Field(
+        ge=0.0, le=1.0, description="Pairs whose φ_sem is below this score 0 (depends on `similarity`)."
     )
     temperature: float = Field(gt=0.0, description="T in P(z|x) = exp(K^(1−γ) · score / T); the paper gives no value.")
-    score_count_exponent: float = Field(
+    count_exponent: float = Field(
         ge=0.0,
         le=1.0,
         description="γ: the matched φ summed over K observations is divided by K^γ (1: the paper's mean; 0: the sum).",
     )
-    confidence_zero: float = Field(
-        ge=0.0,
-        le=1.0,
-        description="An observation counts in the score with weight clip((c − c0) / (c1 − c0), 0, 1) of its "
-        "node's highest detector confidence c: c0 (this) counts nothing (0 and c1 0: every observation counts 1).",
-    )
-    confidence_full: float = Field(
-        ge=0.0, le=1.0, description="c1: observations of nodes detected with this confidence or more count fully."
-    )
-    detection_probability: float = Field(
-        ge=0.0,
-        lt=1.0,
-        description="p_d of the missed-detection term (beyond the paper): each BIM object a particle should see "
-        "(within `detection_range_m`, centre in the FOV) that no observation pairs with costs log(1 − p_d); "
-        "0: off (the paper).",
-    )
-    detection_range_m: float = Field(gt=0.0, description="Objects this near count in the missed-detection term.")
-    detection_ignore_labels: list[str] = Field(
-        description="Labels the missed-detection term never expects detected (doors: open, seen as a gap)."
-    )
-    off_map_weight: float = Field(
-        ge=0.0, le=1.0, description="Weight factor for a particle outside navigable space after a prediction."
-    )
-    text_edit_cost: float = Field(
-        gt=0.0,
-        description="Door-plate readings: each edit (substitution, insertion, deletion) between a reading and a "
-        "plate's text divides its match by exp(this).",
-    )
-    text_look_alike_cost: float = Field(
-        gt=0.0,
-        description="Door-plate readings: what a substitution of look-alike characters ('8' for 'B') costs instead "
-        "(OCR's common misreads; bim.plates.LOOK_ALIKE_GROUPS); text_edit_cost makes every edit cost the same.",
-    )
-    text_unexplained: float = Field(
-        gt=0.0,
-        lt=1.0,
-        description="Door-plate readings: ε in P(reading | x) = ε + (1 − ε) · best plate match; the chance that a "
-        "reading is a misread or a plate the BIM does not know, which bounds what one reading can say.",
-    )
-    text_reset_share: float = Field(
-        ge=0.0,
-        le=1.0,
-        description="Door-plate readings: the share of particles redrawn in front of the plates a reading names when "
-        "the belief does not explain it (sensor resetting; 0: off).",
-    )
-    text_reset_below: float = Field(
-        gt=0.0,
-        lt=1.0,
-        description="Door-plate readings: a reading is unexplained when the belief's P(reading | x) − ε averages "
-        "below this share of its most (a particle right before the plate its text matches best).",
-    )
-    text_reset_oversample: int = Field(
-        ge=1,
-        description="Door-plate redraw: draw this many times as many poses before the named plates and keep those "
-        "the frame's scan favours (1: no screen).",
-    )
-    injection_oversample: int = Field(
-        ge=1,
-        description="Augmented MCL's particles drawn from the observations: draw this many times as many and keep "
-        "those the frame's scan favours (1: no screen).",
-    )
-    scan_likelihood: bool = Field(
+
+
+class ScanTermConfig(_Strict):
+    enabled: bool = Field(
         description="Also weigh particles by the depth scan against the BIM's likelihood field (beyond the paper)."
     )
-    scan_beam_deg: float = Field(gt=0.0, description="Scan: one endpoint (the nearest surface) per bearing bin.")
-    scan_surface_m: float = Field(
+    sigma_m: float = Field(gt=0.0, description="σ of an endpoint's distance to the nearest obstacle.")
+    temperature: float = Field(gt=0.0, description="T_scan in P(z_scan|x) = exp(score / T_scan).")
+
+
+class TextTermConfig(_Strict):
+    """Door-plate readings (`perception.text`), beyond the paper."""
+
+    edit_cost: float = Field(
         gt=0.0,
-        description="Scan: a bin's returns within scan_surface_sigmas σ(r) of its nearest one (r), at least "
-        "scan_surface_min_m and at most this, are its surface; the endpoint is their median.",
+        description="Each edit (substitution, insertion, deletion) between a reading and a plate's text divides its "
+        "match by exp(this).",
     )
-    scan_surface_min_m: float = Field(gt=0.0, description="Scan: the nearest surface's least depth (see above).")
-    scan_surface_sigmas: float = Field(gt=0.0, description="Scan: the nearest surface's depth in σ of the noise.")
-    scan_depth_noise: DepthSigmaConfig = Field(description="Scan: the camera's axial depth noise σ(z).")
-    scan_min_z_m: float = Field(
-        description="Scan: depth points from this height above the floor up to the top of the occupancy grid's "
-        "obstacle band (bim.grid.band_max_m)."
+    look_alike_cost: float = Field(
+        gt=0.0,
+        description="What a substitution of look-alike characters ('8' for 'B') costs instead (OCR's common misreads; "
+        "bim.plates.LOOK_ALIKE_GROUPS).",
     )
-    scan_max_range_m: float = Field(gt=0.0, description="Scan: returns beyond this horizontal range are dropped.")
-    scan_sigma_m: float = Field(gt=0.0, description="Scan: σ of an endpoint's distance to the nearest obstacle.")
-    scan_temperature: float = Field(gt=0.0, description="Scan: T_scan in P(z_scan|x) = exp(score / T_scan).")
-    augmented: bool = Field(description="Augmented MCL random-particle injection; false is the paper's filter.")
-    injection: Literal["uniform", "observations"] = Field(
-        description="Where augmented MCL's random particles come from: free space, or poses that explain one "
-        "of the step's observations (sensor resetting)."
-    )
-    alpha_slow: float = Field(gt=0.0, le=1.0, description="Augmented MCL long-term likelihood average rate.")
-    alpha_fast: float = Field(gt=0.0, le=1.0, description="Augmented MCL short-term likelihood average rate.")
-    injection_reference_score: float = Field(
-        ge=0.0,
+    unexplained: float = Field(
+        gt=0.0,
         lt=1.0,
-        description="Augmented MCL: the long-term average is floored at exp((s − 1) / T), the likelihood of a "
-        "step whose mean matched score is s, so a filter that never explained its observations well (locked onto "
-        "a wrong place from the start, where the long-term average began at the uniform cloud's) still injects; "
-        "0: Thrun's rule as is.",
+        description="ε in P(reading | x) = ε + (1 − ε) · best plate match; the chance that a reading is a misread or "
+        "a plate the BIM does not know, which bounds what one reading can say.",
     )
-    relocalize: bool = Field(
+
+
+class AugmentedConfig(_Strict):
+    enabled: bool = Field(description="Augmented MCL random-particle injection (Thrun, Table 8.3), beyond the paper.")
+    injection: Literal["uniform", "observations"] = Field(
+        description="Where the random particles come from: free space, or poses that explain one of the step's "
+        "observations (sensor resetting)."
+    )
+    alpha_slow: float = Field(gt=0.0, le=1.0, description="Long-term likelihood average rate.")
+    alpha_fast: float = Field(gt=0.0, le=1.0, description="Short-term likelihood average rate.")
+
+
+class TextResetConfig(_Strict):
+    enabled: bool = Field(
+        description="Redraw particles in front of the plates a door-plate reading names when the belief does not "
+        "explain it (sensor resetting), beyond the paper."
+    )
+    share: float = Field(gt=0.0, le=1.0, description="The share of the particles redrawn.")
+    below: float = Field(
+        gt=0.0,
+        lt=1.0,
+        description="A reading is unexplained when the belief's P(reading | x) − ε averages below this share of its "
+        "most (a particle right before the plate its text matches best).",
+    )
+    oversample: int = Field(
+        ge=1, description="Draw this many times as many and keep those the frame's scan favours (1: no screen)."
+    )
+
+
+class RelocalizeConfig(_Strict):
+    enabled: bool = Field(
         description="Beyond the paper: when the belief stops explaining the depth scans (a kidnapped robot), spread "
-        "the particles over the whole building again, as at the start; false: only augmented MCL's injection."
+        "the particles over the whole building again, as at the start."
     )
-    lost_fit_ratio: float = Field(
+    fit_ratio: float = Field(
         gt=0.0, lt=1.0, description="Lost: a sudden drop, the belief's scan fit below this share of its average ..."
     )
-    lost_frames: int = Field(ge=1, description="... on this many consecutive frames with a scan; or ...")
-    lost_cusum_drift: float = Field(
-        ge=0.0,
-        description="... a held drop: Page's CUSUM of ln(average fit / fit), less this drift a frame, ...",
+    frames: int = Field(ge=1, description="... on this many consecutive frames with a scan; or ...")
+    cusum_drift: float = Field(
+        ge=0.0, description="... a held drop: Page's CUSUM of ln(average fit / fit), less this drift a frame, ..."
     )
-    lost_cusum_threshold: float = Field(gt=0.0, description="... exceeds this ...")
-    lost_min_fit: float = Field(
+    cusum_threshold: float = Field(gt=0.0, description="... exceeds this ...")
+    min_fit: float = Field(
         ge=0.0, le=1.0, description="... once the running average has reached this fit (a belief that was tracking)."
     )
-    lost_fit_alpha: float = Field(gt=0.0, le=1.0, description="Rate of the scan fit's running average.")
-    lost_min_endpoints: int = Field(ge=1, description="Frames with fewer scan endpoints say nothing about being lost.")
-    challenger: bool = Field(
-        description="Beyond the paper: while the belief is converged, a second small filter (`challenger_particles`) "
-        "drawn from the current observations runs beside it; when it predicts the following frames better by "
-        "`challenger_threshold_nats` (Page's CUSUM of the log predictive-likelihood ratio) at a place the belief is "
-        "not, the belief takes its particles (a look-alike room the belief locked onto)."
+    fit_alpha: float = Field(gt=0.0, le=1.0, description="Rate of the scan fit's running average.")
+    min_endpoints: int = Field(ge=1, description="Frames with fewer scan endpoints say nothing about being lost.")
+
+
+class ChallengerConfig(_Strict):
+    enabled: bool = Field(
+        description="Beyond the paper: while the belief is converged, a second small filter drawn from the current "
+        "observations runs beside it; when it predicts the following frames better by `threshold_nats` (Page's "
+        "CUSUM of the log predictive-likelihood ratio) at a place the belief is not, the belief takes its particles."
     )
-    challenger_particles: int = Field(ge=1, description="The challenger's particles.")
-    challenger_threshold_nats: float = Field(
+    particles: int = Field(ge=1, description="The challenger's particles.")
+    oversample: int = Field(
+        ge=1, description="Drawn from this many times as many poses, those the frame's scan favours (1: no screen)."
+    )
+    threshold_nats: float = Field(
         gt=0.0, description="The CUSUM of ln p(z | challenger) − ln p(z | belief) that hands the belief over."
     )
-    challenger_agree_m: float = Field(
-        gt=0.0, description="A challenger whose estimate lies within this of the belief's agrees with it ..."
+    agree_m: float = Field(
+        gt=0.0, description="A challenger whose estimate lies within this of the belief's agrees ..."
     )
-    challenger_agree_frames: int = Field(
-        ge=1, description="... and is drawn again after agreeing this many frames in a row ..."
-    )
-    challenger_max_frames: int = Field(ge=1, description="... or after this many frames without winning.")
-    converged_pos_std_m: float = Field(gt=0.0, description="Converged when the position std is below this ...")
-    converged_yaw_std_deg: float = Field(gt=0.0, description="... and the yaw std below this ...")
-    converged_storey_share: float = Field(
+    agree_frames: int = Field(ge=1, description="... and is drawn again after agreeing this many frames in a row ...")
+    max_frames: int = Field(ge=1, description="... or after this many frames without winning.")
+
+
+class ConvergedConfig(_Strict):
+    pos_std_m: float = Field(gt=0.0, description="Converged when the position std is below this ...")
+    yaw_std_deg: float = Field(gt=0.0, description="... and the yaw std below this ...")
+    storey_share: float = Field(
         gt=0.0, le=1.0, description="... and the estimated storey holds at least this share of the weight."
     )
 
+
+class SmclConfig(_Strict):
+    """The semantic particle filter (paper Sec. II.C) and its components, one sub-config each."""
+
+    num_particles: int = Field(ge=1, description="M (paper: 1000); with the kld resampler the fewest particles.")
+    ess_threshold: float = Field(gt=0.0, le=1.0, description="δ_ess, resample when ESS < δ_ess·M (paper: 0.5).")
+    start: StartConfig
+    motion: MotionConfig
+    resampler: ResamplerConfig
+    semantic: SemanticTermConfig
+    scan: ScanTermConfig
+    text: TextTermConfig
+    augmented: AugmentedConfig
+    text_reset: TextResetConfig
+    relocalize: RelocalizeConfig
+    challenger: ChallengerConfig
+    converged: ConvergedConfig
+
     @model_validator(mode="after")
     def _particle_bounds(self) -> SmclConfig:
-        if self.kld_sampling and self.max_particles < self.num_particles:
-            raise ValueError(f"max_particles {self.max_particles} is below num_particles {self.num_particles}")
+        if self.resampler.kind == "kld" and self.resampler.max_particles < self.num_particles:
+            raise ValueError(
+                f"resampler.max_particles {self.resampler.max_particles} is below num_particles {self.num_particles}"
+            )
         return self
 
 
@@ -449,15 +490,9 @@ class CameraSimConfig(_Strict):
     mount_pitch_deg: float = Field(description="Camera pitch; positive looks down.")
 
 
-class DepthNoiseConfig(DepthSigmaConfig):
+class DepthDropoutConfig(_Strict):
     grazing_dropout_deg: float = Field(gt=0.0, le=90.0, description="Incidence angle beyond which returns drop.")
     dropout_prob: float = Field(ge=0.0, le=1.0, description="Random per-pixel dropout probability.")
-
-
-class OdometryNoiseConfig(_Strict):
-    alpha: list[float] = Field(
-        min_length=4, max_length=4, description="α1..α4 of the standard odometry motion model (Thrun et al.)."
-    )
 
 
 class RobotConfig(_Strict):
@@ -497,9 +532,8 @@ class DoorPlateSimConfig(_Strict):
 
 class SimConfig(_Strict):
     camera: CameraSimConfig
-    depth_noise: DepthNoiseConfig
+    depth_dropout: DepthDropoutConfig
     rgb_noise_std: float = Field(ge=0.0, description="Gaussian RGB noise, in 8-bit levels.")
-    odometry: OdometryNoiseConfig
     robot: RobotConfig
     trajectory: TrajectorySimConfig
     as_built: AsBuiltConfig
@@ -529,8 +563,6 @@ class RegistrationConfig(_Strict):
     surface_density_per_m2: float = Field(gt=0.0, description="Surface sample points per square metre of mesh.")
     top_storey_height_m: float = Field(gt=0.0, description="Band height of the top storey (others: next elevation).")
     scan_voxel_m: float = Field(gt=0.0, description="Voxel size of the downsampled scan (the default scale).")
-    scan_max_range_m: float = Field(gt=0.0, description="Depth returns beyond this are not used.")
-    scan_min_z_m: float = Field(description="Scan points below this height above the floor are dropped (floor).")
     scan_max_z_m: float = Field(description="Scan points above this height above the floor are dropped (ceiling).")
     submap_keyframes: int = Field(ge=1, description="Keyframes stitched into the local submap (1: the scan alone).")
     max_scan_points: int = Field(ge=10, description="Registrars thin the scan to at most this many points (strided).")
@@ -596,12 +628,6 @@ class BackendConfig(_Strict):
     missed_decay: float = Field(ge=0.0, le=1.0, description="Particle weight kept by a mode no cluster continues.")
     prior_min_sigma_m: float = Field(gt=0.0, description="Floor on the position σ of a new mode's pose prior.")
     prior_min_sigma_deg: float = Field(gt=0.0, description="Floor on the yaw σ of a new mode's pose prior.")
-    odom_alpha: list[float] = Field(
-        min_length=4,
-        max_length=4,
-        description="α1..α4 of the odometry motion model (Thrun et al., Table 5.6) that "
-        "gives an odometry factor's covariance: rot←rot, rot←trans, trans←trans, trans←rot, as variance ratios.",
-    )
     odom_sigma_trans_m: float = Field(gt=0.0, description="Odometry factor: a floor on the translation σ ...")
     odom_sigma_rot_deg: float = Field(gt=0.0, description="... and on the yaw σ.")
     odom_robust_kernel: Literal["huber", "cauchy", "none"] = Field(
@@ -748,7 +774,7 @@ class EvaluationConfig(_Strict):
     )
     known_storey: bool = Field(
         description="global and kidnap: the robot knows the storey it starts on (the uniform start covers the first "
-        "frame's true storey only, `smcl.global_storeys`); false: every storey (the paper's single floor has one)."
+        "frame's true storey only, `smcl.start.storeys`); false: every storey (the paper's single floor has one)."
     )
     guess_offset_m: float = Field(ge=0.0, description="guess: the guess's distance from the true first position.")
     guess_offset_deg: float = Field(ge=0.0, le=180.0, description="guess: its heading error (seeded sign).")
@@ -771,6 +797,9 @@ class Config(_Strict):
     bim: BimConfig
     embed: EmbedConfig
     perception: PerceptionConfig
+    sensor: SensorConfig
+    scan: ScanConfig
+    odometry: OdometryConfig
     smcl: SmclConfig
     localization: LocalizationConfig
     backend: BackendConfig
@@ -781,9 +810,9 @@ class Config(_Strict):
 
     @model_validator(mode="after")
     def _scan_within_the_band(self) -> Config:
-        if self.smcl.scan_min_z_m > self.bim.grid.band_min_m:
+        if self.sensor.min_z_m > self.bim.grid.band_min_m:
             raise ValueError(
-                f"smcl.scan_min_z_m ({self.smcl.scan_min_z_m:g}) is above bim.grid.band_min_m "
+                f"sensor.min_z_m ({self.sensor.min_z_m:g}) is above bim.grid.band_min_m "
                 f"({self.bim.grid.band_min_m:g}): the grid would hold surfaces the scan cannot see (a window's sill "
                 "reads as the wall's inner face)"
             )
@@ -792,6 +821,24 @@ class Config(_Strict):
     def dump_yaml(self) -> str:
         """The resolved configuration as YAML, written next to every output."""
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+_Model = TypeVar("_Model", bound=BaseModel)
+
+
+def updated(model: _Model, changes: dict[str, Any]) -> _Model:
+    """A validated copy of a config model with its fields at dotted keys replaced, e.g.
+    `updated(cfg, {"smcl.start.pose": [1.0, 2.0, 90.0]})` or `updated(cfg.smcl, {"augmented.enabled": False})`."""
+    data = model.model_dump()
+    for dotted, value in changes.items():
+        *parents, leaf = dotted.split(".")
+        node = data
+        for key in parents:
+            node = node[key]
+        if leaf not in node:
+            raise KeyError(f"{type(model).__name__} has no field {dotted!r}")
+        node[leaf] = value
+    return type(model).model_validate(data)
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:

@@ -12,7 +12,8 @@ Only the best mode is registered: a registration with its ambiguity probes costs
 mostly the best mode's, and a wrong mode seldom passes the gate anyway (fitness, probes), so registering every
 mode would multiply the step time by the number of modes for estimates nobody reads.
 
-`refine_run` is the offline pass over a localized sequence: every surviving mode's trajectory smoothed as a whole.
+The offline pass over a localized sequence, every surviving mode's trajectory smoothed as a whole, is
+`bimfactor.refine.refine_run`.
 
 Implausible frames are skipped (`FrameSkip`): a depth image with no return, or with every return at one depth beyond
 the farthest the localizer reads (a saturated or stuck sensor), and an odometry pose that moved faster than a ground
@@ -34,36 +35,31 @@ import logging
 import re
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Self
 
 import numpy as np
 
-from bimfactor.backend.factors import Landmarks
 from bimfactor.backend.posegraph import (
     BackendStep,
     ModeEstimate,
     ModeHistory,
     MultiHypothesisBackend,
-    PoseFactorFn,
     semantic_associator,
 )
-from bimfactor.backend.refine import RefinedMode, refine_mode, track_from
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.symmetry import Motion, twin_motions
 from bimfactor.bim.visibility import VisibilityTable
-from bimfactor.config import BackendConfig, Config
+from bimfactor.config import Config
 from bimfactor.embed.text import TextEmbedder, make_text_embedder, text_model_name
 from bimfactor.errors import ConfigError, InputError
 from bimfactor.io.sequence import Sequence as SequenceFolder
-from bimfactor.localization.field import ScanLikelihood, frame_endpoints
-from bimfactor.localization.likelihood import SemanticLikelihood
+from bimfactor.localization.filter import SemanticMCL, StepResult
+from bimfactor.localization.measurements.scan import frame_endpoints
 from bimfactor.localization.modes import extract_modes
-from bimfactor.localization.smcl import (
-    SemanticMCL,
-    StepResult,
+from bimfactor.localization.stats import (
     local_mean_yaw,
     mixture_pose_covariance,
     near_pose,
@@ -175,7 +171,7 @@ def depth_problem(depth_m: np.ndarray, cfg: Config) -> FrameSkip | None:
         valid = depth[np.isfinite(depth) & (depth > 0)]
     if not valid.size:
         return FrameSkip("empty_depth")
-    farthest = max(cfg.perception.max_depth_m, cfg.smcl.scan_max_range_m, cfg.registration.scan_max_range_m)
+    farthest = max(cfg.perception.max_depth_m, cfg.sensor.max_range_m)
     low, high = float(valid.min()), float(valid.max())
     if low == high and low >= farthest:
         return FrameSkip("saturated_depth")
@@ -239,7 +235,7 @@ class LocalizationRun:
     n_particles: np.ndarray
     scan_fit: np.ndarray  # (T,) the belief's predicted scan fit before each update; NaN without a scan
     lost_frames: np.ndarray  # (T,) int: where the filter spread its particles again, the frames it had been lost
-    challenged: np.ndarray  # (T,) bool: where the belief took a challenger's particles (`smcl.challenger`)
+    challenged: np.ndarray  # (T,) bool: where the belief took a challenger's particles (`smcl.challenger.enabled`)
     odom_increments: np.ndarray
     observations: list[Observations]
     scans: list[np.ndarray | None] = field(default_factory=list)
@@ -307,7 +303,7 @@ def scan_matcher(prior: BimPrior, cfg: Config) -> CorrelativeMatcher | None:
 
 def visibility_of(prior: BimPrior, cfg: Config) -> VisibilityTable:
     """The prior's stored visible-object table, or one built now for priors saved without it."""
-    return prior.visibility or VisibilityTable.build(prior, cfg.smcl)
+    return prior.visibility or VisibilityTable.build(prior, cfg.bim.visibility)
 
 
 class Localizer:
@@ -344,16 +340,18 @@ class Localizer:
         embedder = text_embedder or make_text_embedder(cfg.embed)
         self.perception = make_perception(cfg, meta, embedder, seed=seed)
         self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
-        if cfg.perception.text.enabled and not len(self.filter.likelihood.plates):
+        if cfg.perception.text.enabled and not len(self.filter.models.plates):
             log.warning(
                 "perception.text reads door plates, but the prior has none (no IfcSpace numbers, or a prior built "
                 "before they were kept: rebuild it with `bimfactor prior`); the text read will weigh nothing"
             )
-        start = cfg.smcl.initial_pose
-        self._start_belief(
-            None if start is None else [start[0], start[1], np.deg2rad(start[2])], cfg.smcl.initial_storey
+        start = cfg.smcl.start
+        self._start_belief(None if start.pose is None else [*start.pose[:2], np.deg2rad(start.pose[2])], start.storey)
+        self.backend = (
+            MultiHypothesisBackend.from_prior(prior, cfg.backend, cfg.odometry)
+            if self.variant in GRAPH_VARIANTS
+            else None
         )
-        self.backend = MultiHypothesisBackend.from_prior(prior, cfg.backend) if self.variant in GRAPH_VARIANTS else None
         self.matcher = (matcher or scan_matcher(prior, cfg)) if self.backend else None
         self.fine = FineRegistration.for_prior(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None
         # The frames before the current one that a submap stitches in (registration.submap_keyframes − 1).
@@ -371,27 +369,25 @@ class Localizer:
         self._odom_offset: np.ndarray | None = None
 
     def _start_belief(self, pose: np.ndarray | list[float] | None, storey: int) -> None:
-        """The filter's particles: about a (3,) pose guess on a storey (AMCL's initial pose, `smcl.initial_sigma_*`),
-        or without one uniform over the building (over `smcl.global_storeys` when the robot knows its floor)."""
+        """The filter's particles: about a (3,) pose guess on a storey (AMCL's initial pose, `smcl.start.sigma_*`),
+        or without one uniform over the building (over `smcl.start.storeys` when the robot knows its floor)."""
+        start = self.cfg.smcl.start
         if pose is None:
-            self.filter.initialize(self.cfg.smcl.global_storeys)
+            self.filter.initialize(start.storeys)
         else:
             self.filter.initialize_around(
-                np.asarray(pose, float),
-                storey,
-                self.cfg.smcl.initial_sigma_xy_m,
-                np.deg2rad(self.cfg.smcl.initial_sigma_yaw_deg),
+                np.asarray(pose, float), storey, start.sigma_xy_m, np.deg2rad(start.sigma_yaw_deg)
             )
 
     def reset(self, pose: np.ndarray | list[float] | None = None, storey: int = 0) -> None:
         """Start the belief over, as an operator does mid-run: from a (3,) pose guess x, y, yaw (the BIM's world
         frame, metres and radians; AMCL's initial pose) on `storey`, or without one over the building (AMCL's global
-        localization; over `smcl.global_storeys` when set). The back end's modes and the fine stage's submap start
+        localization; over `smcl.start.storeys` when set). The back end's modes and the fine stage's submap start
         over too; the odometry and the online scene graph carry on. InputError for a guess with no navigable space
         about it."""
         self._start_belief(pose, storey)
         if self.backend is not None:
-            self.backend = MultiHypothesisBackend.from_prior(self.prior, self.cfg.backend)
+            self.backend = MultiHypothesisBackend.from_prior(self.prior, self.cfg.backend, self.cfg.odometry)
         self._recent.clear()
 
     def step(self, frame: Frame) -> LocalizerStep:
@@ -408,7 +404,7 @@ class Localizer:
         started = time.perf_counter()
         if skipped is None:
             observations: Observations = self.perception.step(frame).observations
-            use_scan = self.cfg.smcl.scan_likelihood or self.matcher
+            use_scan = self.cfg.smcl.scan.enabled or self.matcher
             scan = frame_endpoints(frame, self.meta, self.cfg) if use_scan else None
         else:
             log.info("frame %d skipped: %s", frame.index, skipped)
@@ -506,7 +502,8 @@ class Localizer:
         started = time.perf_counter()
         weights = self.filter.estimation_weights()
         modes = extract_modes(self.filter.particles, weights, self.cfg.backend, self.filter.storeys)
-        associate = semantic_associator(self.filter.likelihood, out.observations)
+        models = self.filter.models
+        associate = semantic_associator(models.semantic, models.plates, out.observations)
         scan_match = None if self.matcher is None or out.scan is None else self.matcher.factor_fn(out.scan)
         out.graph = self.backend.step(modes, out.odom_increment, out.observations, associate, None, scan_match)
         out.graph_ms = (time.perf_counter() - started) * 1000
@@ -739,313 +736,6 @@ def building_mismatch(meta: SequenceMeta, prior: BimPrior) -> str | None:
     )
 
 
-# ------------------------------------------------------------------------------------------ offline
-
-
-@dataclass
-class RefinedRun:
-    """The offline pass over a localized run, one continuous stretch at a time (`segments`: the filter's own,
-    `LocalizationRun.segments`, one unless it relocalized, less its false alarms, their seams searched again in
-    hindsight; and those parted offline, whose first steps are `offline_seams`): every candidate mode refined, by
-    stretch and best fit first within one, with its fit (`fits`, the filter's measurement log-likelihood summed along
-    the refined trajectory); `best`, per stretch, its best fit (None: no mode was born there, and the stretch keeps
-    the forward pass's estimate); and the estimate, the stretches' best fits joined. Its `step_ms` is the forward
-    pass's step time plus the refinement's time shared over the steps."""
-
-    forward: LocalizationRun
-    modes: list[RefinedMode]
-    estimate: Track
-    refine_ms: float
-    fits: list[float] = field(default_factory=list)
-    segments: list[range] = field(default_factory=list)
-    best: list[RefinedMode | None] = field(default_factory=list)
-    offline_seams: list[int] = field(default_factory=list)
-
-    @property
-    def begins(self) -> list[str]:
-        """How each stretch begins: at the `start`, where the filter `relocalized`, or where refine parted one
-        `offline`."""
-        kinds = {0: "start", **dict.fromkeys(self.offline_seams, "offline")}
-        return [kinds.get(steps.start, "relocalized") for steps in self.segments]
-
-    def best_at(self, step: int) -> RefinedMode | None:
-        """The refined mode the estimate reports at `step` (None: the forward pass's estimate there)."""
-        for steps, mode in zip(self.segments, self.best, strict=True):
-            if step in steps:
-                return mode
-        return None
-
-
-def refine_run(
-    run: LocalizationRun,
-    prior: BimPrior,
-    cfg: Config,
-    matcher: CorrelativeMatcher | None = None,
-    show_progress: bool = False,
-) -> RefinedRun:
-    """Batch Levenberg–Marquardt smoothing of every candidate mode of the forward pass over its stretch.
-
-    A run the filter never relocalized is one stretch; where it did, the stretches part at the lost monitor's change
-    point (`LocalizationRun.segments`): across it the odometry does not tell where the robot went, so each stretch
-    is smoothed on its own. A stretch's candidates are the modes born in it, alive at the end or pruned after
-    `backend.refine_retired_min_keyframes` keyframes (a mode that lost to a late rival in the forward pass may still
-    explain the stretch best), each cut at the stretch's end. Each is refined over all the stretch's keyframes
-    (`refine_mode`) and scored by the filter's measurement model, semantic and scan terms, summed over its refined
-    trajectory; the best fit is the stretch's estimate. A stretch in which no mode was born keeps the forward
-    pass's estimate.
-
-    With `backend.refine_join`, two stretches the frames do not bear out are joined first: where the modes of both,
-    refined over both, give no offline split (`_offline_split`), the relocalization was a false alarm (the scans
-    stopped fitting for a while, the robot did not move), and the odometry links the stretches after all.
-    The seams are then searched in hindsight (`backend.refine_seam_window`, `_hindsight_segments`), and, with
-    `backend.refine_split`, a stretch that one mode explains up to a step and another after it, by far better than
-    any one mode explains the whole, is parted there and both parts refined anew, until no stretch parts
-    (`_offline_split`): a robot carried off while the filter kept tracking is refined as if it had relocalized.
-
-    With `backend.scan_factor` and the run's scans, every keyframe's scan is matched anew from each mode's
-    hindsight trajectory, by `matcher` (the forward pass's, or one built now). After a full forward pass, the fine
-    stage's accepted pose factors of each mode enter its batch graph. `show_progress`: a bar per stretch over its
-    modes. The run must come from a graph variant
-    (ValueError otherwise). A run in which the filter never formed a mode has nothing to refine: its `modes` are
-    empty and the estimate is the forward pass's.
-    """
-    if run.graph is None:
-        raise ValueError(f"refinement needs a pose-graph variant ({', '.join(GRAPH_VARIANTS)}), not {run.variant}")
-    candidates = [*run.final_modes, *run.retired_modes]
-    if not candidates:
-        log.warning("no mode formed in the forward pass: nothing to refine")
-        return RefinedRun(run, [], run.graph, 0.0)
-    started = time.perf_counter()
-    likelihood = SemanticLikelihood(prior, visibility_of(prior, cfg), cfg.smcl)
-    associate_fns = [semantic_associator(likelihood, obs) for obs in run.observations]
-    landmarks = Landmarks.from_prior(prior)
-    has_scans = any(scan is not None for scan in run.scans)
-    measure_fns: list[PoseFactorFn | None] | None = None
-    if cfg.backend.scan_factor and has_scans:
-        matcher = matcher or CorrelativeMatcher(prior, cfg.backend)
-        measure_fns = [None if scan is None else matcher.factor_fn(scan, recentre=0) for scan in run.scans]
-    scan_likelihood = ScanLikelihood(prior, cfg.smcl) if has_scans else None
-
-    def frame_fits(poses: np.ndarray, storey: int, steps: range) -> np.ndarray:
-        own = slice(steps.start, steps.stop)
-        return _frame_fits(poses, storey, run.observations[own], run.scans[own], likelihood, scan_likelihood)
-
-    refined_stretches: dict[tuple[int, int], tuple[list[RefinedMode], list[np.ndarray]]] = {}
-
-    def refine_stretch(steps: range) -> tuple[list[RefinedMode], list[np.ndarray]]:
-        """The candidates born in a stretch refined over it, best fit first, and their per-keyframe fits."""
-        key = (steps.start, steps.stop)
-        if key not in refined_stretches:
-            own = slice(steps.start, steps.stop)
-            born = [mode for mode in candidates if mode.first_index in steps]
-            desc = f"refine steps {steps.start}–{steps.stop - 1}"
-            refined = [
-                refine_mode(
-                    mode.within(steps),
-                    run.odom_increments[steps.start : steps.stop - 1],
-                    run.observations[own],
-                    associate_fns[own],
-                    landmarks,
-                    cfg.backend,
-                    None if measure_fns is None else measure_fns[own],
-                )
-                for mode in (progress(born, desc=desc, unit="mode") if show_progress else born)
-            ]
-            refined = [
-                dataclasses.replace(m, first_index=m.first_index + steps.start, start=steps.start) for m in refined
-            ]
-            fits = [frame_fits(m.poses, m.storey, steps) for m in refined]
-            order = sorted(range(len(refined)), key=lambda k: -fits[k].sum())
-            refined_stretches[key] = [refined[k] for k in order], [fits[k] for k in order]
-        return refined_stretches[key]
-
-    def searched(segments: list[range], limits: list[int | None]) -> list[range]:
-        """The seams searched again in hindsight, while one moves (each move gains likelihood; bounded)."""
-        for _ in range(len(run.timestamps_s)):
-            if len(segments) < 2 or cfg.backend.refine_seam_window == 0:
-                break
-            best_fits = [(refine_stretch(steps)[0] or [None])[0] for steps in segments]
-            moved = _hindsight_segments(segments, limits, best_fits, run, measure_fns, frame_fits, cfg.backend)
-            if moved == segments:
-                break
-            log.info("seams moved in hindsight: %s → %s", [s.start for s in segments[1:]], [s.start for s in moved[1:]])
-            segments = moved
-        return segments
-
-    segments = run.segments()
-    limits: list[int | None] = [int(k) for k in np.flatnonzero(run.relocalized)]  # None: a seam parted offline
-    j = 1
-    while cfg.backend.refine_join and j < len(segments):  # a relocalization the frames do not bear out: joined
-        both = range(segments[j - 1].start, segments[j].stop)
-        if _offline_split(both, *refine_stretch(both), cfg.backend) is None:
-            log.info("the relocalization at step %d was a false alarm: steps %d–%d refined as one", limits[j - 1],
-                     both.start, both.stop - 1)  # fmt: skip
-            segments, limits = [*segments[: j - 1], both, *segments[j + 1 :]], [*limits[: j - 1], *limits[j:]]
-        else:
-            j += 1
-    segments = searched(segments, limits)
-    while cfg.backend.refine_split:  # every split adds a seam: it ends
-        parted = [_offline_split(steps, *refine_stretch(steps), cfg.backend) for steps in segments]
-        parted = [seam for seam in parted if seam is not None]
-        if not parted:
-            break
-        log.info("stretches parted offline at %s", parted)
-        seams = [(steps.start, limit) for steps, limit in zip(segments[1:], limits, strict=True)]
-        seams = sorted([*seams, *((seam, None) for seam in parted)])
-        limits = [limit for _, limit in seams]
-        segments = _stretches([0, *(seam for seam, _ in seams)], len(run.timestamps_s))
-        segments = searched(segments, limits)
-    offline_seams = [steps.start for steps, limit in zip(segments[1:], limits, strict=True) if limit is None]
-    by_stretch = [
-        [dataclasses.replace(m, segment=index) for m in refine_stretch(steps)[0]]
-        for index, steps in enumerate(segments)
-    ]
-    modes = [m for stretch in by_stretch for m in stretch]
-    fits = [float(f.sum()) for steps in segments for f in refine_stretch(steps)[1]]
-    best = [stretch[0] if stretch else None for stretch in by_stretch]
-    refine_ms = (time.perf_counter() - started) * 1000
-    parts = [
-        run.graph.window(slice(steps.start, steps.stop))
-        if mode is None
-        else Track(
-            poses=mode.poses,
-            covariances=mode.covariances,
-            storeys=np.full(len(steps), mode.storey),
-            rooms=prior.room_at(mode.poses[:, :2], mode.storey),
-            step_ms=np.zeros(len(steps)),
-        )
-        for steps, mode in zip(segments, best, strict=True)
-    ]
-    T = len(run.timestamps_s)
-    estimate = Track(
-        poses=np.concatenate([p.poses for p in parts]),
-        covariances=np.concatenate([p.covariances for p in parts]),
-        storeys=np.concatenate([p.storeys for p in parts]),
-        rooms=np.concatenate([p.rooms for p in parts]),
-        step_ms=run.graph.step_ms + refine_ms / T,
-    )
-    log.info(
-        "refined %d modes over %d stretch(es) in %.0f ms; best fits: %s",
-        len(modes),
-        len(segments),
-        refine_ms,
-        ", ".join("-" if m is None else f"mode {m.mode_id}" for m in best),
-    )
-    return RefinedRun(run, modes, estimate, refine_ms, fits, segments, best, offline_seams)
-
-
-def _offline_split(steps: range, refined: list[RefinedMode], fits: list[np.ndarray], cfg: BackendConfig) -> int | None:
-    """Where a stretch parts again in hindsight (None: nowhere): the step s at which one refined candidate, born
-    before s, explaining the keyframes before s and another, born at s or later, explaining those from s on gain the
-    most measurement log-likelihood (`fits`, per keyframe) over the stretch's best fit (the first): at least
-    `cfg.refine_split_min_log_ratio`, with each mode explaining its own part better than the other by
-    `cfg.refine_split_min_keyframe_log_ratio` per keyframe on average, and each part at least
-    `cfg.refine_split_min_keyframes` keyframes long.
-
-    A robot carried off while the filter kept its belief leaves no relocalization; but the mode born at the new
-    place, tracked back across the jump, fits every frame before it badly, as the old place's mode fits those after.
-    Within one continuous stretch the true mode explains both parts; a wrong mode may still fit a part better than
-    a true one tracked a little off, but by little per keyframe."""
-    if len(refined) < 2:
-        return None
-    n, shortest = len(steps), cfg.refine_split_min_keyframes
-    cum = np.array([np.concatenate([[0.0], np.cumsum(f)]) for f in fits])  # cum[k, s]: keyframes 0 … s − 1
-    best_gain, best_seam = -np.inf, None
-    for a, earlier in enumerate(refined):
-        for b, later in enumerate(refined):
-            lo, hi = max(shortest, earlier.first_index - steps.start + 1), later.first_index - steps.start
-            s = np.arange(lo, min(n - shortest, hi) + 1)
-            if a == b or not len(s):
-                continue
-            ahead_before = (cum[a, s] - cum[b, s]) / s  # a's advantage per keyframe before s
-            ahead_after = ((cum[b, -1] - cum[b, s]) - (cum[a, -1] - cum[a, s])) / (n - s)  # b's, from s on
-            gain = cum[a, s] + cum[b, -1] - cum[b, s] - cum[0, -1]
-            gain[np.minimum(ahead_before, ahead_after) < cfg.refine_split_min_keyframe_log_ratio] = -np.inf
-            k = int(np.argmax(gain))
-            if gain[k] > best_gain:
-                best_gain, best_seam = float(gain[k]), steps.start + int(s[k])
-    if best_gain < cfg.refine_split_min_log_ratio:
-        return None
-    log.debug("stretch %d…%d parted at %d: %.1f nats", steps.start, steps.stop - 1, best_seam, best_gain)
-    return best_seam
-
-
-def _hindsight_segments(
-    segments: list[range],
-    limits: list[int | None],
-    best: list[RefinedMode | None],
-    run: LocalizationRun,
-    measure_fns: Sequence[PoseFactorFn | None] | None,
-    frame_fits: Callable[[np.ndarray, int, range], np.ndarray],
-    cfg: BackendConfig,
-) -> list[range]:
-    """The run's stretches with each seam between two stretches that have a best fit (`best`, refined over
-    `segments`) searched again (`_hindsight_seam`): within `cfg.refine_seam_window` keyframes of it, after the
-    previous seam (as searched: seams move in order) and the start of the earlier fit's stretch, before the next
-    seam, and not after its limit (`limits`, one per seam: the step at which the filter relocalized; None: a seam
-    parted offline)."""
-    T = len(run.timestamps_s)
-    seams = [steps.start for steps in segments]
-    for j in range(1, len(segments)):
-        before, after = best[j - 1], best[j]
-        if before is not None and after is not None:
-            lo = max(seams[j - 1] + 1, segments[j - 1].start + 1, seams[j] - cfg.refine_seam_window)
-            hi = min(seams[j + 1] - 1 if j + 1 < len(seams) else T - 1, seams[j] + cfg.refine_seam_window)
-            hi = hi if limits[j - 1] is None else min(hi, limits[j - 1])
-            score = _hindsight_seam(seams[j], lo, hi, before, after, run, measure_fns, frame_fits)
-            best_seam = lo + int(np.argmax(score))
-            if score[best_seam - lo] - score[seams[j] - lo] >= cfg.refine_seam_min_log_ratio:
-                seams[j] = best_seam
-    return _stretches(seams, T)
-
-
 def _stretches(seams: list[int], T: int) -> list[range]:
     """The stretches of T steps that begin at `seams` (the first 0), in order."""
     return [range(a, b) for a, b in zip(seams, [*seams[1:], T], strict=True)]
-
-
-def _hindsight_seam(
-    seam: int,
-    lo: int,
-    hi: int,
-    before: RefinedMode,
-    after: RefinedMode,
-    run: LocalizationRun,
-    measure_fns: Sequence[PoseFactorFn | None] | None,
-    frame_fits: Callable[[np.ndarray, int, range], np.ndarray],
-) -> np.ndarray:
-    """Where, in hindsight, the stretch ending with `before`'s trajectory gives way to the one starting with
-    `after`'s (their seam now at `seam`): for each step s in lo … hi, the measurement log-likelihood of keyframes
-    lo … s − 1 along `before` and s … hi along `after`, each trajectory carried across the present seam by odometry
-    and scan matching (`track_from`). Its maximum is the change point by likelihood, with the frames themselves."""
-    scans = [None] * len(run.timestamps_s) if measure_fns is None else list(measure_fns)
-    odom = run.odom_increments
-    ahead = track_from(before.poses[-1], odom[seam - 1 : hi], scans[seam : hi + 1], before.storey, backwards=False)
-    behind = track_from(after.poses[0], odom[lo:seam], scans[lo:seam], after.storey, backwards=True)
-    first = np.concatenate([before.poses[lo - before.start :], ahead])
-    second = np.concatenate([behind, after.poses[: hi + 1 - seam]])
-    steps = range(lo, hi + 1)
-    on_first = np.concatenate([[0.0], np.cumsum(frame_fits(first, before.storey, steps))])
-    on_second = np.concatenate([[0.0], np.cumsum(frame_fits(second, after.storey, steps))])
-    score = on_first + (on_second[-1] - on_second)  # score[s − lo]: lo … s − 1 on the first, s … hi on the second
-    return score[: hi - lo + 1]  # s ≤ hi: the later stretch keeps a keyframe of the window
-
-
-def _frame_fits(
-    poses: np.ndarray,
-    storey: int,
-    observations: Sequence[Observations],
-    scans: Sequence[np.ndarray | None],
-    likelihood: SemanticLikelihood,
-    scan_likelihood: ScanLikelihood | None,
-) -> np.ndarray:
-    """(T,) log P(z_t | x_t) of the filter's measurement model (semantic, door-plate and scan terms) at (T, 3)
-    poses on one storey, with the T keyframes' observations and scans."""
-    storeys = np.array([storey])
-    fits = np.zeros(len(poses))
-    for t, pose in enumerate(poses):
-        if len(observations[t]) or observations[t].n_texts:
-            fits[t] += float(likelihood.log_likelihood(pose[None], storeys, observations[t])[0])
-        if scan_likelihood is not None and scans[t] is not None and len(scans[t]):
-            fits[t] += float(scan_likelihood.log_likelihood(pose[None], storeys, scans[t])[0])
-    return fits

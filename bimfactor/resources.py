@@ -35,7 +35,7 @@ GRID_CELL_BYTES = 40
 and navigable layers, the distance transforms and flood fills). Measured (tracemalloc over build_prior): 40 B on the
 one-storey paper floor, 41 B on the two-storey FZK-Haus, 27 B on the five-storey AC11-Institute."""
 LATTICE_CELL_BYTES = 16
-"""Bytes per cell and storey of the visibility table's lattice (`smcl.visibility_cell_m`): its row index and the
+"""Bytes per cell and storey of the visibility table's lattice (`bim.visibility.cell_m`): its row index and the
 origins, offsets and counts of the free cells."""
 SIGNIFICANT_SHARE = 0.1
 """A setting is named in a refusal when its part is at least this share of the estimate."""
@@ -100,28 +100,30 @@ def format_bytes(n: float) -> str:
 
 
 def scan_beams(cfg: Config) -> int:
-    """Scan endpoints per frame: one per `smcl.scan_beam_deg` of the camera's view, at most one per image column;
+    """Scan endpoints per frame: one per `scan.beam_deg` of the camera's view, at most one per image column;
     0 without the scan term."""
-    if not cfg.smcl.scan_likelihood:
+    if not cfg.smcl.scan.enabled:
         return 0
-    view_deg = min(cfg.sim.camera.hfov_deg, cfg.smcl.fov_deg, 360.0)
-    return min(math.ceil(view_deg / cfg.smcl.scan_beam_deg), cfg.sim.camera.width)
+    view_deg = min(cfg.sim.camera.hfov_deg, cfg.smcl.semantic.fov_deg, 360.0)
+    return min(math.ceil(view_deg / cfg.scan.beam_deg), cfg.sim.camera.width)
 
 
 def particle_memory(cfg: Config) -> list[tuple[str, int, int]]:
     """(setting, particles, bytes) of each particle set a run holds: the filter's largest count (`max_particles` with
-    KLD-sampling, else `num_particles`), the challenger's, and the poses a door-plate reset draws to screen."""
+    the kld resampler, else `num_particles`), the challenger's, and the poses a door-plate reset draws to screen."""
     smcl = cfg.smcl
     per_particle = PARTICLE_BYTES + PARTICLE_BEAM_BYTES * scan_beams(cfg)
-    peak = smcl.max_particles if smcl.kld_sampling else smcl.num_particles
-    parts = [("smcl.max_particles" if smcl.kld_sampling else "smcl.num_particles", peak)]
-    if smcl.challenger:
-        parts.append(("smcl.challenger_particles", smcl.challenger_particles))
-    if cfg.perception.text.enabled and smcl.text_reset_share > 0:
-        # SemanticMCL.resample: round(share · M) redrawn from `text_reset_oversample` times as many, in draws of
-        # four times what is missing (_draw_in_rounds).
-        drawn = 4 * smcl.text_reset_oversample * round(smcl.text_reset_share * peak)
-        parts.append(("smcl.text_reset_oversample", drawn))
+    kld = smcl.resampler.kind == "kld"
+    peak = smcl.resampler.max_particles if kld else smcl.num_particles
+    parts = [("smcl.resampler.max_particles" if kld else "smcl.num_particles", peak)]
+    if smcl.challenger.enabled:
+        parts.append(("smcl.challenger.particles", smcl.challenger.particles))
+    reset = smcl.text_reset
+    if cfg.perception.text.enabled and reset.enabled:
+        # The text reset redraws round(share · M) from `oversample` times as many, in draws of four times what is
+        # missing (ParticleSampler.draw_in_rounds).
+        drawn = 4 * reset.oversample * round(reset.share * peak)
+        parts.append(("smcl.text_reset.oversample", drawn))
     return [(key, count, count * per_particle) for key, count in parts]
 
 
@@ -153,7 +155,7 @@ def grid_memory(
         return math.ceil(width / cell_m) * math.ceil(height / cell_m)
 
     grid = cells(cfg.bim.grid.resolution_m) * storeys * GRID_CELL_BYTES
-    lattice = cells(cfg.smcl.visibility_cell_m) * storeys * LATTICE_CELL_BYTES
+    lattice = cells(cfg.bim.visibility.cell_m) * storeys * LATTICE_CELL_BYTES
     return grid, lattice
 
 
@@ -176,7 +178,7 @@ def check_grid_memory(
     if grid >= SIGNIFICANT_SHARE * need:
         named.append(("bim.grid.resolution_m", cfg.bim.grid.resolution_m))
     if lattice >= SIGNIFICANT_SHARE * need:
-        named.append(("smcl.visibility_cell_m", cfg.smcl.visibility_cell_m))
+        named.append(("bim.visibility.cell_m", cfg.bim.visibility.cell_m))
     pad = 0.0 if padding_included else 2.0 * cfg.bim.grid.padding_m
     width, height = (float(v) + pad for v in extent_xy_m)
     raise ConfigError(

@@ -1,4 +1,5 @@
-"""Shared fixtures: the real IFC buildings beside the project, and a per-session geometry cache.
+"""Shared fixtures: the real IFC buildings beside the project, a per-session geometry cache, and a drive through
+the paper-floor building localized by each online variant (the localizer's and the offline refinement's tests).
 
 Tests never write to ~/.cache: pass `config_overrides` to `load_config` (or `cli_config_args` to the CLI),
 or use `test_config` directly; they point `bim.ifc.cache_dir` at a temporary folder for the session.
@@ -7,11 +8,23 @@ or use `test_config` directly; they point `bim.ifc.cache_dir` at a temporary fol
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 
 from bimfactor.config import Config, load_config
 from bimfactor.evaluation.bench import SHARED_IFC_DIR, find_shared_ifc_dir
+from tests.sim import conftest as sim_fixtures
+
+if TYPE_CHECKING:
+    from bimfactor.sim.simulate import SimResult
+    from tests.sim.conftest import Building
+
+# The simulator tests' session fixtures: the paper-floor prior and the text embedder.
+paper_floor = sim_fixtures.paper_floor
+text_embedder = sim_fixtures.text_embedder
+
+SEED = 3  # the localizer's seed in `runs` and the tests beside it
 
 
 @pytest.fixture(scope="session")
@@ -76,3 +89,25 @@ def paper_floor_prior(tmp_path_factory: pytest.TempPathFactory, cli_config_args:
     )
     assert result.exit_code == 0, result.output
     return folder / "prior"
+
+
+@pytest.fixture(scope="session")
+def drive(paper_floor: Building) -> SimResult:
+    """Standard trajectory 0 of the paper floor, T = 50."""
+    from bimfactor.sim.simulate import simulate_sequence
+
+    return simulate_sequence(paper_floor.prior, paper_floor.model, paper_floor.cfg, 0, 0, progress=False)
+
+
+@pytest.fixture(scope="session")
+def runs(paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str]) -> dict:
+    """The drive localized by each online variant with one seed."""
+    from bimfactor.pipeline import localize_sequence
+
+    out = {}
+    for variant in ("smcl", "smcl+graph", "full"):
+        cfg = load_config(None, [*config_overrides, f"localization.variant={variant}"])
+        out[variant] = localize_sequence(
+            paper_floor.prior, drive.meta, drive.frames, cfg, SEED, text_embedder=text_embedder, show_progress=False
+        )
+    return out

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from bimfactor.config import load_config
 from bimfactor.io.sequence import read_sequence, write_sequence
@@ -124,7 +125,7 @@ def test_unknown_config_key_from_set(tmp_path: Path) -> None:
 
 
 def test_inconsistent_particle_bounds_are_a_one_line_error(tmp_path: Path) -> None:
-    result = invoke("synth", "-o", tmp_path / "x.ifc", "--set", "smcl.max_particles=500")
+    result = invoke("synth", "-o", tmp_path / "x.ifc", "--set", "smcl.resampler.max_particles=500")
     assert_one_line_error(result, contains="max_particles 500 is below num_particles 1000")
     assert not (tmp_path / "x.ifc").exists()
     result = invoke("synth", "-o", tmp_path / "x.ifc", "--set", "perception.text.sim_drop_rate=0.9")
@@ -548,7 +549,7 @@ def test_localize_moves_a_belief_started_in_the_look_alike_room_next_door(
     for challenger in (True, False):
         run = tmp_path / f"run-{challenger}"
         result = invoke("localize", demo_prior, short_sequence, "-o", run, "--initial-pose", guess,
-                        "--set", f"smcl.challenger={str(challenger).lower()}")  # fmt: skip
+                        "--set", f"smcl.challenger.enabled={str(challenger).lower()}")  # fmt: skip
         assert result.exit_code == 0, result.output
         rows = list(csv.DictReader((run / "steps.csv").read_text().splitlines()))
         moved = [int(r["step"]) for r in rows if r["challenged"] == "1"]
@@ -568,7 +569,8 @@ def test_localize_from_an_initial_pose(demo_prior: Path, short_sequence: Path, t
     result = invoke("localize", demo_prior, short_sequence, "-o", run, "--initial-pose", guess, "--storey", "0")
     assert result.exit_code == 0, result.output
     resolved = (run / "config.yaml").read_text()
-    assert f"initial_pose:\n  - {x + 0.5}" in resolved and "global_storeys:\n  - 0\n" in resolved
+    start = yaml.safe_load(resolved)["smcl"]["start"]
+    assert start["pose"][0] == x + 0.5 and start["storeys"] == [0]
     rows = list(csv.DictReader((run / "steps.csv").read_text().splitlines()))
     assert np.hypot(float(rows[0]["x"]) - x, float(rows[0]["y"]) - y) < 1.0  # about the guess from the first step
     for bad, message in (("1,2", "expected X,Y,YAW_DEG"), ("a,b,c", "expected X,Y,YAW_DEG"),

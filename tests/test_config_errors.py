@@ -34,16 +34,22 @@ def synth_with(tmp_path: Path, *args: str) -> object:
 @pytest.mark.parametrize(
     ("assignment", "expected"),
     [
-        ("smcl.sigma_trans_m=.inf", "config key 'smcl.sigma_trans_m': must be a finite number, not inf"),
-        ("smcl.sigma_trans_m=-.inf", "config key 'smcl.sigma_trans_m': must be a finite number, not -inf"),
-        ("smcl.sigma_trans_m=1.0e+400", "config key 'smcl.sigma_trans_m': must be a finite number, not inf"),
+        ("smcl.motion.sigma_trans_m=.inf", "config key 'smcl.motion.sigma_trans_m': must be a finite number, not inf"),
+        (
+            "smcl.motion.sigma_trans_m=-.inf",
+            "config key 'smcl.motion.sigma_trans_m': must be a finite number, not -inf",
+        ),
+        (
+            "smcl.motion.sigma_trans_m=1.0e+400",
+            "config key 'smcl.motion.sigma_trans_m': must be a finite number, not inf",
+        ),
         ("bim.grid.band_min_m=.nan", "config key 'bim.grid.band_min_m': must be a finite number, not nan"),
         ("sim.camera.mount_pitch_deg=.inf", "config key 'sim.camera.mount_pitch_deg'"),
-        ("sim.odometry.alpha=[0.1, .inf, 0.1, 0.1]", "config key 'sim.odometry.alpha.1': must be a finite number"),
+        ("odometry.alpha=[0.1, .inf, 0.1, 0.1]", "config key 'odometry.alpha.1': must be a finite number"),
         ("registration.multiscale_voxels_m=[.nan]", "config key 'registration.multiscale_voxels_m.0'"),
         ("sim.door_plates.size_m=[0.2, .inf]", "config key 'sim.door_plates.size_m.1'"),
-        ("smcl.initial_pose=[1.0, .inf, 0.0]", "config key 'smcl.initial_pose.1'"),
-        ("smcl.scan_depth_noise.k_per_m=.inf", "config key 'smcl.scan_depth_noise.k_per_m'"),
+        ("smcl.start.pose=[1.0, .inf, 0.0]", "config key 'smcl.start.pose.1'"),
+        ("sensor.depth_noise.k_per_m=.inf", "config key 'sensor.depth_noise.k_per_m'"),
     ],
 )
 def test_non_finite_floats_are_a_one_line_error_naming_the_key(tmp_path: Path, assignment: str, expected: str) -> None:
@@ -52,8 +58,8 @@ def test_non_finite_floats_are_a_one_line_error_naming_the_key(tmp_path: Path, a
 
 def test_non_finite_floats_in_a_config_file_are_refused(tmp_path: Path) -> None:
     preset = tmp_path / "mine.yaml"
-    preset.write_text("backend:\n  odom_alpha: [0.1, 0.1, .nan, 0.1]\n")
-    assert_one_line_error(synth_with(tmp_path, "-c", str(preset)), contains="config key 'backend.odom_alpha.2'")
+    preset.write_text("odometry:\n  alpha: [0.1, 0.1, .nan, 0.1]\n")
+    assert_one_line_error(synth_with(tmp_path, "-c", str(preset)), contains="config key 'odometry.alpha.2'")
 
 
 def test_every_config_model_refuses_inf_and_nan() -> None:
@@ -148,31 +154,35 @@ def machine_with_23_gib(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_a_billion_particles_are_refused_with_the_memory_they_need(tmp_path: Path, machine_with_23_gib) -> None:
-    line = assert_one_line_error(synth_with(tmp_path, "--set", "smcl.max_particles=1000000000"))
+    line = assert_one_line_error(synth_with(tmp_path, "--set", "smcl.resampler.max_particles=1000000000"))
     assert line == (
-        "error: smcl.max_particles=1000000000 needs about 1.0 TiB for the particle filter (1.1 KiB a particle); "
-        "this machine has 23 GiB available"
+        "error: smcl.resampler.max_particles=1000000000 needs about 1.0 TiB for the particle filter "
+        "(1.1 KiB a particle); this machine has 23 GiB available"
     )
-    sets = ("--set", "smcl.kld_sampling=false", "--set", "smcl.num_particles=1000000000")
+    sets = ("--set", "smcl.resampler.kind=systematic", "--set", "smcl.num_particles=1000000000")
     assert_one_line_error(synth_with(tmp_path, *sets), contains="smcl.num_particles=1000000000 needs about")
-    line = assert_one_line_error(synth_with(tmp_path, "--set", "smcl.challenger_particles=100000000"))
-    assert "smcl.challenger_particles=100000000 needs about 103 GiB" in line and "max_particles" not in line
+    line = assert_one_line_error(synth_with(tmp_path, "--set", "smcl.challenger.particles=100000000"))
+    assert "smcl.challenger.particles=100000000 needs about 103 GiB" in line and "max_particles" not in line
 
 
 def test_particle_counts_are_checked_against_this_machine(tmp_path: Path) -> None:
     """Without a stand-in: a trillion particles (about a PiB) fit on no machine."""
-    line = assert_one_line_error(synth_with(tmp_path, "--set", "smcl.max_particles=1000000000000"))
-    assert "smcl.max_particles=1000000000000 needs about" in line and "available" in line
+    line = assert_one_line_error(synth_with(tmp_path, "--set", "smcl.resampler.max_particles=1000000000000"))
+    assert "smcl.resampler.max_particles=1000000000000 needs about" in line and "available" in line
 
 
 def test_the_default_particles_fit_in_little_memory(test_config: Config, config_overrides: list[str]) -> None:
     check_particle_memory(test_config, available=64 << 20)
     with_text = load_config(None, [*config_overrides, "perception.text.enabled=true"])
     check_particle_memory(with_text, available=64 << 20)
-    with pytest.raises(ConfigError, match=r"^smcl.max_particles=5000 needs about 5.\d MiB .* has 1.0 MiB available$"):
+    with pytest.raises(
+        ConfigError, match=r"^smcl.resampler.max_particles=5000 needs about 5.\d MiB .* has 1.0 MiB available$"
+    ):
         check_particle_memory(test_config, available=1 << 20)
-    big_challenger = load_config(None, [*config_overrides, "smcl.challenger_particles=5000"])
-    with pytest.raises(ConfigError, match=r"^smcl.max_particles=5000 and smcl.challenger_particles=5000 need about"):
+    big_challenger = load_config(None, [*config_overrides, "smcl.challenger.particles=5000"])
+    with pytest.raises(
+        ConfigError, match=r"^smcl.resampler.max_particles=5000 and smcl.challenger.particles=5000 need about"
+    ):
         check_particle_memory(big_challenger, available=1 << 20)
 
 
@@ -193,8 +203,8 @@ def test_a_millimetre_grid_is_refused_with_the_memory_it_needs(
         "bim.grid.resolution_m=0.001 needs about 1.5 TiB for the grids of 5 storeys of 92 x 92 m; "
         "this machine has 23 GiB available"
     )
-    tiny_lattice = load_config(None, [*config_overrides, "smcl.visibility_cell_m=0.001"])
-    with pytest.raises(ConfigError, match=r"^smcl.visibility_cell_m=0.001 needs about"):
+    tiny_lattice = load_config(None, [*config_overrides, "bim.visibility.cell_m=0.001"])
+    with pytest.raises(ConfigError, match=r"^bim.visibility.cell_m=0.001 needs about"):
         check_grid_memory((90.0, 90.0), 5, tiny_lattice)
     # a padded extent (GridSpec.extent) is not padded again
     assert grid_memory((92.0, 92.0), 5, fine, padding_included=True) == grid_memory((90.0, 90.0), 5, fine)

@@ -215,7 +215,9 @@ def test_any_damaged_sequence_is_read_or_refused(
 
 # ------------------------------------------------------------------------------------------------ configs
 
-KEYS = st.sampled_from(["seed", "smcl", "smcl.num_particles", "smcl.sigma_trans_m", "bim.grid.resolution_m", "nope"])
+KEYS = st.sampled_from(
+    ["seed", "smcl", "smcl.num_particles", "smcl.motion.sigma_trans_m", "bim.grid.resolution_m", "nope"]
+)
 YAML_VALUES = st.none() | st.booleans() | st.integers(-(2**70), 2**70) | st.floats() | st.text(max_size=12)
 
 

@@ -19,6 +19,8 @@ below it:
     registration
     pipeline     pipeline.py, the localizer that runs perception → localization → backend → registration: above
                  every stage it runs, below evaluation, whose reports and benchmarks read its runs
+    refine       refine.py, the offline refinement of a localized run: above pipeline, whose runs it refines,
+                 below evaluation, whose reports and benchmarks read its refined runs
     evaluation   metrics, reports, plots, benchmarks
     demo         demo.py, the end-to-end demo: above evaluation, whose report, metrics and plots it writes, below
                  the CLI that runs it
@@ -54,6 +56,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("backend",),
     ("registration",),
     ("pipeline",),
+    ("refine",),
     ("evaluation",),
     ("demo",),
     ("cli", "__main__"),

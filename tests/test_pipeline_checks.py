@@ -68,7 +68,7 @@ class StubPerception:
 @pytest.fixture(scope="module")
 def box(test_config: Config) -> BimPrior:
     prior = make_prior()
-    prior.visibility = VisibilityTable.build(prior, test_config.smcl, progress=False)
+    prior.visibility = VisibilityTable.build(prior, test_config.bim.visibility, progress=False)
     return prior
 
 
@@ -87,14 +87,14 @@ def cfg(config_overrides: list[str]) -> Config:
         [
             *config_overrides,
             "smcl.num_particles=300",
-            "smcl.kld_sampling=false",
-            "smcl.augmented=false",
-            "smcl.scan_likelihood=false",
-            "smcl.relocalize=false",
-            "smcl.challenger=false",
-            "smcl.initial_pose=[2.0, 3.0, 0.0]",
-            "smcl.initial_sigma_xy_m=0.05",
-            "smcl.initial_sigma_yaw_deg=1.0",
+            "smcl.resampler.kind=systematic",
+            "smcl.augmented.enabled=false",
+            "smcl.scan.enabled=false",
+            "smcl.relocalize.enabled=false",
+            "smcl.challenger.enabled=false",
+            "smcl.start.pose=[2.0, 3.0, 0.0]",
+            "smcl.start.sigma_xy_m=0.05",
+            "smcl.start.sigma_yaw_deg=1.0",
         ],
     )
 

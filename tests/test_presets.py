@@ -85,19 +85,17 @@ def test_every_preset_key_says_why() -> None:
 
 def test_paper_turns_every_extension_off(paper: Config) -> None:
     s = paper.smcl
-    assert not s.kld_sampling  # M particles throughout
-    assert not s.fov_extent and not s.footprint_match  # the objects' centres
-    assert s.semantic == "cosine"  # φ_sem = cos(f_j, C_k)
-    assert s.score_count_exponent == 1.0  # the mean of the matched scores
-    assert s.confidence_full == 0.0 and s.confidence_zero == 0.0  # every observation counts 1
-    assert s.detection_probability == 0.0  # no missed-detection term
-    assert s.off_map_weight == 1.0  # the prediction weighs nothing
-    assert not s.scan_likelihood
-    assert not s.augmented
-    assert not s.relocalize
-    assert not s.challenger
-    assert s.text_reset_share == 0.0 and not paper.perception.text.enabled
-    assert s.initial_pose is None and s.global_storeys is None  # uniform over the navigable space
+    assert s.resampler.kind == "systematic"  # M particles throughout
+    assert not s.semantic.fov_extent and not s.semantic.footprint_match  # the objects' centres
+    assert s.semantic.similarity == "cosine"  # φ_sem = cos(f_j, C_k)
+    assert s.semantic.count_exponent == 1.0  # the mean of the matched scores
+    assert s.motion.off_map_weight == 1.0  # the prediction weighs nothing
+    assert not s.scan.enabled
+    assert not s.augmented.enabled
+    assert not s.relocalize.enabled
+    assert not s.challenger.enabled
+    assert not s.text_reset.enabled and not paper.perception.text.enabled
+    assert s.start.pose is None and s.start.storeys is None  # uniform over the navigable space
     assert paper.localization.variant == "smcl"
     assert paper.evaluation.variants == ["smcl"]
     assert paper.evaluation.scenario == "global"
@@ -106,8 +104,9 @@ def test_paper_turns_every_extension_off(paper: Config) -> None:
 def test_paper_has_the_papers_constants(paper: Config) -> None:
     """Sec. III's hyperparameters."""
     s = paper.smcl
-    assert (s.num_particles, s.fov_deg, s.ess_threshold) == (1000, 90.0, 0.5)
-    assert (s.sigma_trans_m, s.sigma_rot_deg, s.sigma_d_m, s.kappa_alpha) == (0.2, 10.0, 1.2, 5.0)
+    assert (s.num_particles, s.semantic.fov_deg, s.ess_threshold) == (1000, 90.0, 0.5)
+    assert (s.motion.sigma_trans_m, s.motion.sigma_rot_deg) == (0.2, 10.0)
+    assert (s.semantic.sigma_d_m, s.semantic.kappa_alpha) == (1.2, 5.0)
     p = paper.perception
     assert (p.box_threshold, p.text_threshold, p.sim_threshold, p.iou_threshold) == (0.25, 0.25, 0.7, 0.7)
     ev = paper.evaluation
@@ -117,11 +116,12 @@ def test_paper_has_the_papers_constants(paper: Config) -> None:
 def test_fast_cuts_costs_and_keeps_every_stage(fast: Config, default: Config) -> None:
     f, d = fast.smcl, default.smcl
     assert f.num_particles < d.num_particles
-    assert f.challenger_particles < d.challenger_particles
+    assert f.challenger.particles < d.challenger.particles
     assert fast.backend.max_modes < default.backend.max_modes
     assert fast.perception.max_points < default.perception.max_points
-    for key in ("kld_sampling", "scan_likelihood", "augmented", "relocalize", "challenger"):
-        assert getattr(f, key) == getattr(d, key), key
+    assert f.resampler.kind == d.resampler.kind
+    for stage in ("scan", "augmented", "text_reset", "relocalize", "challenger"):
+        assert getattr(f, stage).enabled == getattr(d, stage).enabled, stage
     assert fast.backend.scan_factor == default.backend.scan_factor
     assert fast.localization.variant == default.localization.variant
     assert fast.bim == default.bim  # the same prior serves both

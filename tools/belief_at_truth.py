@@ -34,7 +34,7 @@ def replay(bench_dir: str, trajectory: int, repeat: int, radius_m: float, yaw_de
     from bimfactor.config import load_config
     from bimfactor.evaluation.metrics import translation_errors_m
     from bimfactor.evaluation.paper import run_seed, simulate_routes
-    from bimfactor.localization.smcl import near_pose
+    from bimfactor.localization.stats import near_pose
     from bimfactor.pipeline import localize_sequence
 
     cfg = load_config(Path(bench_dir) / "config.yaml")

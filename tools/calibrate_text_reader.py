@@ -78,7 +78,7 @@ def _measure(prior_dir: Path, ifc: Path, overrides: list[str]) -> tuple[list[dic
     from bimfactor.bim.prior import BimPrior
     from bimfactor.config import load_config
     from bimfactor.errors import InputError
-    from bimfactor.localization.text import edit_distance
+    from bimfactor.localization.measurements.text import edit_distance
     from bimfactor.perception.ocr import RapidOcrReader
     from bimfactor.perception.text import SimTextReader
     from bimfactor.progress import progress
@@ -94,7 +94,7 @@ def _measure(prior_dir: Path, ifc: Path, overrides: list[str]) -> tuple[list[dic
     world = build_world(prior, load_ifc(ifc, cfg.bim.ifc), cfg, seed=0)
     if not world.textures:
         raise InputError(f"{prior_dir} has no door plates: rebuild the prior with `bimfactor prior` (room numbers)")
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, 0.0)
+    camera = RgbdCamera(world, cfg.sim.camera, cfg.sensor.depth_noise, cfg.sim.depth_dropout, 0.0)
     meta = SequenceMeta("plates", "sim", camera.intrinsics, camera.T_base_camera, instances=world.instances)
     sim_reader = SimTextReader(meta, cfg.perception.text, np.random.default_rng(0))
     ocr = RapidOcrReader(cfg.perception.text.min_score)
@@ -171,7 +171,7 @@ def _reader_model(rows: list[dict]) -> dict:
     plate's width per character (`perception.text.read_probability`, fitted by maximum likelihood on a grid), and per
     character of each view's best reading (its cheapest edit, look-alikes at half an edit) the shares read as a
     look-alike, as another character, not at all, and inserted."""
-    from bimfactor.localization.text import edit_distance, edit_operations
+    from bimfactor.localization.measurements.text import edit_distance, edit_operations
 
     legible = [r for r in rows if r["sim_legible"]]
     counts = dict.fromkeys(("same", "look_alike", "other", "dropped", "inserted"), 0)

@@ -28,8 +28,8 @@ from gtsam.symbol_shorthand import X
 from bimfactor.backend.factors import from_pose2, odometry_factor, pose_prior_factor
 from bimfactor.backend.posegraph import MultiHypothesisBackend
 from bimfactor.backend.synthetic import LoopScenario, loop_scenario, nearest_landmark_associator
-from bimfactor.config import BackendConfig, load_config
-from bimfactor.localization.likelihood import polar_coordinates
+from bimfactor.config import BackendConfig, OdometryConfig, load_config
+from bimfactor.localization.measurements.semantic import polar_coordinates
 from bimfactor.localization.modes import Mode
 from bimfactor.types import se2_compose, wrap_angle
 
@@ -70,9 +70,9 @@ def fixed_point_bearing_range(
     return gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(sigmas), [X(t)], error)
 
 
-def per_mode_graphs(sc: LoopScenario, cfg: BackendConfig) -> tuple[int, np.ndarray, float]:
+def per_mode_graphs(sc: LoopScenario, cfg: BackendConfig, odometry: OdometryConfig) -> tuple[int, np.ndarray, float]:
     """Most probable mode id (0: the truth), its last pose, and the milliseconds of all steps."""
-    backend = MultiHypothesisBackend(sc.landmark_xy, cfg)
+    backend = MultiHypothesisBackend(sc.landmark_xy, cfg, odometry)
     started = time.perf_counter()
     for t in range(len(sc.true_poses)):
         clusters = [
@@ -85,7 +85,9 @@ def per_mode_graphs(sc: LoopScenario, cfg: BackendConfig) -> tuple[int, np.ndarr
     return step.best.mode_id, step.best.pose, (time.perf_counter() - started) * 1e3
 
 
-def hybrid_graph(sc: LoopScenario, cfg: BackendConfig, start_mode: int) -> tuple[int, np.ndarray, float]:
+def hybrid_graph(
+    sc: LoopScenario, cfg: BackendConfig, odometry: OdometryConfig, start_mode: int
+) -> tuple[int, np.ndarray, float]:
     """MPE mode, last pose and milliseconds of Gauss–Newton on the hybrid graph started at `start_mode`'s poses."""
     T = len(sc.true_poses)
     firsts = [sc.true_poses[0], rotate_about_origin(sc.true_poses[0], TWIN_ROTATION)]
@@ -106,7 +108,7 @@ def hybrid_graph(sc: LoopScenario, cfg: BackendConfig, start_mode: int) -> tuple
     graph.push_back(gtsam.HybridNonlinearFactor(MODE_KEY, [pose_prior_factor(0, f, CLUSTER_COV) for f in firsts]))
     for t in range(T):
         if t:
-            graph.push_back(odometry_factor(t, sc.increments[t - 1], cfg))
+            graph.push_back(odometry_factor(t, sc.increments[t - 1], cfg, odometry))
         obs = sc.observations[t]
         for k in range(len(obs)):
             points = [sc.landmark_xy[matches[m][t][k]] if k in matches[m][t] else None for m in range(2)]
@@ -126,16 +128,16 @@ def hybrid_graph(sc: LoopScenario, cfg: BackendConfig, start_mode: int) -> tuple
 
 def main() -> None:
     # The sensor of the back end's tests: σ_r 15 cm, σ_b 3°, BIM σ 10 cm.
-    cfg = load_config().backend.model_copy(
-        update={"range_sigma_m": 0.15, "bearing_sigma_deg": 3.0, "landmark_sigma_m": 0.1}
-    )
+    default = load_config()
+    cfg = default.backend.model_copy(update={"range_sigma_m": 0.15, "bearing_sigma_deg": 3.0, "landmark_sigma_m": 0.1})
+    odometry = default.odometry
     for seed in range(3):
-        sc = loop_scenario(np.random.default_rng(seed), cfg)
+        sc = loop_scenario(np.random.default_rng(seed), cfg, odometry)
         truth = sc.true_poses[-1, :2]
-        best, pose, ms = per_mode_graphs(sc, cfg)
+        best, pose, ms = per_mode_graphs(sc, cfg, odometry)
         print(f"seed {seed}  per-mode graphs: mode {best}, error {np.linalg.norm(pose[:2] - truth):.3f} m, {ms:.0f} ms")
         for start in (0, 1):
-            mode, pose, ms = hybrid_graph(sc, cfg, start)
+            mode, pose, ms = hybrid_graph(sc, cfg, odometry, start)
             print(
                 f"        hybrid from mode {start}'s poses: MPE mode {mode}, "
                 f"error {np.linalg.norm(pose[:2] - truth):.3f} m, {ms:.0f} ms"

@@ -18,7 +18,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from bimfactor.bim.plates import PLATE_REACH_M, door_plates
-from bimfactor.config import BackendConfig
+from bimfactor.config import BackendConfig, OdometryConfig
 from bimfactor.odometry import odometry_covariance
 from bimfactor.types import Observations
 
@@ -102,11 +102,11 @@ def covariance_body_to_world(covariance: np.ndarray, yaw: float) -> np.ndarray:
 # ------------------------------------------------------------------------------------------ noise models
 
 
-def odometry_noise_covariance(increment: np.ndarray, cfg: BackendConfig) -> np.ndarray:
+def odometry_noise_covariance(increment: np.ndarray, cfg: BackendConfig, odometry: OdometryConfig) -> np.ndarray:
     """(3, 3) covariance of one (3,) robot-frame odometry increment: the odometry motion model's (α1..α4 =
-    `odom_alpha`, `odometry.odometry_covariance`) plus a diagonal floor."""
+    `odometry.alpha`, `bimfactor.odometry.odometry_covariance`) plus a diagonal floor (`cfg.odom_sigma_*`)."""
     floor = np.array([cfg.odom_sigma_trans_m, cfg.odom_sigma_trans_m, np.deg2rad(cfg.odom_sigma_rot_deg)]) ** 2
-    return odometry_covariance(increment, cfg.odom_alpha) + np.diag(floor)
+    return odometry_covariance(increment, odometry.alpha) + np.diag(floor)
 
 
 def _robust(base: gtsam.noiseModel.Base, kernel: str, k: float) -> gtsam.noiseModel.Base:
@@ -142,7 +142,11 @@ def information_pose_factor(i: int, pose: np.ndarray, information_body: np.ndarr
 
 
 def odometry_factor(
-    i: int, increment: np.ndarray, cfg: BackendConfig, covariance: np.ndarray | None = None
+    i: int,
+    increment: np.ndarray,
+    cfg: BackendConfig,
+    odometry: OdometryConfig,
+    covariance: np.ndarray | None = None,
 ) -> gtsam.BetweenFactorPose2:
     """X(i−1) → X(i) by a (3,) robot-frame increment; noise from `odometry_noise_covariance` or a given (3, 3)
     covariance, robust per `cfg.odom_robust_kernel`.
@@ -152,7 +156,7 @@ def odometry_factor(
     heavy-tailed kernel lets the landmark and scan factors overrule such a step instead of bending the graph
     around it."""
     if covariance is None:
-        covariance = odometry_noise_covariance(increment, cfg)
+        covariance = odometry_noise_covariance(increment, cfg, odometry)
     gaussian = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, np.float64))
     noise = _robust(gaussian, cfg.odom_robust_kernel, cfg.odom_robust_k)
     return gtsam.BetweenFactorPose2(X(i - 1), X(i), to_pose2(increment), noise)

@@ -52,8 +52,9 @@ from bimfactor.backend.factors import (
     odometry_factor,
     pose_prior_factor,
 )
-from bimfactor.config import BackendConfig
-from bimfactor.localization.likelihood import SemanticLikelihood, polar_coordinates
+from bimfactor.config import BackendConfig, OdometryConfig
+from bimfactor.localization.measurements.semantic import SemanticLikelihood, polar_coordinates
+from bimfactor.localization.measurements.text import PlateLikelihood
 from bimfactor.localization.modes import Mode, ModeTracker, TrackedMode
 from bimfactor.types import Observations, se2_compose, se2_inverse, wrap_angle
 
@@ -107,7 +108,7 @@ def observation_cost(
 
 
 def semantic_associator(
-    likelihood: SemanticLikelihood, observations: Observations, min_score: float = 0.05
+    likelihood: SemanticLikelihood, plates: PlateLikelihood, observations: Observations, min_score: float = 0.05
 ) -> AssociateFn:
     """An `AssociateFn` from the S-MCL score: the Hungarian assignment maximising φ = φ_sem·φ_dist·φ_ang at a pose,
     then each door-plate reading to the plate it fits best there (`PlateLikelihood.associate`; measurement K + r,
@@ -115,7 +116,7 @@ def semantic_associator(
 
     Pairs scoring at most `min_score` are left unmatched (φ_dist is a loose gate: exp(−|Δd| / σ_d)).
     """
-    plates, K = likelihood.plates, len(observations)
+    K = len(observations)
 
     def associate(pose: np.ndarray, storey: int) -> list[tuple[int, int]]:
         read = [(K + r, plates.first_landmark_id + p) for r, p in plates.associate(pose, storey, observations.texts)]
@@ -134,7 +135,8 @@ def semantic_associator(
 
 
 class ModeGraph:
-    """The ISAM2 pose graph of one mode; `landmarks` are the BIM objects (an (N, 2) array: points), row = id."""
+    """The ISAM2 pose graph of one mode; `landmarks` are the BIM objects (an (N, 2) array: points), row = id;
+    `odometry` the robot's odometry noise, which weighs the odometry factors."""
 
     def __init__(
         self,
@@ -144,11 +146,13 @@ class ModeGraph:
         covariance_world: np.ndarray,
         landmarks: Landmarks | np.ndarray,
         cfg: BackendConfig,
+        odometry: OdometryConfig,
         storey: int = 0,
     ) -> None:
         self.mode_id = mode_id
         self.storey = storey
         self.cfg = cfg
+        self.odometry = odometry
         self.landmarks = Landmarks.of(landmarks)
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(cfg.relinearize_threshold)
@@ -192,7 +196,7 @@ class ModeGraph:
         else:
             if increment is None or i != self.last_index + 1:
                 raise ValueError(f"mode {self.mode_id}: keyframe {i} needs an increment from {self.last_index}")
-            self._pending.add(odometry_factor(i, increment, self.cfg, odom_covariance))
+            self._pending.add(odometry_factor(i, increment, self.cfg, self.odometry, odom_covariance))
             guess = self.predict(increment)
         values.insert(X(i), gtsam.Pose2(*guess))
         graph, first_landmark = self._pending, self._pending.size()
@@ -383,10 +387,12 @@ class BackendStep:
 
 
 class MultiHypothesisBackend:
-    """Per-mode pose graphs driven by the particle filter's modes; `step` once per keyframe."""
+    """Per-mode pose graphs driven by the particle filter's modes; `step` once per keyframe. `odometry` is the
+    robot's odometry noise, which weighs the graphs' odometry factors."""
 
-    def __init__(self, landmarks: Landmarks | np.ndarray, cfg: BackendConfig) -> None:
+    def __init__(self, landmarks: Landmarks | np.ndarray, cfg: BackendConfig, odometry: OdometryConfig) -> None:
         self.cfg = cfg
+        self.odometry = odometry
         self.landmarks = Landmarks.of(landmarks)
         self.tracker = ModeTracker(cfg)
         self.graphs: dict[int, ModeGraph] = {}
@@ -396,9 +402,9 @@ class MultiHypothesisBackend:
         self.retired: list[ModeHistory] = []
 
     @classmethod
-    def from_prior(cls, prior: Any, cfg: BackendConfig) -> MultiHypothesisBackend:
+    def from_prior(cls, prior: Any, cfg: BackendConfig, odometry: OdometryConfig) -> MultiHypothesisBackend:
         """A back end whose landmarks are a BimPrior's objects (row = object id)."""
-        return cls(Landmarks.from_prior(prior), cfg)
+        return cls(Landmarks.from_prior(prior), cfg, odometry)
 
     def step(
         self,
@@ -504,7 +510,7 @@ class MultiHypothesisBackend:
     def _start_graph(self, mode: TrackedMode, i: int, pose: np.ndarray, covariance: np.ndarray) -> ModeGraph:
         """A new graph for a mode, first keyframe i with its prior at a (3,) pose and (3, 3) world-frame covariance,
         in place of any it had."""
-        graph = ModeGraph(mode.id, i, pose, covariance, self.landmarks, self.cfg, mode.storey)
+        graph = ModeGraph(mode.id, i, pose, covariance, self.landmarks, self.cfg, self.odometry, mode.storey)
         self.graphs[mode.id] = graph
         return graph
 
@@ -604,6 +610,7 @@ def batch_refine(
     associations: Sequence[Association],
     landmarks: Landmarks | np.ndarray,
     cfg: BackendConfig,
+    odometry: OdometryConfig,
     initial_poses: np.ndarray | None = None,
     odom_covariances: np.ndarray | None = None,
     pose_factors: Sequence[PoseFactor] = (),
@@ -613,9 +620,10 @@ def batch_refine(
 
     `first_pose` / `first_covariance` are the pose prior on X(prior_index) (default: the first keyframe);
     `increments` (T−1, 3) robot-frame odometry; `observations` / `associations` one per keyframe; `landmarks`
-    the BIM objects by id (an (N, 2) array: point landmarks); `initial_poses` (T, 3) (default: dead reckoning
-    from the prior); `odom_covariances` (T−1, 3, 3) optional; `pose_factors` (i, (3,) pose, (3, 3) body
-    information) from a fine registrar.
+    the BIM objects by id (an (N, 2) array: point landmarks); `odometry` the odometry noise that weighs the
+    odometry factors; `initial_poses` (T, 3) (default: dead reckoning from the prior); `odom_covariances` (T−1, 3, 3)
+    optional (in place of `odometry`'s); `pose_factors` (i, (3,) pose, (3, 3) body information) from a fine
+    registrar.
     """
     increments = np.asarray(increments, np.float64).reshape(-1, 3)
     T = len(increments) + 1
@@ -634,7 +642,7 @@ def batch_refine(
     )
     for t in range(1, T):
         cov = None if odom_covariances is None else odom_covariances[t - 1]
-        motion.add(odometry_factor(t, increments[t - 1], cfg, cov))
+        motion.add(odometry_factor(t, increments[t - 1], cfg, odometry, cov))
     for i, pose, information in pose_factors:
         motion.add(information_pose_factor(i, pose, information))
     graph, values = gtsam.NonlinearFactorGraph(), _pose_values(initial_poses)

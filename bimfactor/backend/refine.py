@@ -37,7 +37,7 @@ from bimfactor.backend.posegraph import (
     PoseFactorFn,
     batch_refine,
 )
-from bimfactor.config import BackendConfig
+from bimfactor.config import BackendConfig, OdometryConfig
 from bimfactor.types import Observations, se2_compose, se2_inverse
 
 log = logging.getLogger(__name__)
@@ -75,15 +75,16 @@ def refine_mode(
     associate_fns: Sequence[AssociateFn],
     landmarks: Landmarks | np.ndarray,
     cfg: BackendConfig,
+    odometry: OdometryConfig,
     measure_fns: Sequence[PoseFactorFn | None] | None = None,
 ) -> RefinedMode:
     """Smooth one mode over all T keyframes (see the module docstring).
 
     `odom_increments` (T−1, 3) robot-frame odometry between keyframes; `observations` and `associate_fns` one per
     keyframe (an associator maps a pose and storey to (observation index, object id) pairs for that keyframe's
-    observations); `landmarks` the BIM objects by id (`factors.Landmarks`; an (N, 2) array: points);
-    `cfg.refine_rounds` bounds the re-association; `measure_fns`, one per keyframe (None: no scan), match the
-    keyframe's scan from a pose.
+    observations); `landmarks` the BIM objects by id (`factors.Landmarks`; an (N, 2) array: points); `odometry` the
+    odometry noise that weighs the odometry factors; `cfg.refine_rounds` bounds the re-association; `measure_fns`,
+    one per keyframe (None: no scan), match the keyframe's scan from a pose.
     """
     T = len(observations)
     i0, n = mode.first_index, len(mode.poses)
@@ -119,6 +120,7 @@ def refine_mode(
             matches,
             landmarks,
             cfg,
+            odometry,
             initial_poses=start,
             pose_factors=[*mode.pose_factors, *scanned],
             prior_index=i0,

@@ -12,13 +12,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from bimfactor.backend.factors import odometry_noise_covariance
-from bimfactor.config import BackendConfig
-from bimfactor.localization.likelihood import polar_coordinates
+from bimfactor.config import BackendConfig, OdometryConfig
+from bimfactor.localization.measurements.semantic import polar_coordinates
 from bimfactor.types import Observations, se2_between, wrap_angle
 
 PRECISE_ODOMETRY_ALPHA = [0.0025, 0.0003, 0.0025, 0.0003]
-"""`backend.odom_alpha` of IMU-aided odometry: σ about 5 % of each motion, 1° of yaw per metre (the default's, the
+"""`odometry.alpha` of IMU-aided odometry: σ about 5 % of each motion, 1° of yaw per metre (the default's, the
 simulator's wheel odometry, is about 22 % and 9° per metre)."""
+PRECISE_ODOMETRY = OdometryConfig(alpha=PRECISE_ODOMETRY_ALPHA)
+"""That odometry as an `OdometryConfig`, for `loop_scenario` and the pose graphs."""
 
 
 @dataclass
@@ -36,17 +38,23 @@ class LoopScenario:
 def loop_scenario(
     rng: np.random.Generator,
     cfg: BackendConfig | None = None,
+    odometry: OdometryConfig | None = None,
     n_poses: int = 20,
     n_landmarks: int = 6,
     n_obs: int = 4,
     radius_m: float = 4.0,
     as_built: bool = False,
 ) -> LoopScenario:
-    """A counter-clockwise circle of `n_poses` keyframes; each sees its `n_obs` nearest landmarks (360° view)."""
-    if cfg is None:
+    """A counter-clockwise circle of `n_poses` keyframes; each sees its `n_obs` nearest landmarks (360° view).
+
+    The odometry noise is drawn from `odometry_noise_covariance` with `cfg` and `odometry` (None: the default
+    config's)."""
+    if cfg is None or odometry is None:
         from bimfactor.config import load_config
 
-        cfg = load_config().backend
+        default = load_config()
+        cfg = default.backend if cfg is None else cfg
+        odometry = default.odometry if odometry is None else odometry
     angles = np.linspace(0.0, 2 * np.pi, n_poses, endpoint=False)
     true_poses = np.stack(
         [radius_m * np.cos(angles), radius_m * np.sin(angles), wrap_angle(angles + np.pi / 2)], axis=1
@@ -60,7 +68,8 @@ def loop_scenario(
     increments = []
     for t in range(1, n_poses):
         true_inc = se2_between(true_poses[t - 1], true_poses[t])
-        noisy = true_inc + np.linalg.cholesky(odometry_noise_covariance(true_inc, cfg)) @ rng.standard_normal(3)
+        covariance = odometry_noise_covariance(true_inc, cfg, odometry)
+        noisy = true_inc + np.linalg.cholesky(covariance) @ rng.standard_normal(3)
         noisy[2] = wrap_angle(noisy[2])
         increments.append(noisy)
     observations, associations = [], []

@@ -5,7 +5,7 @@ room it leads into, and the model's IfcSpace Name holds that number where a Long
 "Buero Meier"; `Room.space_number`). A plate hangs on the wall beside its door, on the side the room is entered
 from. Where exactly (left or right of the door, how high) differs from building to building, so the localizer
 takes each plate to be at its door's centre on that wall face and matches readings with the paper's distance
-and bearing tolerances (`localization.text`); the simulator hangs it beside the door (`sim.world`).
+and bearing tolerances (`localization.measurements.text`); the simulator hangs it beside the door (`sim.world`).
 """
 
 from __future__ import annotations

@@ -431,7 +431,7 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
         room_matches=matches,
         timings_s=timings,
     )
-    prior.visibility = VisibilityTable.build(prior, cfg.smcl)
+    prior.visibility = VisibilityTable.build(prior, cfg.bim.visibility)
     lap("visibility")
     return prior
 

@@ -1,7 +1,7 @@
 """Precomputed visibility of BIM objects: which objects a robot could see from each place of a storey.
 
-For every free-floor cell of a coarse lattice (`smcl.visibility_cell_m`, e.g. 0.25 m) the table lists the
-objects of the same storey within the radius r (`smcl.visible_radius_m`) that a straight line of sight
+For every free-floor cell of a coarse lattice (`bim.visibility.cell_m`, e.g. 0.25 m) the table lists the
+objects of the same storey within the radius r (`bim.visibility.radius_m`) that a straight line of sight
 reaches without crossing structure. This is the paper's "precomputed offline visible-object set" (Sec. II.C)
 with the heading left out: the field-of-view test is done at run time per particle from the object's bearing,
 which is the paper's cell × heading-bin table with an exact heading instead of a binned one.
@@ -35,7 +35,7 @@ import numpy as np
 from scipy import ndimage
 
 from bimfactor.bim.grid import GridSpec
-from bimfactor.config import SmclConfig
+from bimfactor.config import VisibilityConfig
 from bimfactor.progress import progress as progress_bar
 
 if TYPE_CHECKING:  # the prior stores this table: a runtime import would be circular
@@ -131,15 +131,16 @@ class VisibilityTable:
     # -------------------------------------------------------------------------------- build
 
     @classmethod
-    def build(cls, prior: BimPrior, cfg: SmclConfig, progress: bool = True) -> VisibilityTable:
-        """Ray march from every free lattice cell to every object within r on its storey."""
+    def build(cls, prior: BimPrior, cfg: VisibilityConfig, progress: bool = True) -> VisibilityTable:
+        """Ray march from every free lattice cell (`cfg.cell_m`) to every object within r (`cfg.radius_m`) on its
+        storey."""
         started = time.perf_counter()
         grid = prior.grid
-        cell_m = cfg.visibility_cell_m
+        cell_m = cfg.cell_m
         rows = int(np.ceil(grid.rows * grid.resolution_m / cell_m))
         cols = int(np.ceil(grid.cols * grid.resolution_m / cell_m))
         lattice = GridSpec(grid.origin_x, grid.origin_y, cell_m, rows, cols)
-        reach = cfg.visible_radius_m + cell_m * np.sqrt(2.0)  # any point of a cell is this close to its origin
+        reach = cfg.radius_m + cell_m * np.sqrt(2.0)  # any point of a cell is this close to its origin
         positions = prior.object_positions()[:, :2]
         sizes = prior.object_sizes()[:, :2]
         storey_of = np.asarray([o.storey_index for o in prior.objects], np.int64)
@@ -172,7 +173,7 @@ class VisibilityTable:
         counts = np.bincount(all_rows, minlength=n_rows)
         offsets = np.zeros(n_rows + 1, np.int64)
         np.cumsum(counts, out=offsets[1:])
-        table = cls(lattice, float(cfg.visible_radius_m), cell_rows, offsets, all_ids[order].astype(np.int32))
+        table = cls(lattice, float(cfg.radius_m), cell_rows, offsets, all_ids[order].astype(np.int32))
         log.info(
             "visibility table: %d lattice cells, %d (cell, object) pairs, %.1f MB, %.1f s",
             n_rows,

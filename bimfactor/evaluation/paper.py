@@ -14,7 +14,7 @@ when the same protocol runs with other seeds). Runs go to parallel processes.
 
 Scenarios (`evaluation.scenario`): `global` is the paper's, every run from the uniform belief over the building;
 `guess` starts each run from a pose guess a fixed distance and heading off the first frame's truth, in a direction
-and sign drawn from the run's seed (AMCL's initial pose; the filter's Gaussian is `smcl.initial_sigma_*`); `kidnap`
+and sign drawn from the run's seed (AMCL's initial pose; the filter's Gaussian is `smcl.start.sigma_*`); `kidnap`
 starts uniform, and after `kidnap_at` keyframes of route k carries the robot to keyframe `kidnap_resume_at` of route
 k + 3 (odometry sees nothing, `sim.simulate.kidnap`), scoring the T steps from there: `steps_to_converge` is then the
 steps to recover, and each run also says whether it was tracking when carried off. With
@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from bimfactor.config import Config
+from bimfactor.config import Config, updated
 from bimfactor.errors import ConfigError
 from bimfactor.evaluation.metrics import orientation_errors_deg, run_bootstrap_ci, translation_errors_m
 from bimfactor.io.atomic import write_text_atomic
@@ -180,8 +180,7 @@ def scenario_run(
         rng = np.random.default_rng([run_seed(cfg.seed, trajectory, repeat), GUESS_STREAM])
         x, y, yaw = pose_guess(first.gt_pose, ev.guess_offset_m, ev.guess_offset_deg, rng)
         guess = [float(x), float(y), float(np.rad2deg(yaw))]
-        smcl = cfg.smcl.model_copy(update={"initial_pose": guess, "initial_storey": first.gt_storey or 0})
-        cfg = cfg.model_copy(update={"smcl": smcl})
+        cfg = updated(cfg, {"smcl.start.pose": guess, "smcl.start.storey": first.gt_storey or 0})
         return prior, sim.meta, sim.frames, cfg, slice(0, ev.trajectory_length)
     return prior, sim.meta, sim.frames, _known_storey(cfg, sim.frames), None
 
@@ -190,8 +189,7 @@ def _known_storey(cfg: Config, frames: list[Frame]) -> Config:
     """With `evaluation.known_storey`, the config whose uniform start covers the first frame's true storey only."""
     if not cfg.evaluation.known_storey:
         return cfg
-    smcl = cfg.smcl.model_copy(update={"global_storeys": [frames[0].gt_storey or 0]})
-    return cfg.model_copy(update={"smcl": smcl})
+    return updated(cfg, {"smcl.start.storeys": [frames[0].gt_storey or 0]})
 
 
 GUESS_STREAM = 0x6E55  # the random stream of a run's pose guess
@@ -208,7 +206,8 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
     from bimfactor.config import Config
     from bimfactor.evaluation.metrics import errors_up_to_twin, inside_ellipse, steps_to_converge
     from bimfactor.evaluation.report import track_metrics
-    from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, refine_run, scan_matcher
+    from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, scan_matcher
+    from bimfactor.refine import refine_run
 
     cfg = Config.model_validate_json(cfg_json)
     ev = cfg.evaluation
@@ -404,15 +403,15 @@ def _by_step(runs: list[RunResult]) -> dict:
 
 def check_protocol(cfg: Config) -> None:
     """ConfigError for settings the protocol cannot take: every run starts as its scenario says."""
-    if cfg.smcl.initial_pose is not None:
+    if cfg.smcl.start.pose is not None:
         raise ConfigError(
             "bench paper starts every run as evaluation.scenario says (a pose guess per run with --scenario guess); "
-            "smcl.initial_pose is one pose guess for one sequence (bimfactor localize --initial-pose)"
+            "smcl.start.pose is one pose guess for one sequence (bimfactor localize --initial-pose)"
         )
-    if cfg.smcl.global_storeys is not None:
+    if cfg.smcl.start.storeys is not None:
         raise ConfigError(
             "bench paper starts every run as evaluation.scenario says (on its own storey with "
-            "evaluation.known_storey); smcl.global_storeys is one sequence's (bimfactor localize --storey)"
+            "evaluation.known_storey); smcl.start.storeys is one sequence's (bimfactor localize --storey)"
         )
 
 

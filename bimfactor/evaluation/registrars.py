@@ -23,7 +23,7 @@ import numpy as np
 
 from bimfactor.bim.ifc import IfcModel
 from bimfactor.bim.prior import BimPrior
-from bimfactor.config import Config, RegistrationConfig
+from bimfactor.config import Config, RegistrationConfig, SensorConfig
 from bimfactor.errors import InputError
 from bimfactor.progress import progress
 from bimfactor.registration.gate import degeneracy_ratio, gate_with_probes
@@ -46,7 +46,7 @@ class Keyframe:
 
 
 def registrable_scan(
-    frame: Frame, meta: SequenceMeta, surfaces: list[SurfaceModel], cfg: RegistrationConfig
+    frame: Frame, meta: SequenceMeta, surfaces: list[SurfaceModel], cfg: RegistrationConfig, sensor: SensorConfig
 ) -> np.ndarray | None:
     """The frame's (N, 3) scan when the gate would call it registrable at the frame's true pose, else None.
 
@@ -55,7 +55,7 @@ def registrable_scan(
     """
     if frame.gt_pose is None or not 0 <= (frame.gt_storey or 0) < len(surfaces):
         return None
-    scan = frame_scan(frame, meta, cfg)
+    scan = frame_scan(frame, meta, cfg, sensor)
     if len(scan) < MIN_SCAN_POINTS:
         return None
     ev = evaluate_pose(scan, surfaces[frame.gt_storey or 0], frame.gt_pose, cfg)
@@ -67,6 +67,7 @@ def pick_keyframes(
     sources: Iterable[tuple[Sequence[Frame], SequenceMeta]],
     surfaces: list[SurfaceModel],
     cfg: RegistrationConfig,
+    sensor: SensorConfig,
     n: int,
     per_source: int,
     rng: np.random.Generator,
@@ -80,7 +81,7 @@ def pick_keyframes(
             if taken >= per_source:
                 break
             frame = frames[int(i)]
-            scan = registrable_scan(frame, meta, surfaces, cfg)
+            scan = registrable_scan(frame, meta, surfaces, cfg, sensor)
             if scan is None:
                 skipped += 1
                 continue
@@ -105,7 +106,7 @@ def select_keyframes(
             yield sim.frames, sim.meta
 
     rng = np.random.default_rng([seed, 0x1CB])
-    return pick_keyframes(trajectories(), surfaces, cfg.registration, n, max(1, -(-n // 3)), rng)
+    return pick_keyframes(trajectories(), surfaces, cfg.registration, cfg.sensor, n, max(1, -(-n // 3)), rng)
 
 
 def sequence_keyframes(
@@ -124,7 +125,7 @@ def sequence_keyframes(
         raise InputError(f"{folder}: no frame has ground truth; the comparison needs it")
     rng = np.random.default_rng([seed, 0x1CB])
     per_source = max(1, -(-n // len(sequences)))
-    return pick_keyframes(((s, s.meta) for s in sequences), surfaces, cfg.registration, n, per_source, rng)
+    return pick_keyframes(((s, s.meta) for s in sequences), surfaces, cfg.registration, cfg.sensor, n, per_source, rng)
 
 
 def initial_error_sweep(cfg: RegistrationConfig) -> np.ndarray:
@@ -341,11 +342,11 @@ def benchmark_registration(
     scan_ms = []
     for key in keyframes:
         t = time.perf_counter()
-        frame_scan(key.frame, key.meta, rc)
+        frame_scan(key.frame, key.meta, rc, cfg.sensor)
         scan_ms.append((time.perf_counter() - t) * 1000)
     rng = np.random.default_rng(cfg.seed)
     times, successes = [], []
-    fine = FineRegistration(surfaces, rc, registrar)
+    fine = FineRegistration(surfaces, rc, cfg.sensor, registrar)
     coarse = calibrated_covariance(trans_m, np.deg2rad(rot_deg), rc)
     stage_ms, stage_accepted = [], []
     for key in keyframes:

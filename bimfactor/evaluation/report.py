@@ -16,7 +16,8 @@ from bimfactor.evaluation.metrics import TrajectoryMetrics, trajectory_metrics
 from bimfactor.evaluation.plots import save_estimate_plot, save_particle_snapshots
 from bimfactor.io.atomic import check_output_dir, output_dir
 from bimfactor.io.tum import write_tum_trajectory
-from bimfactor.pipeline import LocalizationRun, RefinedRun, Track
+from bimfactor.pipeline import LocalizationRun, Track
+from bimfactor.refine import RefinedRun
 from bimfactor.types import Observations
 
 POSE_COLUMNS = [

@@ -25,12 +25,13 @@ from bimfactor.backend.synthetic import loop_scenario
 from bimfactor.bim.ifc import IfcModel
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
-from bimfactor.config import BackendConfig, Config, SmclConfig
+from bimfactor.config import BackendConfig, Config, OdometryConfig, SmclConfig
 from bimfactor.evaluation.registrars import perturb
-from bimfactor.localization.field import frame_endpoints
-from bimfactor.localization.likelihood import polar_coordinates
+from bimfactor.localization.filter import SemanticMCL
+from bimfactor.localization.measurements import FrameData
+from bimfactor.localization.measurements.scan import frame_endpoints
+from bimfactor.localization.measurements.semantic import polar_coordinates
 from bimfactor.localization.modes import Mode
-from bimfactor.localization.smcl import SemanticMCL
 from bimfactor.progress import progress
 from bimfactor.registration.correlative import CorrelativeMatcher
 from bimfactor.sim.sensors import RgbdCamera
@@ -52,7 +53,7 @@ def benchmark_render(prior: BimPrior, model: IfcModel, cfg: Config, n_frames: in
     world = build_world(prior, model, cfg, cfg.seed)
     world_s = time.perf_counter() - t0
     trajectory = TrajectorySimulator(prior, cfg).trajectory(0, cfg.seed)
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    camera = RgbdCamera.from_config(world, cfg)
     elevation = prior.storeys[trajectory.storey_index].storey.elevation_m
     poses = trajectory.poses[np.linspace(0, len(trajectory.poses) - 1, n_frames).astype(int)]
     rng = np.random.default_rng(cfg.seed)
@@ -82,6 +83,10 @@ def benchmark_render(prior: BimPrior, model: IfcModel, cfg: Config, n_frames: in
 # ------------------------------------------------------------------------------------------ S-MCL step
 
 
+BENCH_SCAN_ENDPOINTS = 45
+"""`bench smcl`'s scan: one endpoint per 2° of a 90° view (the default `scan.beam_deg`)."""
+
+
 def _benchmark_observations(
     prior: BimPrior, visibility: VisibilityTable, cfg: SmclConfig, n_obs: int, rng: np.random.Generator
 ) -> tuple[Observations, np.ndarray, int]:
@@ -89,9 +94,9 @@ def _benchmark_observations(
 
     Returns the observations, the (3,) pose and its storey. Embeddings are the BIM label embeddings plus noise.
     """
-    sampler = SemanticMCL(prior, visibility, cfg, rng, num_particles=1)
-    poses, storeys = sampler.sample_free_space(400)
-    scorer = sampler.likelihood
+    mcl = SemanticMCL(prior, visibility, cfg, rng, num_particles=1)
+    poses, storeys = mcl.sampler.uniform(400)
+    scorer = mcl.models.semantic
     offsets, ids = visibility.candidates(poses[:, :2], storeys)
     owner = np.repeat(np.arange(len(poses)), np.diff(offsets))
     d, alpha = polar_coordinates(poses[owner], scorer.object_xy[ids])
@@ -120,6 +125,7 @@ def benchmark_step(
     prior: BimPrior,
     visibility: VisibilityTable,
     cfg: SmclConfig,
+    max_range_m: float,
     n_particles_list: tuple[int, ...] = (100, 1000, 5000, 20000),
     n_obs: int = 12,
     repeats: int = 20,
@@ -129,16 +135,16 @@ def benchmark_step(
 
     Every repeat starts from freshly spread particles (not timed), the hardest case: particles everywhere, every
     candidate list different. The observations are `n_obs` objects seen from one pose (padded with distractors);
-    with `scan_likelihood`, the update also scores a scan of one endpoint per `scan_beam_deg` of the view.
+    with the scan term, the update also scores a scan of 45 endpoints over the view, up to `max_range_m`.
     `*_ms_*` are wall-clock; `total_cpu_ms_median` is this thread's CPU time (robust to a busy machine).
     """
     rng = np.random.default_rng(seed)
     observations, _, _ = _benchmark_observations(prior, visibility, cfg, n_obs, rng)
     # With the scan term: one endpoint per bearing bin of the view (timing does not depend on where they land).
-    n_beams = int(np.ceil(cfg.fov_deg / cfg.scan_beam_deg)) if cfg.scan_likelihood else 0
-    bearings = np.linspace(-0.5, 0.5, n_beams) * np.deg2rad(cfg.fov_deg)
-    ranges = rng.uniform(0.5, cfg.scan_max_range_m, n_beams)
-    scan = np.column_stack([ranges * np.cos(bearings), ranges * np.sin(bearings)])
+    n_beams = BENCH_SCAN_ENDPOINTS if cfg.scan.enabled else 0
+    bearings = np.linspace(-0.5, 0.5, n_beams) * np.deg2rad(cfg.semantic.fov_deg)
+    ranges = rng.uniform(0.5, max_range_m, n_beams)
+    frame = FrameData(observations, np.column_stack([ranges * np.cos(bearings), ranges * np.sin(bearings)]))
     increment = np.array([0.5, 0.0, np.deg2rad(5.0)])
     rows = []
     for M in n_particles_list:
@@ -150,14 +156,14 @@ def benchmark_step(
             cpu0, t0 = time.thread_time(), time.perf_counter()
             mcl.predict(increment)
             t1 = time.perf_counter()
-            mcl.update(observations, scan)
+            mcl.update(frame)
             t2 = time.perf_counter()
-            did, _ = mcl.resample_if_needed()
+            did, _ = mcl.resample(frame)
             t3, cpu3 = time.perf_counter(), time.thread_time()
             for name, value in (("predict", t1 - t0), ("update", t2 - t1), ("resample", t3 - t2), ("total", t3 - t0)):
                 parts[name].append(value * 1e3)
             parts["total_cpu"].append((cpu3 - cpu0) * 1e3)
-            calls.append(mcl.likelihood.last_stats.hungarian_calls)
+            calls.append(mcl.models.semantic.last_stats.hungarian_calls)
             resampled += int(did)
         row: dict[str, Any] = {"n_particles": M, "n_obs": len(observations), "n_scan": n_beams, "repeats": repeats}
         for name, values in parts.items():
@@ -227,6 +233,7 @@ def benchmark_scan_matching(
 
 def benchmark_backend(
     cfg: BackendConfig,
+    odometry: OdometryConfig,
     n_modes: int = 5,
     n_keyframes: int = 60,
     n_landmarks: int = 12,
@@ -239,11 +246,11 @@ def benchmark_backend(
     `n_obs` landmarks per keyframe in its own copy, so all modes stay alive (none is pruned or merged).
     """
     rng = np.random.default_rng(seed)
-    scenario = loop_scenario(rng, cfg, n_poses=n_keyframes, n_landmarks=n_landmarks, n_obs=n_obs)
+    scenario = loop_scenario(rng, cfg, odometry, n_poses=n_keyframes, n_landmarks=n_landmarks, n_obs=n_obs)
     spacing_m = 100.0
     offsets = [np.array([spacing_m * k, 0.0]) for k in range(n_modes)]
     landmark_xy = np.concatenate([scenario.landmark_xy + off for off in offsets])
-    backend = MultiHypothesisBackend(landmark_xy, cfg)
+    backend = MultiHypothesisBackend(landmark_xy, cfg, odometry)
     per_step, per_graph = [], []
     for t in range(n_keyframes):
         clusters = [

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bimfactor.config import BackendConfig
-from bimfactor.localization.smcl import circular_mean, pose_window, weighted_pose_stats
+from bimfactor.localization.stats import circular_mean, pose_window, weighted_pose_stats
 from bimfactor.types import se2_compose, wrap_angle
 
 log = logging.getLogger(__name__)

@@ -119,9 +119,9 @@ def render_poses(
 ) -> SimResult:
     """Frames rendered at (N, 3) ground-truth poses, with wheel odometry from the motion model between them."""
     world = build_world(prior, model, cfg, seed)
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    camera = RgbdCamera.from_config(world, cfg)
     rng = np.random.default_rng([seed, TOUR_STREAM])
-    odom = simulate_odometry(poses, cfg.sim.odometry.alpha, rng)
+    odom = simulate_odometry(poses, cfg.odometry.alpha, rng)
     elevation = prior.storeys[storey_index].storey.elevation_m
     frames = []
     for i, pose in enumerate(np.asarray(poses, float)):

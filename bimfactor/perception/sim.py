@@ -43,7 +43,7 @@ furniture tour): recall of objects within 6 m (≥ 50 pixels) 0.65 / 0.75, poole
 d' ≈ 6; `harsh`: recall 0.54, confusion 0.38, 0.68 false positives per frame, d' ≈ 1.9 (duplex). Reproduce
 with `bimfactor.evaluation.graph.sim_detector_statistics` (`bimfactor bench graph`).
 In CLIP-like terms the `paper` preset wants a matched crop to score above an unmatched one by ~3 σ; the
-localizer's `smcl.semantic_threshold` must then sit between the two means (≈ 0.08), not at MiniLM
+localizer's `smcl.semantic.threshold` must then sit between the two means (≈ 0.08), not at MiniLM
 text-to-text values such as 0.7.
 
 Every random choice comes from a numpy Generator: per-frame draws from the generator the caller passes,

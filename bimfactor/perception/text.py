@@ -7,7 +7,7 @@ character is then read as a look-alike (`bim.plates.look_alikes`) with `sim_look
 digit with `sim_char_error_rate`, or lost with `sim_drop_rate` (the defaults are fitted to RapidOCR on the
 simulator's rendered plates, `tools/calibrate_text_reader.py`). Real images go through
 `perception.ocr.RapidOcrReader`. `locate_readings` places any reader's readings in the robot base frame from the
-depth under their boxes: the `TextObservations` the localizer weighs (`localization.text`).
+depth under their boxes: the `TextObservations` the localizer weighs (`localization.measurements.text`).
 """
 
 from __future__ import annotations

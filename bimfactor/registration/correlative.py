@@ -1,7 +1,7 @@
 """Correlative scan matching of the 2-D scan against the BIM's faces: a pose factor with a wide basin.
 
 Beyond the paper. The particle filter weighs particles by the depth scan against the likelihood field
-(`localization.field`); the pose graphs get the same evidence through this matcher (after Olson, "Real-time
+(`localization.measurements.scan`); the pose graphs get the same evidence through this matcher (after Olson, "Real-time
 correlative scan matching", ICRA 2009): an exhaustive search over a window of poses around a mode's predicted pose,
 scored by
 
@@ -48,7 +48,7 @@ import numpy as np
 from bimfactor.backend.factors import covariance_world_to_body
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import BackendConfig
-from bimfactor.localization.field import LikelihoodField, face_distances
+from bimfactor.localization.measurements.scan import LikelihoodField, face_distances
 from bimfactor.types import wrap_angle
 
 LAPLACE_DEPTH = 8.0  # the quadratic is fitted to the fine cells within this much log-likelihood of the peak

@@ -39,7 +39,7 @@ import numpy as np
 
 from bimfactor.backend.factors import covariance_world_to_body
 from bimfactor.bim.prior import BimPrior
-from bimfactor.config import Config, RegistrationConfig
+from bimfactor.config import Config, RegistrationConfig, SensorConfig
 from bimfactor.registration.gate import GateDecision, gate_with_probes
 from bimfactor.registration.icp import Registrar, RegistrationResult, make_registrar
 from bimfactor.registration.scan import MIN_SCAN_POINTS, frame_scan, stitch_submap
@@ -127,20 +127,27 @@ def surface_models_for(prior: BimPrior, cfg: Config, prior_dir: str | Path | Non
 
 
 class FineRegistration:
-    """The fine stage over one building: its storeys' surface models, the configured registrar, and the gate."""
+    """The fine stage over one building: its storeys' surface models, the configured registrar, and the gate; the
+    scans keep the `sensor`'s band of depth (`frame_scan`)."""
 
     def __init__(
-        self, surfaces: list[SurfaceModel], cfg: RegistrationConfig, registrar: Registrar | None = None
+        self,
+        surfaces: list[SurfaceModel],
+        cfg: RegistrationConfig,
+        sensor: SensorConfig,
+        registrar: Registrar | None = None,
     ) -> None:
         self.surfaces = surfaces
         self.cfg = cfg
+        self.sensor = sensor
         self.registrar = registrar if registrar is not None else make_registrar(cfg)
         self._scans: dict[tuple[int, float], np.ndarray] = {}
 
     @classmethod
     def for_prior(cls, prior: BimPrior, cfg: Config, prior_dir: str | Path | None = None) -> FineRegistration:
-        """The fine stage of `prior`'s building with `cfg.registration` (surface models from the cache)."""
-        return cls(surface_models_for(prior, cfg, prior_dir), cfg.registration)
+        """The fine stage of `prior`'s building with `cfg.registration` and `cfg.sensor` (surface models from the
+        cache)."""
+        return cls(surface_models_for(prior, cfg, prior_dir), cfg.registration, cfg.sensor)
 
     def scan(
         self,
@@ -174,7 +181,7 @@ class FineRegistration:
         if key not in self._scans:
             depth = np.asarray(frame.depth_m)
             usable = depth.ndim == 2 and depth.size > 0
-            self._scans[key] = frame_scan(frame, meta, self.cfg) if usable else np.zeros((0, 3))
+            self._scans[key] = frame_scan(frame, meta, self.cfg, self.sensor) if usable else np.zeros((0, 3))
             while len(self._scans) > self.cfg.submap_keyframes:
                 self._scans.pop(next(iter(self._scans)))
         return self._scans[key]

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from bimfactor.config import RegistrationConfig
-from bimfactor.localization.field import backproject_depth, height_band
+from bimfactor.config import RegistrationConfig, SensorConfig
+from bimfactor.localization.measurements.scan import backproject_depth, height_band
 from bimfactor.types import Frame, SequenceMeta, se2_between, se2_to_matrix
 
 # A scan with fewer points is not registered (the fine stage) nor used (the comparison's keyframes).
@@ -26,10 +26,13 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return np.asarray(cloud.voxel_down_sample(voxel_m).points)
 
 
-def frame_scan(frame: Frame, meta: SequenceMeta, cfg: RegistrationConfig, voxel_m: float | None = None) -> np.ndarray:
-    """One frame's registration scan: (N, 3) base-frame wall points, voxel-downsampled (default voxel from cfg)."""
-    points = backproject_depth(frame.depth_m, meta.intrinsics, meta.T_base_camera, cfg.scan_max_range_m)
-    points = height_band(points, cfg.scan_min_z_m, cfg.scan_max_z_m)
+def frame_scan(
+    frame: Frame, meta: SequenceMeta, cfg: RegistrationConfig, sensor: SensorConfig, voxel_m: float | None = None
+) -> np.ndarray:
+    """One frame's registration scan: (N, 3) base-frame wall points within the sensor's range, from its floor cut
+    (`sensor.min_z_m`) up to `cfg.scan_max_z_m`, voxel-downsampled (default voxel from cfg)."""
+    points = backproject_depth(frame.depth_m, meta.intrinsics, meta.T_base_camera, sensor.max_range_m)
+    points = height_band(points, sensor.min_z_m, cfg.scan_max_z_m)
     return voxel_downsample(points, cfg.scan_voxel_m if voxel_m is None else voxel_m)
 
 
@@ -49,10 +52,10 @@ def stitch_submap(scans_base: list[np.ndarray], poses: np.ndarray, voxel_m: floa
     return voxel_downsample(np.concatenate(parts), voxel_m)
 
 
-def frames_submap(frames: list[Frame], meta: SequenceMeta, cfg: RegistrationConfig) -> np.ndarray:
+def frames_submap(frames: list[Frame], meta: SequenceMeta, cfg: RegistrationConfig, sensor: SensorConfig) -> np.ndarray:
     """Submap of the last `cfg.submap_keyframes` frames, stitched with their odometry, in the last frame's base."""
     recent = frames[-cfg.submap_keyframes :]
-    scans = [frame_scan(f, meta, cfg) for f in recent]
+    scans = [frame_scan(f, meta, cfg, sensor) for f in recent]
     if len(scans) == 1:
         return scans[0]
     return stitch_submap(scans, np.stack([f.odom_pose for f in recent]), cfg.scan_voxel_m)

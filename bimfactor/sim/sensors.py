@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import special
 
-from bimfactor.config import CameraSimConfig, DepthNoiseConfig
+from bimfactor.config import CameraSimConfig, Config, DepthDropoutConfig, DepthSigmaConfig
 from bimfactor.odometry import odometry_increment_variances, odometry_increments
 from bimfactor.sim.world import SimWorld
 from bimfactor.types import CameraIntrinsics, se2_to_matrix, wrap_angle
@@ -45,14 +45,23 @@ def camera_mount(cfg: CameraSimConfig) -> np.ndarray:
 
 
 class RgbdCamera:
-    """A pinhole RGB-D camera on the robot base; renders the world with a precomputed grid of rays."""
+    """A pinhole RGB-D camera on the robot base; renders the world with a precomputed grid of rays.
+
+    `depth_noise` is the axial σ(z) (`sensor.depth_noise`), `dropout` the returns lost at grazing incidence and at
+    random (`sim.depth_dropout`); `from_config` takes all of them from a run's config."""
 
     def __init__(
-        self, world: SimWorld, camera: CameraSimConfig, depth_noise: DepthNoiseConfig, rgb_noise_std: float
+        self,
+        world: SimWorld,
+        camera: CameraSimConfig,
+        depth_noise: DepthSigmaConfig,
+        dropout: DepthDropoutConfig,
+        rgb_noise_std: float,
     ) -> None:
         self.world = world
         self.camera = camera
         self.depth_noise = depth_noise
+        self.dropout = dropout
         self.rgb_noise_std = rgb_noise_std
         self.intrinsics = CameraIntrinsics.from_hfov(camera.width, camera.height, camera.hfov_deg)
         self.T_base_camera = camera_mount(camera)
@@ -71,6 +80,11 @@ class RgbdCamera:
         levels = (np.arange(1 << 16) + 0.5) / (1 << 16)
         self._rgb_noise_levels = (special.ndtri(levels) * rgb_noise_std).astype(np.float32)
         self._rays = np.empty((len(self._dirs_camera), 6), np.float32)
+
+    @classmethod
+    def from_config(cls, world: SimWorld, cfg: Config) -> RgbdCamera:
+        """The camera of `cfg.sim.camera`, with the sensor's depth noise, the simulator's dropouts and RGB noise."""
+        return cls(world, cfg.sim.camera, cfg.sensor.depth_noise, cfg.sim.depth_dropout, cfg.sim.rgb_noise_std)
 
     def _print_plates(
         self, rgb: np.ndarray, rays: np.ndarray, depth: np.ndarray, instance: np.ndarray, cos_incidence: np.ndarray
@@ -110,7 +124,7 @@ class RgbdCamera:
         self, T_world_base: np.ndarray, storey_elevation_m: float = 0.0, rng: np.random.Generator | None = None
     ) -> Rendering:
         """Render colour, depth and instance ids; noise and random dropouts only when `rng` is given."""
-        k, noise = self.intrinsics, self.depth_noise
+        k, noise, dropout = self.intrinsics, self.depth_noise, self.dropout
         rays = self.rays(T_world_base, storey_elevation_m)
         depth, instance, normals = self.world.cast(rays)
         hit = instance >= 0
@@ -124,15 +138,15 @@ class RgbdCamera:
         rgb *= shade[:, None]
         rgb[~hit] = BACKGROUND_RGB
         valid = hit & (depth >= self.camera.min_range_m) & (depth <= self.camera.max_range_m)
-        valid &= cos_incidence >= np.cos(np.deg2rad(noise.grazing_dropout_deg))
+        valid &= cos_incidence >= np.cos(np.deg2rad(dropout.grazing_dropout_deg))
         depth = depth.astype(np.float32, copy=False)  # the cast's own array: changed in place
         if rng is not None:
             if self.rgb_noise_std > 0:
                 rgb += self._rgb_noise_levels[rng.integers(0, 1 << 16, size=rgb.shape, dtype=np.uint16)]
             sigma = noise.sigma_m(depth[valid]).astype(np.float32)
             depth[valid] += sigma * rng.standard_normal(len(sigma), dtype=np.float32)
-            if noise.dropout_prob > 0:
-                valid &= rng.random(len(valid), dtype=np.float32) >= noise.dropout_prob
+            if dropout.dropout_prob > 0:
+                valid &= rng.random(len(valid), dtype=np.float32) >= dropout.dropout_prob
         depth[~valid] = np.nan
         rgb_u8 = np.clip(rgb + 0.5, 0.0, 255.0).astype(np.uint8)
         return Rendering(

@@ -81,8 +81,8 @@ def simulate_sequence(
     trajectory = TrajectorySimulator(prior, cfg, extra).trajectory(trajectory_index, seed)
     gt = trajectory.keyframe_poses
     odometry_rng = np.random.default_rng([seed, trajectory_index, ODOMETRY_STREAM])
-    odom = simulate_odometry(gt, cfg.sim.odometry.alpha, odometry_rng)
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    odom = simulate_odometry(gt, cfg.odometry.alpha, odometry_rng)
+    camera = RgbdCamera.from_config(world, cfg)
     sensor_rng = np.random.default_rng([seed, trajectory_index, SENSOR_STREAM])
     storey = trajectory.storey_index
     elevation = prior.storeys[storey].storey.elevation_m
@@ -113,7 +113,7 @@ def simulate_sequence(
             "seed": seed,
             "storey_index": storey,
             "odometry_step": ODOMETRY_STEP,
-            "odometry_alpha": list(cfg.sim.odometry.alpha),
+            "odometry_alpha": list(cfg.odometry.alpha),
             "goals": trajectory.goals,
             "as_built_changes": world.changes,
         },

@@ -271,7 +271,7 @@ class TrajectorySimulator:
         self.lookahead_m = max(MIN_LOOKAHEAD_M, lookahead)
         self.views: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         if tcfg.route == "viewpoints":
-            visibility = prior.visibility or VisibilityTable.build(prior, cfg.smcl, progress=False)
+            visibility = prior.visibility or VisibilityTable.build(prior, cfg.bim.visibility, progress=False)
             self.views = {index: self._views(graph, visibility) for index, graph in self.graphs.items()}
 
     def _views(self, graph: NavGraph, visibility: VisibilityTable) -> tuple[np.ndarray, np.ndarray]:

@@ -4,22 +4,22 @@ import numpy as np
 import pytest
 
 from bimfactor.backend.posegraph import ModeGraph, MultiHypothesisBackend, semantic_associator
-from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, loop_scenario, nearest_landmark_associator
+from bimfactor.backend.synthetic import PRECISE_ODOMETRY, loop_scenario, nearest_landmark_associator
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import load_config
-from bimfactor.localization.likelihood import SemanticLikelihood
+from bimfactor.localization.measurements.semantic import SemanticLikelihood
+from bimfactor.localization.measurements.text import PlateLikelihood
 from bimfactor.localization.modes import Mode
 from bimfactor.types import Observations, wrap_angle
 from tests.localization.handmade import embedding, make_prior, object_id
 
 # The sensor, odometry and BIM the tolerances below are set for: σ_r 15 cm, σ_b 3°, odometry σ 5 % of the motion,
-# BIM σ 10 cm (the loop scenario draws its noise from them).
+# BIM σ 10 cm (the loop scenario draws its noise from them; the odometry is PRECISE_ODOMETRY).
 CFG = load_config().backend.model_copy(
     update={
         "range_sigma_m": 0.15,
         "bearing_sigma_deg": 3.0,
         "landmark_sigma_m": 0.1,
-        "odom_alpha": PRECISE_ODOMETRY_ALPHA,
     }
 )
 CLUSTER_COV = np.diag([0.2, 0.2, np.deg2rad(5.0)]) ** 2
@@ -37,8 +37,8 @@ def _rotate_about_origin(pose: np.ndarray, angle: float) -> np.ndarray:
 
 
 def test_the_true_mode_wins_and_a_wrong_mode_is_pruned():
-    sc = loop_scenario(np.random.default_rng(0), CFG)
-    backend = MultiHypothesisBackend(sc.landmark_xy, CFG)
+    sc = loop_scenario(np.random.default_rng(0), CFG, PRECISE_ODOMETRY)
+    backend = MultiHypothesisBackend(sc.landmark_xy, CFG, PRECISE_ODOMETRY)
     wrong_rotation = np.pi / 3  # maps the landmark ring's inner landmarks onto outer ones: nothing fits
     pruned, best_ids = [], []
     for t in range(len(sc.true_poses)):
@@ -63,8 +63,8 @@ def test_the_true_mode_wins_and_a_wrong_mode_is_pruned():
 
 
 def test_modes_whose_graphs_converge_are_merged():
-    sc = loop_scenario(np.random.default_rng(1), CFG)
-    backend = MultiHypothesisBackend(sc.landmark_xy, CFG)
+    sc = loop_scenario(np.random.default_rng(1), CFG, PRECISE_ODOMETRY)
+    backend = MultiHypothesisBackend(sc.landmark_xy, CFG, PRECISE_ODOMETRY)
     offset = np.array([0.6, 0.0, 0.0])  # beyond merge_distance_m: the clusters are distinct at first
     assert offset[0] > CFG.merge_distance_m
     merged = []
@@ -81,9 +81,10 @@ def test_modes_whose_graphs_converge_are_merged():
 
 def test_semantic_associator_reuses_the_smcl_score():
     prior = make_prior()
-    smcl_cfg = load_config().smcl
-    visibility = VisibilityTable.build(prior, smcl_cfg, progress=False)
-    likelihood = SemanticLikelihood(prior, visibility, smcl_cfg)
+    cfg = load_config()
+    smcl_cfg = cfg.smcl
+    visibility = VisibilityTable.build(prior, cfg.bim.visibility, progress=False)
+    likelihood = SemanticLikelihood(prior, visibility, smcl_cfg.semantic)
     pose = np.array([3.0, 1.5, np.pi / 2])  # in room A, facing the chair at (3, 3)
     observations = Observations(
         np.stack([embedding("chair"), embedding("table")]).astype(np.float32),
@@ -91,7 +92,7 @@ def test_semantic_associator_reuses_the_smcl_score():
         np.array([0.0, 0.3]),
         labels=["chair", "table"],
     )
-    associate = semantic_associator(likelihood, observations)
+    associate = semantic_associator(likelihood, PlateLikelihood(prior, smcl_cfg), observations)
     # The table is in the other room, behind the wall: only the chair is matched.
     assert associate(pose, 0) == [(0, object_id(prior, "chair"))]
 
@@ -99,8 +100,8 @@ def test_semantic_associator_reuses_the_smcl_score():
 def test_a_mode_whose_graph_fails_restarts_from_its_cluster_and_the_run_goes_on(monkeypatch, caplog):
     """GTSAM raising inside one mode's update (an indeterminate system) restarts that mode's graph from its particle
     cluster at the keyframe, with a warning; the mode keeps its id and the estimate stays on the truth."""
-    sc = loop_scenario(np.random.default_rng(0), CFG)
-    backend = MultiHypothesisBackend(sc.landmark_xy, CFG)
+    sc = loop_scenario(np.random.default_rng(0), CFG, PRECISE_ODOMETRY)
+    backend = MultiHypothesisBackend(sc.landmark_xy, CFG, PRECISE_ODOMETRY)
     real_add_keyframe, failing_step = ModeGraph.add_keyframe, 8
 
     def add_keyframe(self, i, *args, **kwargs):
@@ -124,8 +125,8 @@ def test_a_mode_whose_graph_fails_restarts_from_its_cluster_and_the_run_goes_on(
 
 def test_a_fine_registration_that_breaks_a_graph_restarts_it_with_the_fit(monkeypatch, caplog):
     """GTSAM raising on an ICP pose factor restarts that mode's graph at the keyframe, with the fit in it."""
-    sc = loop_scenario(np.random.default_rng(0), CFG)
-    backend = MultiHypothesisBackend(sc.landmark_xy, CFG)
+    sc = loop_scenario(np.random.default_rng(0), CFG, PRECISE_ODOMETRY)
+    backend = MultiHypothesisBackend(sc.landmark_xy, CFG, PRECISE_ODOMETRY)
     for t in range(6):
         increment = None if t == 0 else sc.increments[t - 1]
         associate = _nearest_landmark_associator(sc.landmark_xy, sc.observations[t])

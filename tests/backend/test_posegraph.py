@@ -22,20 +22,21 @@ from bimfactor.backend.posegraph import (
     batch_refine,
     floored_covariance,
 )
-from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, LoopScenario, loop_scenario
+from bimfactor.backend.synthetic import PRECISE_ODOMETRY, LoopScenario, loop_scenario
 from bimfactor.config import load_config
-from bimfactor.localization.likelihood import polar_coordinates
+from bimfactor.localization.measurements.semantic import polar_coordinates
 from bimfactor.localization.modes import Mode
 from bimfactor.types import Observations, se2_compose, wrap_angle
 
-BASE = load_config().backend
-# A precise sensor, odometry and BIM for the accuracy tests (σ_r 5 cm, σ_b 1°, BIM σ 2 cm; truth = BIM).
+DEFAULT = load_config()
+BASE, WHEEL_ODOMETRY = DEFAULT.backend, DEFAULT.odometry
+# A precise sensor, odometry (PRECISE_ODOMETRY) and BIM for the accuracy tests (σ_r 5 cm, σ_b 1°, BIM σ 2 cm;
+# truth = BIM).
 PRECISE = BASE.model_copy(
     update={
         "range_sigma_m": 0.05,
         "bearing_sigma_deg": 1.0,
         "landmark_sigma_m": 0.02,
-        "odom_alpha": PRECISE_ODOMETRY_ALPHA,
         "odom_robust_kernel": "none",  # its noise is the model's own, without slips
     }
 )
@@ -53,7 +54,7 @@ def _errors(poses: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 
 def _run_isam(sc: LoopScenario, cfg, associations=None) -> ModeGraph:
     associations = sc.associations if associations is None else associations
-    graph = ModeGraph(0, 0, sc.true_poses[0], FIRST_COV, sc.landmark_xy, cfg)
+    graph = ModeGraph(0, 0, sc.true_poses[0], FIRST_COV, sc.landmark_xy, cfg, PRECISE_ODOMETRY)
     for t in range(len(sc.true_poses)):
         graph.add_keyframe(t, sc.observations[t], associations[t], None if t == 0 else sc.increments[t - 1])
     return graph
@@ -61,7 +62,9 @@ def _run_isam(sc: LoopScenario, cfg, associations=None) -> ModeGraph:
 
 def _run_batch(sc: LoopScenario, cfg, associations=None):
     associations = sc.associations if associations is None else associations
-    return batch_refine(sc.true_poses[0], FIRST_COV, sc.increments, sc.observations, associations, sc.landmark_xy, cfg)
+    return batch_refine(
+        sc.true_poses[0], FIRST_COV, sc.increments, sc.observations, associations, sc.landmark_xy, cfg, PRECISE_ODOMETRY
+    )
 
 
 def _wrong_associations(sc: LoopScenario) -> tuple[list, float]:
@@ -88,7 +91,7 @@ def test_covariance_frame_round_trip():
 @pytest.mark.parametrize("relinearize_skip", [1, 10])
 def test_isam2_converges_to_the_true_loop(seed, relinearize_skip):
     cfg = PRECISE.model_copy(update={"relinearize_skip": relinearize_skip})
-    sc = loop_scenario(np.random.default_rng(seed), cfg)
+    sc = loop_scenario(np.random.default_rng(seed), cfg, PRECISE_ODOMETRY)
     graph = _run_isam(sc, cfg)
     assert graph.isam.params().relinearizeSkip == relinearize_skip
     trans_rms_m, yaw_rms_deg = _errors(graph.trajectory(), sc.true_poses)
@@ -105,7 +108,7 @@ def test_isam2_converges_to_the_true_loop(seed, relinearize_skip):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_batch_lm_converges_and_agrees_with_isam2(seed):
-    sc = loop_scenario(np.random.default_rng(seed), PRECISE)
+    sc = loop_scenario(np.random.default_rng(seed), PRECISE, PRECISE_ODOMETRY)
     result = _run_batch(sc, PRECISE)
     trans_rms_m, yaw_rms_deg = _errors(result.poses, sc.true_poses)
     assert trans_rms_m < 0.05
@@ -120,7 +123,7 @@ def test_batch_lm_converges_and_agrees_with_isam2(seed):
 
 @pytest.mark.parametrize("kernel", ["cauchy", "huber"])
 def test_robust_kernel_down_weights_a_wrong_match_that_drags_the_plain_graph(kernel):
-    sc = loop_scenario(np.random.default_rng(1), PRECISE)
+    sc = loop_scenario(np.random.default_rng(1), PRECISE, PRECISE_ODOMETRY)
     wrong, gap_m = _wrong_associations(sc)
     assert 2.5 < gap_m < 4.0
     k = {"cauchy": 2.385, "huber": 1.345}[kernel]
@@ -140,7 +143,7 @@ def _max_yaw_error_deg(poses: np.ndarray, truth: np.ndarray) -> float:
 @pytest.mark.parametrize("kernel", ["huber", "cauchy"])
 def test_robust_odometry_lets_the_landmarks_overrule_a_turn_the_wheels_measured_short(kernel):
     """An 18° turn measured as 4.5° (a slip): ~10σ of the odometry model evaluated at the measured increment."""
-    sc = loop_scenario(np.random.default_rng(2), PRECISE)
+    sc = loop_scenario(np.random.default_rng(2), PRECISE, PRECISE_ODOMETRY)
     plain = PRECISE  # no kernel on the odometry
     clean = _run_batch(sc, plain).poses
     sc.increments[9][2] -= np.deg2rad(13.5)
@@ -160,8 +163,8 @@ def test_covariance_is_honest_on_the_synthetic_loop():
     """The true pose lies inside the online estimate's 95 % ellipse on roughly 95 % of the steps."""
     inside, total = 0, 0
     for seed in range(6):
-        sc = loop_scenario(np.random.default_rng(100 + seed), BASE, as_built=True)
-        graph = ModeGraph(0, 0, sc.true_poses[0], FIRST_COV, sc.landmark_xy, BASE)
+        sc = loop_scenario(np.random.default_rng(100 + seed), BASE, WHEEL_ODOMETRY, as_built=True)
+        graph = ModeGraph(0, 0, sc.true_poses[0], FIRST_COV, sc.landmark_xy, BASE, WHEEL_ODOMETRY)
         for t in range(len(sc.true_poses)):
             graph.add_keyframe(t, sc.observations[t], sc.associations[t], None if t == 0 else sc.increments[t - 1])
             err = sc.true_poses[t] - graph.pose
@@ -172,8 +175,8 @@ def test_covariance_is_honest_on_the_synthetic_loop():
 
 
 def test_reassociation_swaps_the_factors_when_the_estimate_moves():
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
-    graph = ModeGraph(0, 0, sc.true_poses[0], FIRST_COV, sc.landmark_xy, PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
+    graph = ModeGraph(0, 0, sc.true_poses[0], FIRST_COV, sc.landmark_xy, PRECISE, PRECISE_ODOMETRY)
     graph.add_keyframe(0, sc.observations[0], sc.associations[0])
     graph.add_keyframe(1, sc.observations[1], sc.associations[1], sc.increments[0])
     calls = []
@@ -209,14 +212,14 @@ def test_a_cluster_on_a_line_in_x_and_yaw_still_starts_a_graph():
     assert floored[0, 0] >= singular[0, 0] and floored[2, 2] >= singular[2, 2]
     diagonal = np.diag([0.5, 0.01, 0.001])
     np.testing.assert_allclose(floored_covariance(diagonal, BASE), np.diag(np.maximum(np.diag(diagonal), sigma**2)))
-    graph = ModeGraph(0, 0, np.array([1.0, 2.0, 0.3]), singular, np.array([[50.0, 50.0]]), BASE)
+    graph = ModeGraph(0, 0, np.array([1.0, 2.0, 0.3]), singular, np.array([[50.0, 50.0]]), BASE, WHEEL_ODOMETRY)
     graph.add_keyframe(0, Observations(np.zeros((0, 4), np.float32), np.zeros(0), np.zeros(0)), [])
     np.testing.assert_allclose(graph.pose, [1.0, 2.0, 0.3], atol=1e-9)
     assert np.linalg.eigvalsh(graph.covariance).min() > 0
 
 
 def test_pose_factor_pulls_the_estimate():
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
     graph = _run_isam(sc, PRECISE)
     target = graph.pose + np.array([0.3, 0.0, 0.0])
     graph.add_pose_factor(19, target, np.diag([1e6, 1e6, 1e6]))
@@ -227,7 +230,7 @@ def test_pose_factor_pulls_the_estimate():
 def test_batch_covariances_fall_back_to_the_motion_graph_when_the_marginals_fail(monkeypatch, caplog):
     """GTSAM may find the full graph's marginals indeterminate at the optimum: the run keeps its optimised poses and
     reports the prior-and-odometry covariances, which are wider than the full graph's, with a warning."""
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
     normal = _run_batch(sc, PRECISE)
     import bimfactor.backend.posegraph as posegraph
 
@@ -255,14 +258,14 @@ def test_marginals_leave_out_a_bearing_whose_landmark_sits_on_the_pose():
     """A landmark parked on its pose (range 10 µm) makes the bearing's Jacobian explode and GTSAM's marginals
     indeterminate; without that one factor they exist, and the pose keeps a real (not collapsed) uncertainty."""
     cfg = BASE
-    sc = loop_scenario(np.random.default_rng(0), cfg)
+    sc = loop_scenario(np.random.default_rng(0), cfg, WHEEL_ODOMETRY)
     landmarks = Landmarks.of(sc.landmark_xy)
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     graph.add(pose_prior_factor(0, sc.true_poses[0], FIRST_COV))
     for t, pose in enumerate(sc.true_poses):
         values.insert(X(t), gtsam.Pose2(*pose))
         if t:
-            graph.add(odometry_factor(t, sc.increments[t - 1], cfg))
+            graph.add(odometry_factor(t, sc.increments[t - 1], cfg, WHEEL_ODOMETRY))
         for factor in landmark_factors(t, sc.observations[t], sc.associations[t], bearing_range_noise(cfg)):
             graph.add(factor)
     for j, xy in enumerate(sc.landmark_xy):
@@ -281,8 +284,8 @@ def test_marginals_leave_out_a_bearing_whose_landmark_sits_on_the_pose():
 def test_a_scan_measurement_enters_the_mode_graph_with_its_keyframe_and_is_kept_apart():
     """`pose_factor_fn` measures each mode's keyframe pose from its prediction: a tight measurement at the truth
     pulls a mode born off the truth onto it, and the history keeps it as a scan factor, not a fine one."""
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
-    backend = MultiHypothesisBackend(sc.landmark_xy, PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
+    backend = MultiHypothesisBackend(sc.landmark_xy, PRECISE, PRECISE_ODOMETRY)
     information = np.diag([1 / 0.01**2, 1 / 0.01**2, 1 / np.deg2rad(0.2) ** 2])
     asked = []
 
@@ -310,8 +313,8 @@ def test_a_scan_match_beyond_the_window_starts_the_mode_graph_again_at_it(first_
     The graph disagrees with the walls there, so it starts again at that match; matches inside the window then enter
     it as scan factors. The history before the restart is kept as a refine candidate when it is long enough
     (`refine_retired_min_keyframes`), as a pruned mode's is."""
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
-    backend = MultiHypothesisBackend(sc.landmark_xy, PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
+    backend = MultiHypothesisBackend(sc.landmark_xy, PRECISE, PRECISE_ODOMETRY)
     information = np.diag([1 / 0.01**2, 1 / 0.01**2, 1 / np.deg2rad(0.2) ** 2])
     born_off = np.array([1.2, 0.0, np.deg2rad(5.0)])
     assert born_off[0] > PRECISE.scan_window_m
@@ -349,7 +352,7 @@ def test_a_long_objects_landmark_gives_way_along_its_footprint():
     seen = np.array([[6.6, 2.0]])  # the table's footprint: x 6.5–9.5, y 1.8–2.2
 
     def final_error(landmarks) -> float:
-        graph = ModeGraph(0, 0, truth[0], np.diag([0.3, 0.3, np.deg2rad(5.0)]) ** 2, landmarks, BASE)
+        graph = ModeGraph(0, 0, truth[0], np.diag([0.3, 0.3, np.deg2rad(5.0)]) ** 2, landmarks, BASE, WHEEL_ODOMETRY)
         for t, pose in enumerate(truth):
             d, alpha = polar_coordinates(pose, seen)
             obs = Observations(np.zeros((1, 4), np.float32), d, alpha, ["table"])

@@ -5,17 +5,17 @@ import pytest
 
 from bimfactor.backend.posegraph import ModeGraph, ModeHistory, batch_refine, dead_reckoning
 from bimfactor.backend.refine import refine_mode
-from bimfactor.backend.synthetic import PRECISE_ODOMETRY_ALPHA, LoopScenario, loop_scenario, nearest_landmark_associator
+from bimfactor.backend.synthetic import PRECISE_ODOMETRY, LoopScenario, loop_scenario, nearest_landmark_associator
 from bimfactor.config import load_config
 from bimfactor.types import se2_between, wrap_angle
 
-# A precise sensor, odometry and BIM (σ_r 5 cm, σ_b 1°, BIM σ 2 cm; truth = BIM), as in the pose-graph tests.
+# A precise sensor, odometry (PRECISE_ODOMETRY) and BIM (σ_r 5 cm, σ_b 1°, BIM σ 2 cm; truth = BIM), as in the
+# pose-graph tests.
 PRECISE = load_config().backend.model_copy(
     update={
         "range_sigma_m": 0.05,
         "bearing_sigma_deg": 1.0,
         "landmark_sigma_m": 0.02,
-        "odom_alpha": PRECISE_ODOMETRY_ALPHA,
         "odom_robust_kernel": "none",  # its noise is the model's own, without slips
     }
 )
@@ -33,7 +33,9 @@ def _late_mode(sc: LoopScenario, cfg, associations=None, until: int | None = Non
     """A mode born at keyframe BORN_AT (off the truth) and run online to the end of the loop (or pruned at
     keyframe `until`)."""
     associations = sc.associations if associations is None else associations
-    graph = ModeGraph(3, BORN_AT, sc.true_poses[BORN_AT] + BIRTH_OFFSET, BIRTH_COV, sc.landmark_xy, cfg)
+    graph = ModeGraph(
+        3, BORN_AT, sc.true_poses[BORN_AT] + BIRTH_OFFSET, BIRTH_COV, sc.landmark_xy, cfg, PRECISE_ODOMETRY
+    )
     for t in range(BORN_AT, len(sc.true_poses) if until is None else until):
         graph.add_keyframe(t, sc.observations[t], associations[t], None if t == BORN_AT else sc.increments[t - 1])
     return graph.history(probability=0.8)
@@ -44,7 +46,7 @@ def _associators(sc: LoopScenario) -> list:
 
 
 def test_dead_reckoning_chains_forwards_and_backwards_from_the_anchor():
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
     anchor = np.array([1.0, -2.0, 0.4])
     poses = dead_reckoning(anchor, 5, sc.increments)
     assert poses.shape == (len(sc.true_poses), 3)
@@ -56,25 +58,27 @@ def test_dead_reckoning_chains_forwards_and_backwards_from_the_anchor():
 
 
 def test_batch_refine_takes_its_prior_on_any_keyframe():
-    sc = loop_scenario(np.random.default_rng(1), PRECISE)
+    sc = loop_scenario(np.random.default_rng(1), PRECISE, PRECISE_ODOMETRY)
     result = batch_refine(
-        sc.true_poses[10], BIRTH_COV, sc.increments, sc.observations, sc.associations, sc.landmark_xy, PRECISE,
-        prior_index=10,
+        sc.true_poses[10], BIRTH_COV, sc.increments, sc.observations, sc.associations, sc.landmark_xy,
+        PRECISE, PRECISE_ODOMETRY, prior_index=10,
     )  # fmt: skip
     assert _rms_m(result.poses, sc.true_poses) < 0.05
     with pytest.raises(ValueError, match="outside"):
         batch_refine(
-            sc.true_poses[0], BIRTH_COV, sc.increments, sc.observations, sc.associations, sc.landmark_xy, PRECISE,
-            prior_index=len(sc.true_poses),
+            sc.true_poses[0], BIRTH_COV, sc.increments, sc.observations, sc.associations, sc.landmark_xy,
+            PRECISE, PRECISE_ODOMETRY, prior_index=len(sc.true_poses),
         )  # fmt: skip
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_late_mode_is_smoothed_over_the_whole_sequence(seed):
-    sc = loop_scenario(np.random.default_rng(seed), PRECISE)
+    sc = loop_scenario(np.random.default_rng(seed), PRECISE, PRECISE_ODOMETRY)
     mode = _late_mode(sc, PRECISE)
     assert len(mode.poses) == len(sc.true_poses) - BORN_AT
-    refined = refine_mode(mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, PRECISE)
+    refined = refine_mode(
+        mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, PRECISE, PRECISE_ODOMETRY
+    )
     assert refined.poses.shape == (len(sc.true_poses), 3)
     assert (refined.mode_id, refined.first_index, refined.probability) == (3, BORN_AT, 0.8)
     # The keyframes before the mode existed are placed by hindsight, as well as the ones after.
@@ -91,7 +95,7 @@ def test_a_late_mode_is_smoothed_over_the_whole_sequence(seed):
 
 
 def test_hindsight_reassociation_replaces_a_wrong_match():
-    sc = loop_scenario(np.random.default_rng(1), PRECISE)
+    sc = loop_scenario(np.random.default_rng(1), PRECISE, PRECISE_ODOMETRY)
     plain = PRECISE.model_copy(update={"robust_kernel": "none"})  # the wrong match drags an unprotected graph
     wrong = [list(a) for a in sc.associations]
     k, true_j = wrong[WRONG_STEP][0]
@@ -101,8 +105,8 @@ def test_hindsight_reassociation_replaces_a_wrong_match():
     wrong[WRONG_STEP][0] = (k, wrong_j)
     mode = _late_mode(sc, plain, wrong)
     args = (mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy)
-    dragged = refine_mode(*args, plain.model_copy(update={"refine_rounds": 0}))
-    fixed = refine_mode(*args, plain.model_copy(update={"refine_rounds": 2}))
+    dragged = refine_mode(*args, plain.model_copy(update={"refine_rounds": 0}), PRECISE_ODOMETRY)
+    fixed = refine_mode(*args, plain.model_copy(update={"refine_rounds": 2}), PRECISE_ODOMETRY)
     assert (k, wrong_j) in dragged.associations[WRONG_STEP]
     assert fixed.rounds >= 1
     assert set(fixed.associations[WRONG_STEP]) == set(sc.associations[WRONG_STEP])
@@ -110,16 +114,24 @@ def test_hindsight_reassociation_replaces_a_wrong_match():
 
 
 def test_a_mode_longer_than_the_sequence_is_refused():
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
     mode = _late_mode(sc, PRECISE)
     with pytest.raises(ValueError, match="do not lie in"):
-        refine_mode(mode, sc.increments[:-1], sc.observations[:-1], _associators(sc)[:-1], sc.landmark_xy, PRECISE)
+        refine_mode(
+            mode,
+            sc.increments[:-1],
+            sc.observations[:-1],
+            _associators(sc)[:-1],
+            sc.landmark_xy,
+            PRECISE,
+            PRECISE_ODOMETRY,
+        )
 
 
 def test_scans_are_matched_anew_from_the_hindsight_trajectory_before_the_birth_too():
     """With a scan matcher per keyframe, every keyframe (also before the mode's birth) gets a scan factor measured
     from the refined trajectory, and those factors replace the forward pass's."""
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
     mode = _late_mode(sc, PRECISE)
     mode.scan_factors = [(BORN_AT, sc.true_poses[BORN_AT] + np.array([5.0, 0.0, 0.0]), np.eye(3) * 1e6)]  # ignored
     information = np.diag([1 / 0.005**2, 1 / 0.005**2, 1 / np.deg2rad(0.1) ** 2])
@@ -135,20 +147,29 @@ def test_scans_are_matched_anew_from_the_hindsight_trajectory_before_the_birth_t
 
     cfg = PRECISE.model_copy(update={"refine_rounds": 1})
     refined = refine_mode(
-        mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, cfg, [matcher(t) for t in range(20)]
+        mode,
+        sc.increments,
+        sc.observations,
+        _associators(sc),
+        sc.landmark_xy,
+        cfg,
+        PRECISE_ODOMETRY,
+        [matcher(t) for t in range(20)],
     )
     assert sorted(asked) == list(range(len(sc.true_poses)))
     # The first optimisation and one re-matching round; before the birth also the backward tracking.
     assert all(n == (3 if t < BORN_AT else 2) for t, n in asked.items())
     assert _rms_m(refined.poses, sc.true_poses) < 0.01
-    without_scans = refine_mode(mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, cfg)
+    without_scans = refine_mode(
+        mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, cfg, PRECISE_ODOMETRY
+    )
     assert _rms_m(without_scans.poses, sc.true_poses) > 1.0  # the forward pass's (wrong) scan factor is used
 
 
 def test_keyframes_before_the_birth_are_tracked_backwards_through_their_scans():
     """Odometry that turns 4° too far per keyframe puts dead reckoning back from the birth metres off; tracked
     backwards, each keyframe's scan is matched from its predecessor's correction and every match lands."""
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
     mode = _late_mode(sc, PRECISE)
     drifting = sc.increments.copy()
     drifting[:, 2] += np.deg2rad(4.0)
@@ -168,7 +189,14 @@ def test_keyframes_before_the_birth_are_tracked_backwards_through_their_scans():
     assert _rms_m(dead_reckoned[:BORN_AT], sc.true_poses[:BORN_AT]) > 1.0
     unmatched = [lambda pose, storey: [] for _ in range(20)]  # no landmark to pull the early keyframes back
     refined = refine_mode(
-        mode, drifting, sc.observations, unmatched, sc.landmark_xy, PRECISE, [matcher(t) for t in range(20)]
+        mode,
+        drifting,
+        sc.observations,
+        unmatched,
+        sc.landmark_xy,
+        PRECISE,
+        PRECISE_ODOMETRY,
+        [matcher(t) for t in range(20)],
     )
     assert _rms_m(refined.poses[:BORN_AT], sc.true_poses[:BORN_AT]) < 0.05
 
@@ -176,7 +204,7 @@ def test_keyframes_before_the_birth_are_tracked_backwards_through_their_scans():
 def test_a_mode_pruned_early_is_tracked_forwards_to_the_end_through_its_scans():
     """A mode pruned at keyframe 14 is a refine candidate too: the keyframes after it are predicted by odometry that
     turns 4° too far per keyframe and corrected by their scans' matches, then the whole sequence is smoothed."""
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
     pruned_at = 14
     mode = _late_mode(sc, PRECISE, until=pruned_at)
     assert mode.first_index + len(mode.poses) == pruned_at
@@ -197,7 +225,14 @@ def test_a_mode_pruned_early_is_tracked_forwards_to_the_end_through_its_scans():
     assert _rms_m(dead_reckoning(mode.poses[-1], pruned_at - 1, drifting)[pruned_at:], sc.true_poses[pruned_at:]) > 0.5
     unmatched = [lambda pose, storey: [] for _ in range(T)]
     refined = refine_mode(
-        mode, drifting, sc.observations, unmatched, sc.landmark_xy, PRECISE, [matcher(t) for t in range(T)]
+        mode,
+        drifting,
+        sc.observations,
+        unmatched,
+        sc.landmark_xy,
+        PRECISE,
+        PRECISE_ODOMETRY,
+        [matcher(t) for t in range(T)],
     )
     assert refined.poses.shape == (T, 3)
     assert _rms_m(refined.poses[pruned_at:], sc.true_poses[pruned_at:]) < 0.05
@@ -205,12 +240,14 @@ def test_a_mode_pruned_early_is_tracked_forwards_to_the_end_through_its_scans():
     # Scans that all see the same walls share the map's error: no keyframe is reported tighter than it.
     map_variance = PRECISE.scan_min_sigma_m**2
     assert np.all(refined.covariances[:, 0, 0] > map_variance) and np.all(refined.covariances[:, 1, 1] > map_variance)
-    without_scans = refine_mode(mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, PRECISE)
+    without_scans = refine_mode(
+        mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, PRECISE, PRECISE_ODOMETRY
+    )
     assert np.any(without_scans.covariances[:, 0, 0] < map_variance)
 
 
 def test_a_mode_within_a_stretch_counts_its_keyframes_from_the_stretch_and_ends_with_it():
-    sc = loop_scenario(np.random.default_rng(0), PRECISE)
+    sc = loop_scenario(np.random.default_rng(0), PRECISE, PRECISE_ODOMETRY)
     mode = _late_mode(sc, PRECISE)
     pose = sc.true_poses[12]
     last = len(sc.true_poses) - 1

@@ -72,7 +72,7 @@ def test_layers_clearance_and_excluded_doors() -> None:
 
 def test_a_window_recess_is_free_above_its_sill() -> None:
     """duplex.ifc's floor-to-ceiling windows: a 3 cm sill lining spans the 0.35 m recess at 0.10–0.13 m, the pane
-    stands at the wall's outer face. The scan (from `smcl.scan_min_z_m`) sees the pane; the grid's band starts there
+    stands at the wall's outer face. The scan (from `sensor.min_z_m`) sees the pane; the grid's band starts there
     too, so the recess is free in the grid and the pane is its face."""
     sill = box("IfcWindow", (0.0, 0.0, 0.10), (4.0, 0.35, 0.13))
     pane = box("IfcWindow", (0.0, 0.35, 0.10), (4.0, 0.40, 2.50))
@@ -88,9 +88,9 @@ def test_the_scan_may_not_start_above_the_grids_band() -> None:
     from bimfactor.config import load_config
     from bimfactor.errors import ConfigError
 
-    assert load_config().smcl.scan_min_z_m <= load_config().bim.grid.band_min_m
-    with pytest.raises(ConfigError, match=r"^config: smcl.scan_min_z_m \(0.3\) is above bim.grid.band_min_m"):
-        load_config(overrides=["smcl.scan_min_z_m=0.3"])
+    assert load_config().sensor.min_z_m <= load_config().bim.grid.band_min_m
+    with pytest.raises(ConfigError, match=r"^config: sensor.min_z_m \(0.3\) is above bim.grid.band_min_m"):
+        load_config(overrides=["sensor.min_z_m=0.3"])
 
 
 def _grid_cfg():

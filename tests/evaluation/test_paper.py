@@ -164,7 +164,7 @@ def test_a_scenario_other_than_the_papers_scores_from_its_own_start() -> None:
         load_config(None, ["evaluation.scenario=teleport"])
     check_protocol(load_config(None, ["evaluation.scenario=kidnap"]))  # refine smooths each stretch on its own
     with pytest.raises(ConfigError, match="one pose guess for one sequence"):
-        check_protocol(load_config(None, ["evaluation.scenario=guess", "smcl.initial_pose=[1, 2, 3]"]))
+        check_protocol(load_config(None, ["evaluation.scenario=guess", "smcl.start.pose=[1, 2, 3]"]))
 
 
 def test_the_kidnap_table_says_how_many_runs_were_tracking_and_how_soon_they_recovered() -> None:
@@ -201,10 +201,10 @@ def test_the_table_says_in_how_many_runs_the_belief_moved_to_a_challenger() -> N
 
 def test_a_known_storey_confines_the_uniform_start_to_the_storey_the_route_starts_on() -> None:
     frames = [SimpleNamespace(gt_storey=2), SimpleNamespace(gt_storey=0)]
-    assert _known_storey(load_config(None, ["evaluation.known_storey=true"]), frames).smcl.global_storeys == [2]
-    assert _known_storey(load_config(None, []), frames).smcl.global_storeys is None
+    assert _known_storey(load_config(None, ["evaluation.known_storey=true"]), frames).smcl.start.storeys == [2]
+    assert _known_storey(load_config(None, []), frames).smcl.start.storeys is None
     with pytest.raises(ConfigError, match=r"evaluation\.known_storey"):
-        check_protocol(load_config(None, ["smcl.global_storeys=[1]"]))  # one sequence's storey, not every run's
+        check_protocol(load_config(None, ["smcl.start.storeys=[1]"]))  # one sequence's storey, not every run's
 
 
 def test_the_share_of_steps_on_the_true_storey_is_printed_for_a_building_of_several() -> None:

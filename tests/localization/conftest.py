@@ -24,8 +24,8 @@ def box_prior() -> BimPrior:
 
 
 @pytest.fixture(scope="session")
-def box_visibility(box_prior: BimPrior, smcl_cfg: SmclConfig) -> VisibilityTable:
-    return VisibilityTable.build(box_prior, smcl_cfg, progress=False)
+def box_visibility(box_prior: BimPrior, test_config: Config) -> VisibilityTable:
+    return VisibilityTable.build(box_prior, test_config.bim.visibility, progress=False)
 
 
 @pytest.fixture(scope="session")
@@ -37,5 +37,5 @@ def office_prior(tmp_path_factory: pytest.TempPathFactory, test_config: Config) 
 
 
 @pytest.fixture(scope="session")
-def office_visibility(office_prior: BimPrior, smcl_cfg: SmclConfig) -> VisibilityTable:
-    return VisibilityTable.build(office_prior, smcl_cfg, progress=False)
+def office_visibility(office_prior: BimPrior, test_config: Config) -> VisibilityTable:
+    return VisibilityTable.build(office_prior, test_config.bim.visibility, progress=False)

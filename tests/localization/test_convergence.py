@@ -12,8 +12,8 @@ import pytest
 
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
-from bimfactor.config import SmclConfig
-from bimfactor.localization.smcl import SemanticMCL, StepResult
+from bimfactor.config import SmclConfig, updated
+from bimfactor.localization.filter import SemanticMCL, StepResult
 from bimfactor.types import Observations, se2_between, wrap_angle
 
 RANGE_SIGMA_M = 0.1
@@ -48,12 +48,12 @@ def scripted_path(waypoints: list[tuple[float, float]]) -> list[np.ndarray]:
 def observe_from(
     prior: BimPrior, table: VisibilityTable, cfg: SmclConfig, pose: np.ndarray, rng: np.random.Generator
 ) -> Observations:
-    """What the robot at the true pose sees: visible objects in r and the FOV, with noise."""
+    """What the robot at the true pose sees: visible objects in r (the table's radius) and the FOV, with noise."""
     ids = table.visible_ids(pose[:2], 0)
     xy = prior.object_positions()[ids, :2]
     dist = np.hypot(xy[:, 0] - pose[0], xy[:, 1] - pose[1])
     bearing = wrap_angle(np.arctan2(xy[:, 1] - pose[1], xy[:, 0] - pose[0]) - pose[2])
-    keep = (dist <= cfg.visible_radius_m) & (np.abs(bearing) <= np.deg2rad(cfg.fov_deg) / 2)
+    keep = (dist <= table.radius_m) & (np.abs(bearing) <= np.deg2rad(cfg.semantic.fov_deg) / 2)
     ids, dist, bearing = ids[keep], dist[keep], bearing[keep]
     embeddings = prior.object_embeddings[ids] + EMBEDDING_NOISE * rng.standard_normal(
         (len(ids), prior.object_embeddings.shape[1])
@@ -106,7 +106,7 @@ def run(prior: BimPrior, table: VisibilityTable, cfg: SmclConfig, seed: int) -> 
 def test_converges_from_a_uniform_start_within_20_steps(office_prior, office_visibility, smcl_cfg, seed):
     # The observations here are text embeddings plus noise (matched cosines ≈ 0.93), not the CLIP-like space of the
     # sim perception that the defaults are scaled to: use that space's threshold and temperature.
-    smcl_cfg = smcl_cfg.model_copy(update={"semantic_threshold": 0.7, "temperature": 0.15})
+    smcl_cfg = updated(smcl_cfg, {"semantic.threshold": 0.7, "semantic.temperature": 0.15})
     errors = run(office_prior, office_visibility, smcl_cfg, seed)
     within = [e < 1.0 and y < np.deg2rad(15.0) for e, y, _, _ in errors]
     # The first step from which the estimate stays within 1 m / 15° until the end of the path.
@@ -133,14 +133,15 @@ def track_from(
 
 def _challenger_cfg(smcl_cfg: SmclConfig, challenger: bool) -> SmclConfig:
     """The settings of the uniform-start test with the challenger as the only recovery (no injection, no respread)."""
-    return smcl_cfg.model_copy(
-        update={
-            "semantic_threshold": 0.7,
-            "temperature": 0.15,
-            "augmented": False,
-            "relocalize": False,
-            "challenger": challenger,
-        }
+    return updated(
+        smcl_cfg,
+        {
+            "semantic.threshold": 0.7,
+            "semantic.temperature": 0.15,
+            "augmented.enabled": False,
+            "relocalize.enabled": False,
+            "challenger.enabled": challenger,
+        },
     )
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from bimfactor.bim.plates import look_alikes, normalise_text
-from bimfactor.localization.text import edit_distance, edit_operations
+from bimfactor.localization.measurements.text import edit_distance, edit_operations
 
 
 @pytest.mark.parametrize(

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bimfactor.bim.visibility import VisibilityTable
-from bimfactor.config import SmclConfig
+from bimfactor.config import Config
 from tests.localization.handmade import make_prior, object_id
 
 
@@ -27,15 +27,16 @@ def test_a_window_in_its_wall_is_visible_from_its_room_only(box_prior, box_visib
     assert "window" not in visible_labels(box_prior, box_visibility, (8.0, 2.0))  # other room, 5 m away
 
 
-def test_objects_are_seen_through_a_doorway_only_in_line_with_it(smcl_cfg: SmclConfig):
+def test_objects_are_seen_through_a_doorway_only_in_line_with_it(test_config: Config):
     prior = make_prior(with_door=True)
-    table = VisibilityTable.build(prior, smcl_cfg, progress=False)
+    table = VisibilityTable.build(prior, test_config.bim.visibility, progress=False)
     assert "table" in visible_labels(prior, table, (4.0, 3.0))  # the line y = 3 passes the gap y ∈ [2.5, 3.5]
     assert "table" not in visible_labels(prior, table, (4.0, 5.0))  # every sample point hides behind the wall
 
 
-def test_objects_beyond_the_radius_are_not_listed(box_prior, smcl_cfg: SmclConfig):
-    table = VisibilityTable.build(box_prior, smcl_cfg.model_copy(update={"visible_radius_m": 3.0}), progress=False)
+def test_objects_beyond_the_radius_are_not_listed(box_prior, test_config: Config):
+    within_3_m = test_config.bim.visibility.model_copy(update={"radius_m": 3.0})
+    table = VisibilityTable.build(box_prior, within_3_m, progress=False)
     seen = visible_labels(box_prior, table, (4.0, 3.0))
     assert "chair" in seen
     assert "cabinet" not in seen  # 3.6 m > r + half a lattice diagonal
@@ -71,9 +72,9 @@ def test_from_arrays_rejects_another_format_version(box_visibility):
         VisibilityTable.from_arrays(arrays)
 
 
-def test_each_storey_lists_only_its_own_objects(smcl_cfg: SmclConfig):
+def test_each_storey_lists_only_its_own_objects(test_config: Config):
     prior = make_prior(n_storeys=2)
-    table = VisibilityTable.build(prior, smcl_cfg, progress=False)
+    table = VisibilityTable.build(prior, test_config.bim.visibility, progress=False)
     upstairs = {object_id(prior, "table", 1), object_id(prior, "chair", 1)}
     assert set(table.visible_ids(np.array([4.0, 3.0]), 1)) == upstairs
     offsets, ids = table.candidates(np.array([[4.0, 3.0], [4.0, 3.0]]), np.array([0, 1]))

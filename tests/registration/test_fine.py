@@ -26,7 +26,7 @@ COARSE_COVARIANCE = np.diag([0.3**2, 0.3**2, np.deg2rad(5.0) ** 2])
 @pytest.fixture(scope="module")
 def fine(paper_floor: Building, keyframes_and_surfaces) -> FineRegistration:
     _, surfaces = keyframes_and_surfaces
-    return FineRegistration(surfaces, paper_floor.cfg.registration)
+    return FineRegistration(surfaces, paper_floor.cfg.registration, paper_floor.cfg.sensor)
 
 
 def _is_symmetric_positive_definite(matrix: np.ndarray) -> bool:
@@ -95,12 +95,12 @@ def test_bad_pose_or_storey_is_not_accepted(fine: FineRegistration, keyframes_an
 def test_submap_of_two_frames_lies_on_the_walls(paper_floor: Building, keyframes_and_surfaces) -> None:
     keyframes, surfaces = keyframes_and_surfaces
     cfg = paper_floor.cfg.registration.model_copy(update={"submap_keyframes": 2})
-    two = FineRegistration(surfaces, cfg)
+    two = FineRegistration(surfaces, cfg, paper_floor.cfg.sensor)
     a, b = keyframes[0], keyframes[1]
     # Any two frames of one storey will do when the poses that place them are their true ones.
     previous = dataclasses.replace(b.frame, index=-1, timestamp_s=-1.0)
     submap = two.scan(a.frame, a.meta, recent=[previous], recent_poses=np.stack([b.frame.gt_pose, a.frame.gt_pose]))
-    single = frame_scan(a.frame, a.meta, cfg)
+    single = frame_scan(a.frame, a.meta, cfg, paper_floor.cfg.sensor)
     assert len(submap) > len(single)
     surface = surfaces[a.frame.gt_storey]
     T = se2_to_matrix(a.frame.gt_pose, surface.elevation_m)

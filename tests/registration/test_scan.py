@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from bimfactor.config import Config
-from bimfactor.localization.field import backproject_depth
+from bimfactor.localization.measurements.scan import backproject_depth
 from bimfactor.registration.scan import frame_scan, stitch_submap
 from bimfactor.sim.sensors import camera_mount
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta, se2_inverse, se2_to_matrix
@@ -38,11 +38,11 @@ def test_frame_scan_keeps_the_wall_band_only(test_config: Config) -> None:
     depth = np.full((48, 64), 3.0, dtype=np.float32)
     meta = SequenceMeta("t", "test", intrinsics, T_base_camera)
     frame = Frame(0, 0.0, np.zeros((48, 64, 3), np.uint8), depth, np.zeros(3))
-    rc = test_config.registration
-    scan = frame_scan(frame, meta, rc)
+    rc, sensor = test_config.registration, test_config.sensor
+    scan = frame_scan(frame, meta, rc, sensor)
     assert len(scan) > 0
-    assert scan[:, 2].min() >= rc.scan_min_z_m and scan[:, 2].max() <= rc.scan_max_z_m
-    far = frame_scan(Frame(0, 0.0, frame.rgb, depth + rc.scan_max_range_m, np.zeros(3)), meta, rc)
+    assert scan[:, 2].min() >= sensor.min_z_m and scan[:, 2].max() <= rc.scan_max_z_m
+    far = frame_scan(Frame(0, 0.0, frame.rgb, depth + sensor.max_range_m, np.zeros(3)), meta, rc, sensor)
     assert len(far) == 0
 
 

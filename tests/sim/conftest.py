@@ -17,10 +17,10 @@ from bimfactor.sim.trajectory import SimTrajectory, standard_trajectories
 
 BUILDINGS = ("paper-floor", "duplex")
 NOISE_OFF = [
-    "sim.depth_noise.sigma0_m=0",
-    "sim.depth_noise.k_per_m=0",
-    "sim.depth_noise.dropout_prob=0",
-    "sim.depth_noise.grazing_dropout_deg=90",
+    "sensor.depth_noise.sigma0_m=0",
+    "sensor.depth_noise.k_per_m=0",
+    "sim.depth_dropout.dropout_prob=0",
+    "sim.depth_dropout.grazing_dropout_deg=90",
     "sim.rgb_noise_std=0",
 ]
 

@@ -10,10 +10,13 @@ import pytest
 from bimfactor.backend.factors import Landmarks
 from bimfactor.backend.posegraph import ModeGraph, observation_cost, semantic_associator
 from bimfactor.bim.plates import PLATE_REACH_M, door_plates, look_alikes
-from bimfactor.localization.field import ScanLikelihood
-from bimfactor.localization.likelihood import SemanticLikelihood
-from bimfactor.localization.smcl import SemanticMCL
-from bimfactor.localization.text import PlateLikelihood
+from bimfactor.config import updated
+from bimfactor.localization.filter import SemanticMCL
+from bimfactor.localization.measurements import FrameData
+from bimfactor.localization.measurements.scan import ScanLikelihood
+from bimfactor.localization.measurements.semantic import SemanticLikelihood
+from bimfactor.localization.measurements.text import PlateLikelihood
+from bimfactor.localization.recovery.text_reset import TextReset
 from bimfactor.perception.text import SimTextReader, locate_readings, read_probability
 from bimfactor.pipeline import visibility_of
 from bimfactor.sim.sensors import RgbdCamera
@@ -56,7 +59,7 @@ def test_plates_hang_only_when_asked(duplex: Building, plated) -> None:
 
 def test_a_plate_is_read_from_in_front_and_placed_where_it_hangs(duplex: Building, plated) -> None:
     cfg, world = plated
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    camera = RgbdCamera.from_config(world, cfg)
     meta = SequenceMeta("plates", "sim", camera.intrinsics, camera.T_base_camera, instances=world.instances)
     reader = SimTextReader(meta, cfg.perception.text, np.random.default_rng(0))
     read_any = 0
@@ -83,7 +86,7 @@ def test_a_plate_is_read_from_in_front_and_placed_where_it_hangs(duplex: Buildin
 
 def test_character_errors_and_legibility(duplex: Building, plated) -> None:
     cfg, world = plated
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    camera = RgbdCamera.from_config(world, cfg)
     meta = SequenceMeta("plates", "sim", camera.intrinsics, camera.T_base_camera, instances=world.instances)
     plate = door_plates(duplex.prior)[0]
     frames = []
@@ -167,7 +170,7 @@ def test_reading_likelihood_by_hand(duplex: Building) -> None:
         for r in duplex.prior.rooms
     ]
     model = PlateLikelihood(dataclasses.replace(duplex.prior, rooms=rooms), cfg)
-    eps, c = cfg.text_unexplained, cfg.text_edit_cost
+    eps, c = cfg.text.unexplained, cfg.text.edit_cost
     at_plate, at_twin = _facing(plate, 2.0), _facing(twin, 2.0)
     behind = np.array([*(np.asarray(plate.xy) - 2.0 * np.asarray(plate.normal_xy)), at_plate[2] + np.pi])
     poses = np.stack([at_plate, at_twin, behind])
@@ -182,12 +185,12 @@ def test_reading_likelihood_by_hand(duplex: Building) -> None:
     # edits from this one ("8" for "A"); the look-alike's cost is the cheaper one.
     misread = TextObservations(["8" + plate.text[1:]], np.array([2.0]), np.array([0.0]))
     got = model.log_likelihood(poses[:2], storeys[:2], misread)
-    expected = eps + (1 - eps) * np.exp(-np.array([c, cfg.text_look_alike_cost]))
-    assert cfg.text_look_alike_cost < c
+    expected = eps + (1 - eps) * np.exp(-np.array([c, cfg.text.look_alike_cost]))
+    assert cfg.text.look_alike_cost < c
     np.testing.assert_allclose(got, np.log(expected), atol=1e-3)
     # Read 1 m nearer than it is and 20° off: the paper's φ_dist and φ_ang.
     off = TextObservations([plate.text], np.array([1.0]), np.array([np.deg2rad(20)]))
-    q = np.exp(-1.0 / cfg.sigma_d_m) * np.exp(cfg.kappa_alpha * (np.cos(np.deg2rad(20)) - 1))
+    q = np.exp(-1.0 / cfg.semantic.sigma_d_m) * np.exp(cfg.semantic.kappa_alpha * (np.cos(np.deg2rad(20)) - 1))
     np.testing.assert_allclose(model.log_likelihood(at_plate[None], storeys[:1], off), np.log(eps + (1 - eps) * q))
     # A reading no plate matches moves no particle against another.
     nothing = TextObservations(["EXIT"], np.array([2.0]), np.array([0.0]))
@@ -205,61 +208,67 @@ def test_the_filter_tells_the_twin_units_apart_by_a_plate(duplex: Building) -> N
     filt.storeys[half:] = twin.storey_index
     filt.weights[:] = 1.0 / filt.num_particles
     empty = _reading_only(duplex.prior, plate.text)
-    filt.update(empty)
+    filt.update(FrameData(empty))
     assert filt.weights[:half].sum() > 0.9
+
+
+def _text_reset(filt: SemanticMCL) -> TextReset:
+    return next(r for r in filt.recoveries if isinstance(r, TextReset))
 
 
 def test_a_reading_the_belief_cannot_explain_redraws_particles_before_its_plate(duplex: Building) -> None:
     """Sensor resetting: a belief wholly in the wrong unit holds no particle that a plate read explains, so weighing
-    cannot move it there; the reading redraws `text_reset_share` of the particles in front of its plate, and the next
+    cannot move it there; the reading redraws `text_reset.share` of the particles in front of its plate, and the next
     reading carries the weight over."""
     cfg = duplex.cfg.smcl
     plate, twin = _plate_and_twin(duplex.prior)
     filt = SemanticMCL(duplex.prior, visibility_of(duplex.prior, duplex.cfg), cfg, np.random.default_rng(0))
     filt.initialize_around(_facing(twin, 2.0), twin.storey_index, 0.3, np.deg2rad(5))
-    empty = _reading_only(duplex.prior, plate.text)
+    reset = _text_reset(filt)
+    empty = FrameData(_reading_only(duplex.prior, plate.text))
     filt.update(empty)
-    assert filt.unexplained_texts == [0]
-    resampled, injected = filt.resample_if_needed(empty)
+    assert reset.unexplained == [0]
+    resampled, injected = filt.resample(empty)
     M = filt.num_particles
-    assert resampled and injected == round(cfg.text_reset_share * M)
+    assert resampled and injected == round(cfg.text_reset.share * M)
     # Redrawn 2 m from the plate (the read range), on its side of the wall, turned towards it.
     offset = filt.particles[:, :2] - np.asarray(plate.xy)
-    near = (np.abs(np.hypot(*offset.T) - 2.0) < 4 * cfg.sigma_trans_m) & (offset @ np.asarray(plate.normal_xy) > 0)
+    sigma = cfg.motion.sigma_trans_m
+    near = (np.abs(np.hypot(*offset.T) - 2.0) < 4 * sigma) & (offset @ np.asarray(plate.normal_xy) > 0)
     assert near[filt.fresh].mean() > 0.95 and not near[~filt.fresh].any()
     assert (filt.storeys[filt.fresh] == plate.storey_index).all()
     filt.update(empty)  # read again: the redrawn particles in front of the plate explain it, the others do not
     assert filt.weights[filt.storeys == plate.storey_index][near[filt.storeys == plate.storey_index]].sum() > 0.5
-    assert filt.unexplained_texts == []
+    assert reset.unexplained == []
     # A reading that names no plate ("EXIT") redraws nothing, and neither does one the belief explains.
     filt.initialize_around(_facing(twin, 2.0), twin.storey_index, 0.3, np.deg2rad(5))
     for text in ("EXIT", twin.text):
-        filt.update(_reading_only(duplex.prior, text))
-        assert filt.unexplained_texts == []
+        filt.update(FrameData(_reading_only(duplex.prior, text)))
+        assert reset.unexplained == []
     # A look-alike misread ("4" for "A") where its plate hangs is judged as the text it reads: explained.
     filt.initialize_around(_facing(plate, 2.0), plate.storey_index, 0.3, np.deg2rad(5))
-    filt.update(_reading_only(duplex.prior, "4" + plate.text[1:]))
-    assert filt.unexplained_texts == []
+    filt.update(FrameData(_reading_only(duplex.prior, "4" + plate.text[1:])))
+    assert reset.unexplained == []
 
 
 def test_the_redraw_is_screened_by_the_frame_scan(duplex: Building) -> None:
     """Redrawn on the arc before the plate (±60° of its normal), the particles kept from four times as many drawn
-    (`text_reset_oversample` 4) fit the frame's scan (the plate's wall square ahead at the read range) better than
+    (`text_reset.oversample` 4) fit the frame's scan (the plate's wall square ahead at the read range) better than
     those drawn without the screen (1), and still explain the reading."""
     plate, twin = _plate_and_twin(duplex.prior)
     wall = np.column_stack([np.full(9, 2.0), np.linspace(-0.4, 0.4, 9)])  # the plate's wall, 2 m straight ahead
     reading = _reading_only(duplex.prior, plate.text)
     fit = {}
     for oversample in (1, 4):
-        cfg = duplex.cfg.smcl.model_copy(update={"text_reset_oversample": oversample, "augmented": False})
+        cfg = updated(duplex.cfg.smcl, {"text_reset.oversample": oversample, "augmented.enabled": False})
         filt = SemanticMCL(duplex.prior, visibility_of(duplex.prior, duplex.cfg), cfg, np.random.default_rng(0))
         filt.initialize_around(_facing(twin, 2.0), twin.storey_index, 0.3, np.deg2rad(5))
-        filt.update(reading)
-        assert filt.resample_if_needed(reading, wall)[1] == round(cfg.text_reset_share * filt.num_particles)
+        filt.update(FrameData(reading))
+        assert filt.resample(FrameData(reading, wall))[1] == round(cfg.text_reset.share * filt.num_particles)
         drawn, storeys = filt.particles[filt.fresh], filt.storeys[filt.fresh]
         offset = drawn[:, :2] - np.asarray(plate.xy)
-        assert np.median(np.abs(np.hypot(*offset.T) - 2.0)) < 3 * cfg.sigma_trans_m
-        fit[oversample] = ScanLikelihood(duplex.prior, cfg).scores(drawn, storeys, wall).mean()
+        assert np.median(np.abs(np.hypot(*offset.T) - 2.0)) < 3 * cfg.motion.sigma_trans_m
+        fit[oversample] = ScanLikelihood(duplex.prior, cfg.scan).scores(drawn, storeys, wall).mean()
     assert fit[4] > fit[1] + 0.05  # 0.58 against 0.49
 
 
@@ -273,10 +282,11 @@ def test_the_pose_graphs_take_a_read_plate_as_a_landmark(duplex: Building) -> No
     )
     plate = plates[plate_index]
     twin = next(p for p in plates if p.text == "B" + plate.text[1:])
-    likelihood = SemanticLikelihood(prior, visibility_of(prior, cfg), cfg.smcl)
-    landmark = likelihood.plates.first_landmark_id + plate_index
+    likelihood = SemanticLikelihood(prior, visibility_of(prior, cfg), cfg.smcl.semantic)
+    plate_model = PlateLikelihood(prior, cfg.smcl)
+    landmark = plate_model.first_landmark_id + plate_index
     landmarks = Landmarks.from_prior(prior)
-    assert len(landmarks.xy) == likelihood.plates.first_landmark_id + len(plates)
+    assert len(landmarks.xy) == plate_model.first_landmark_id + len(plates)
     np.testing.assert_allclose(landmarks.xy[landmark], plate.xy)
     # Along its wall the plate may hang anywhere beside its door; across the wall it is where the wall is.
     along = float(np.abs(np.asarray(plate.axis_xy)) @ landmarks.size[landmark])
@@ -285,7 +295,7 @@ def test_the_pose_graphs_take_a_read_plate_as_a_landmark(duplex: Building) -> No
 
     observed = Observations(np.zeros((1, prior.object_embeddings.shape[1]), np.float32), np.ones(1), np.zeros(1))
     observed.texts = TextObservations([plate.text], np.array([2.0]), np.array([0.0]))
-    associate = semantic_associator(likelihood, observed)
+    associate = semantic_associator(likelihood, plate_model, observed)
     at_plate, at_twin = _facing(plate, 2.0), _facing(twin, 2.0)
     assert (1, landmark) in associate(at_plate, plate.storey_index)  # measurement 1: past the one node
     assert all(k != 1 for k, _ in associate(at_twin, twin.storey_index))  # one character off: no factor
@@ -299,7 +309,7 @@ def test_the_pose_graphs_take_a_read_plate_as_a_landmark(duplex: Building) -> No
     # A mode 0.6 m too near the door (a loose prior) is pushed back by the reading's range: the factor is in.
     near = at_plate.copy()
     near[:2] -= 0.6 * np.asarray(plate.normal_xy)
-    graph = ModeGraph(0, 0, near, np.diag([1.0, 1.0, 0.01]), landmarks, bcfg, plate.storey_index)
+    graph = ModeGraph(0, 0, near, np.diag([1.0, 1.0, 0.01]), landmarks, bcfg, cfg.odometry, plate.storey_index)
     graph.add_keyframe(0, observed, [(1, landmark)])
     before = float(np.hypot(*(near[:2] - plate.xy)))
     after = float(np.hypot(*(graph.pose[:2] - graph.landmark_estimate(landmark))))
@@ -313,7 +323,7 @@ def test_rendered_plates_show_their_text_to_a_real_ocr_engine(duplex: Building, 
     pytest.importorskip("rapidocr_onnxruntime")
     cfg = config_with(config_overrides, *NOISE_OFF, *PLATES_ON, "sim.camera.width=640", "sim.camera.height=480")
     world = build_world(duplex.prior, duplex.model, cfg, seed=0)
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, 0.0)
+    camera = RgbdCamera(world, cfg.sim.camera, cfg.sensor.depth_noise, cfg.sim.depth_dropout, 0.0)
     ocr = RapidOcrReader(0.5)
     read = []
     for rec in [r for r in world.instances if r["label"] == DOOR_PLATE_LABEL][:3]:

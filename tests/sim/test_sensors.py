@@ -81,7 +81,7 @@ def _sample_pixels(camera: RgbdCamera, seed: int) -> np.ndarray:
 
 
 def _compare(world, reference, building, six_trajectories, cfg: Config, rng):
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    camera = RgbdCamera.from_config(world, cfg)
     pose, elevation = _view(building, six_trajectories)
     image = camera.render(pose, elevation, rng)
     pixels = _sample_pixels(camera, seed=3)
@@ -140,7 +140,7 @@ def test_noisy_depth_within_four_sigma(
     )
     valid = np.isfinite(depth)
     assert valid.sum() >= SAMPLE_PIXELS // 3
-    sigma = cfg.sim.depth_noise.sigma_m(depth_true[valid])
+    sigma = cfg.sensor.depth_noise.sigma_m(depth_true[valid])
     assert np.all(np.abs(depth[valid] - depth_true[valid]) <= 4 * sigma + 1e-5)
     assert np.mean(np.abs(depth[valid] - depth_true[valid]) > 1e-5) > 0.5  # the noise is really on
     assert image.depth_m.dtype == np.float32 and image.instance_ids.dtype == np.int32
@@ -150,12 +150,15 @@ def test_noisy_depth_within_four_sigma(
 def test_noise_statistics_and_dropouts(building: Building, world: SimWorld, six_trajectories, config_overrides) -> None:
     pose, elevation = _view(building, six_trajectories)
     clean_cfg = config_with(config_overrides, *NOISE_OFF[:3])  # the default grazing dropout, no random noise
-    clean = RgbdCamera(world, clean_cfg.sim.camera, clean_cfg.sim.depth_noise, 0.0).render(pose, elevation)
-    cfg = config_with(config_overrides, "sim.depth_noise.dropout_prob=0.2", "sim.rgb_noise_std=6")
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, cfg.sim.rgb_noise_std)
+    clean_camera = RgbdCamera(
+        world, clean_cfg.sim.camera, clean_cfg.sensor.depth_noise, clean_cfg.sim.depth_dropout, 0.0
+    )
+    clean = clean_camera.render(pose, elevation)
+    cfg = config_with(config_overrides, "sim.depth_dropout.dropout_prob=0.2", "sim.rgb_noise_std=6")
+    camera = RgbdCamera.from_config(world, cfg)
     noisy = camera.render(pose, elevation, np.random.default_rng(5))
     both = np.isfinite(clean.depth_m) & np.isfinite(noisy.depth_m)
-    z = (noisy.depth_m[both] - clean.depth_m[both]) / cfg.sim.depth_noise.sigma_m(clean.depth_m[both])
+    z = (noisy.depth_m[both] - clean.depth_m[both]) / cfg.sensor.depth_noise.sigma_m(clean.depth_m[both])
     assert abs(z.mean()) < 0.05 and 0.9 < z.std() < 1.1
     dropped = np.isnan(noisy.depth_m) & np.isfinite(clean.depth_m)
     assert 0.17 < dropped.sum() / np.isfinite(clean.depth_m).sum() < 0.23
@@ -168,13 +171,14 @@ def test_noise_statistics_and_dropouts(building: Building, world: SimWorld, six_
 def test_grazing_and_range_dropouts(building: Building, world: SimWorld, six_trajectories, config_overrides) -> None:
     pose, elevation = _view(building, six_trajectories)
     cfg = config_with(config_overrides, *NOISE_OFF[:3], "sim.camera.max_range_m=3.0")
-    camera = RgbdCamera(world, cfg.sim.camera, cfg.sim.depth_noise, 0.0)
+    noise, dropout = cfg.sensor.depth_noise, cfg.sim.depth_dropout
+    camera = RgbdCamera(world, cfg.sim.camera, noise, dropout, 0.0)
     image = camera.render(pose, elevation)
-    reference = RgbdCamera(world, cfg.sim.camera.model_copy(update={"max_range_m": 1e3}), cfg.sim.depth_noise, 0.0)
+    reference = RgbdCamera(world, cfg.sim.camera.model_copy(update={"max_range_m": 1e3}), noise, dropout, 0.0)
     rays = reference.rays(pose, elevation).copy()
     t_hit, instance, normals = world.cast(rays)
     cos = np.abs(np.einsum("ij,ij->i", normals, rays[:, 3:])) / np.linalg.norm(rays[:, 3:], axis=1)
-    grazing = cos < np.cos(np.deg2rad(cfg.sim.depth_noise.grazing_dropout_deg))
+    grazing = cos < np.cos(np.deg2rad(cfg.sim.depth_dropout.grazing_dropout_deg))
     far = t_hit > 3.0
     expect_nan = (instance < 0) | grazing | far | (t_hit < cfg.sim.camera.min_range_m)
     assert np.array_equal(np.isnan(image.depth_m).reshape(-1), expect_nan)

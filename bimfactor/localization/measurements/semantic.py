@@ -7,21 +7,17 @@ embedding f_j. The pair score is
     φ = φ_sem · φ_dist · φ_ang,  φ_sem = cos(f_j, C_k),  φ_dist = exp(−|d_obs − d| / σ_d),
     φ_ang = exp(κ_α (cos(α_obs − α) − 1)),
 
-with pairs whose φ_sem is below `semantic_threshold` screened out (φ = 0). With `footprint_match` (beyond the
+with pairs whose φ_sem is below `threshold` screened out (φ = 0). With `footprint_match` (beyond the
 paper) d and α are those of the point of k's footprint box nearest to where observation j puts the node: a node is
 the centroid of the object's seen part, which lies anywhere on a large object's footprint, so a 3 m table seen from
 one end is not penalised for being a metre from the table's centre. A one-to-one assignment of
 observations to candidates maximises the summed φ (Hungarian); the particle's score is that sum divided by the
 number of observations K, so an observation without a partner counts 0 (a particle that explains fewer of the
 observations scores lower; clutter that no particle explains lowers every particle alike). The likelihood is
-P(z|x) = exp(K^(1−γ) · score / T) (`score_count_exponent` γ): γ = 1 is the paper's exp(score / T), where a frame
+P(z|x) = exp(K^(1−γ) · score / T) (`count_exponent` γ): γ = 1 is the paper's exp(score / T), where a frame
 of six matched objects weighs as much as a frame of one; γ = 0 (beyond the paper, the default) is exp(Σφ / T),
-each observation its own factor, as independent measurements multiply. With `confidence_full` > 0 (beyond the
-paper; off by default) each observation's φ is scaled by a ramp of its node's best detector confidence, so a node
-only ever detected just above the detector's threshold (where most false positives score) moves the particles
-less. With `detection_probability` p_d > 0 (beyond the paper; off by default) log P(z|x) also gains
-n_missed · log(1 − p_d) for the objects x should see near it that no observation pairs with
-(`log_likelihood_terms`).
+each observation its own factor, as independent measurements multiply. The candidates' radius r is the prior's
+visibility table's (`bim.visibility.radius_m`).
 
 Everything but the assignment is computed for all particles at once on the sparse set of pairs that pass the
 FOV and semantic screens, then laid out as a padded (M, K, C) array. The assignment is exact for every particle
@@ -39,7 +35,8 @@ from scipy.optimize import linear_sum_assignment
 
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
-from bimfactor.config import SmclConfig
+from bimfactor.config import SemanticTermConfig
+from bimfactor.localization.measurements.base import FrameData, Term
 from bimfactor.types import Observations, wrap_angle
 
 log = logging.getLogger(__name__)
@@ -78,12 +75,17 @@ def bearing_similarity(alpha_obs: np.ndarray, alpha: np.ndarray, kappa_alpha: fl
 
 
 def pair_score(
-    sem: np.ndarray, d_obs: np.ndarray, d: np.ndarray, alpha_obs: np.ndarray, alpha: np.ndarray, cfg: SmclConfig
+    sem: np.ndarray,
+    d_obs: np.ndarray,
+    d: np.ndarray,
+    alpha_obs: np.ndarray,
+    alpha: np.ndarray,
+    cfg: SemanticTermConfig,
 ) -> np.ndarray:
-    """φ_tot = φ_sem · φ_dist · φ_ang, Eq. (3), and 0 where φ_sem < `semantic_threshold`; elementwise."""
+    """φ_tot = φ_sem · φ_dist · φ_ang, Eq. (3), and 0 where φ_sem < `threshold`; elementwise."""
     spatial = distance_similarity(d_obs, d, cfg.sigma_d_m) * bearing_similarity(alpha_obs, alpha, cfg.kappa_alpha)
     sem = np.asarray(sem)
-    return np.where(sem >= cfg.semantic_threshold, sem * spatial, 0.0)
+    return np.where(sem >= cfg.threshold, sem * spatial, 0.0)
 
 
 def likelihood_from_score(score: np.ndarray, temperature: float) -> np.ndarray:
@@ -180,7 +182,9 @@ class ScoreStats:
 class SemanticLikelihood:
     """Scores particles against one step's observations using the prior's objects and the visibility table."""
 
-    def __init__(self, prior: BimPrior, visibility: VisibilityTable, cfg: SmclConfig) -> None:
+    name = "semantic"
+
+    def __init__(self, prior: BimPrior, visibility: VisibilityTable, cfg: SemanticTermConfig) -> None:
         self.visibility = visibility
         self.cfg = cfg
         self.object_xy = prior.object_positions()[:, :2].copy()
@@ -189,17 +193,9 @@ class SemanticLikelihood:
         labels = [o.label for o in prior.objects]
         vocabulary = sorted(set(labels))
         self.object_label = np.asarray([vocabulary.index(label) for label in labels], np.int64)
-        self.detectable = np.asarray([label not in cfg.detection_ignore_labels for label in labels], bool)
         first = [labels.index(label) for label in vocabulary]
         self.label_embeddings = self.object_embeddings[first] if first else self.object_embeddings[:0]
-        self.radius_m = min(cfg.visible_radius_m, visibility.radius_m)
-        if cfg.visible_radius_m > visibility.radius_m:
-            log.warning(
-                "visibility table built for r = %.1f m, config asks %.1f m: candidates stop at %.1f m",
-                visibility.radius_m,
-                cfg.visible_radius_m,
-                visibility.radius_m,
-            )
+        self.radius_m = visibility.radius_m
         self.half_fov_rad = 0.5 * np.deg2rad(cfg.fov_deg)
         # Footprint radius: half the diagonal of the object's axis-aligned footprint (0: centre-only FOV test).
         sizes = prior.object_sizes()[:, :2]
@@ -207,20 +203,17 @@ class SemanticLikelihood:
         self.object_lo, self.object_hi = self.object_xy - sizes / 2, self.object_xy + sizes / 2
         self.object_radius_m = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1]) if cfg.fov_extent else np.zeros(len(sizes))
         self.last_stats = ScoreStats()
-        from bimfactor.localization.text import PlateLikelihood  # it builds on this module's φ_dist and φ_ang
-
-        self.plates = PlateLikelihood(prior, cfg)
 
     def semantic(self, observations: Observations, objects: np.ndarray | None = None) -> np.ndarray:
-        """(K, N) φ_sem of K observations against the BIM objects `objects` (default: all) (`smcl.semantic`).
+        """(K, N) φ_sem of K observations against the BIM objects `objects` (default: all) (`similarity`).
 
         cosine: the paper's cos(f_j, C_k). softmax: p(label of k | f_j), the cosines to the prior's distinct
-        label embeddings turned into class probabilities at `semantic_softmax_temperature` (CLIP's zero-shot rule).
+        label embeddings turned into class probabilities at `softmax_temperature` (CLIP's zero-shot rule).
         """
         objects = slice(None) if objects is None else objects
-        if self.cfg.semantic == "cosine" or len(observations) == 0:
+        if self.cfg.similarity == "cosine" or len(observations) == 0:
             return semantic_similarity(observations.embeddings, self.object_embeddings[objects])
-        tau = self.cfg.semantic_softmax_temperature
+        tau = self.cfg.softmax_temperature
         logits = semantic_similarity(observations.embeddings, self.label_embeddings) / tau
         logits -= logits.max(axis=1, keepdims=True)
         p = np.exp(logits)
@@ -252,7 +245,7 @@ class SemanticLikelihood:
         local = np.zeros(len(self.object_xy), np.int64)
         local[present] = np.arange(len(present))
         sem = self.semantic(observations, present)[:, local[ids]]  # (K, E)
-        k_idx, e_idx = np.nonzero(sem >= self.cfg.semantic_threshold)
+        k_idx, e_idx = np.nonzero(sem >= self.cfg.threshold)
         stats.semantic_pairs = len(k_idx)
         if len(k_idx) == 0:
             self.last_stats = stats
@@ -263,10 +256,8 @@ class SemanticLikelihood:
             d_exp, a_exp = self.footprint_polar(particles[owner[e_idx]], ids[e_idx], d_obs, a_obs)
         else:
             d_exp, a_exp = d[e_idx], alpha[e_idx]
-        phi = (
-            self.observation_weights(observations)[k_idx]
-            * sem[k_idx, e_idx]
-            * np.exp(-np.abs(d_obs - d_exp) / self.cfg.sigma_d_m + self.cfg.kappa_alpha * (np.cos(a_obs - a_exp) - 1.0))
+        phi = sem[k_idx, e_idx] * (
+            np.exp(-np.abs(d_obs - d_exp) / self.cfg.sigma_d_m + self.cfg.kappa_alpha * (np.cos(a_obs - a_exp) - 1.0))
         )
         # Columns: the candidates that take part in a pair, numbered per particle.
         used = np.flatnonzero(np.bincount(e_idx, minlength=len(ids)))  # sorted, like np.unique but cheaper
@@ -280,16 +271,6 @@ class SemanticLikelihood:
         ids_pad[used_owner, col_of_used] = ids[used]
         self.last_stats = stats
         return phi_pad, ids_pad
-
-    def observation_weights(self, observations: Observations) -> np.ndarray:
-        """(K,) weight of each observation in the score, from its node's detector confidence (see the config)."""
-        c0, c1 = self.cfg.confidence_zero, self.cfg.confidence_full
-        if observations.confidence is None or c1 <= 0.0:
-            return np.ones(len(observations))
-        c = np.asarray(observations.confidence, np.float64)
-        if c1 <= c0:
-            return (c >= c1).astype(np.float64)
-        return np.clip((c - c0) / (c1 - c0), 0.0, 1.0)
 
     def footprint_polar(
         self, poses: np.ndarray, ids: np.ndarray, range_m: np.ndarray, bearing_rad: np.ndarray
@@ -312,70 +293,29 @@ class SemanticLikelihood:
 
     def scores(self, particles: np.ndarray, storeys: np.ndarray, observations: Observations) -> np.ndarray:
         """(M,) mean matched score in [0, 1] of each particle: the optimal assignment's summed φ over K."""
-        return self._scores_and_matches(particles, storeys, observations, count_matches=False)[0]
-
-    def _scores_and_matches(
-        self, particles: np.ndarray, storeys: np.ndarray, observations: Observations, count_matches: bool = True
-    ) -> tuple[np.ndarray, np.ndarray | None]:
-        """(M,) mean matched score and (M,) how many observations can pair with a distinct candidate (an upper
-        bound on the assignment's size: min of the observations and the candidates that take part in a pair), or
-        None without `count_matches` (two passes over the (M, K, C) pair scores that only the missed-detection
-        term needs)."""
         K = len(observations)
-        M = len(np.asarray(particles).reshape(-1, 3))
         if K == 0:
-            return np.zeros(M), np.zeros(M, np.int64) if count_matches else None
+            return np.zeros(len(np.asarray(particles).reshape(-1, 3)))
         phi, _ = self.pair_scores(particles, storeys, observations)
         totals, calls = assignment_sums(phi)
         self.last_stats.hungarian_calls = calls
-        if not count_matches:
-            return totals / K, None
-        paired = phi > 0
-        matched = np.minimum(paired.any(axis=2).sum(axis=1), paired.any(axis=1).sum(axis=1))
-        return totals / K, matched
-
-    def expected_detections(self, particles: np.ndarray, storeys: np.ndarray) -> np.ndarray:
-        """(M,) BIM objects each particle should see detected: centre within `detection_range_m` and the FOV,
-        not behind a wall (the visibility table), and not of a label in `detection_ignore_labels`."""
-        particles = np.asarray(particles, np.float64).reshape(-1, 3)
-        offsets, ids = self.visibility.candidates(particles[:, :2], storeys)
-        owner = np.repeat(np.arange(len(particles)), np.diff(offsets))
-        d, alpha = polar_coordinates(particles[owner], self.object_xy[ids])
-        near = (d <= self.cfg.detection_range_m) & (np.abs(alpha) <= self.half_fov_rad) & self.detectable[ids]
-        return np.bincount(owner[near], minlength=len(particles))
+        return totals / K
 
     def count_scale(self, n_observations: int) -> float:
         """K^(1−γ): what the mean matched score of K observations is multiplied by in the log-likelihood (1 for the
         paper's mean, γ = 1; K for the sum, γ = 0)."""
-        return float(n_observations) ** (1.0 - self.cfg.score_count_exponent)
-
-    def log_likelihood_terms(
-        self, particles: np.ndarray, storeys: np.ndarray, observations: Observations
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(M,) semantic term K^(1−γ) · score / T (`count_scale`) and (M,) missed-detection term
-        n_missed · log(1 − p_d).
-
-        The second (beyond the paper; 0 when `detection_probability` is 0) is negative information: a particle
-        that should see n objects near it but whose observations pair with only m of them missed n − m, each a
-        miss with probability 1 − p_d. Without it a pose among many objects explains a lone false positive that a
-        pose in an empty corridor cannot, and nothing charges it for the objects it predicts and nobody saw.
-        """
-        p_d = self.cfg.detection_probability
-        scores, matched = self._scores_and_matches(particles, storeys, observations, count_matches=p_d > 0.0)
-        semantic = scores * (self.count_scale(len(observations)) / self.cfg.temperature)
-        if matched is None:
-            return semantic, np.zeros_like(semantic)
-        missed = np.maximum(self.expected_detections(particles, storeys) - matched, 0)
-        return semantic, missed * np.log1p(-p_d)
+        return float(n_observations) ** (1.0 - self.cfg.count_exponent)
 
     def log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, observations: Observations) -> np.ndarray:
-        """(M,) log P(z|x): score / T, plus the missed-detection term when `detection_probability` > 0, plus the
-        door-plate term (`localization.text`) for the text read at this step."""
-        semantic, missed = self.log_likelihood_terms(particles, storeys, observations)
-        return semantic + missed + self.text_log_likelihood(particles, storeys, observations)
+        """(M,) log P(z|x) = K^(1−γ) · score / T (`count_scale`)."""
+        scores = self.scores(particles, storeys, observations)
+        return scores * (self.count_scale(len(observations)) / self.cfg.temperature)
 
-    def text_log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, observations: Observations) -> np.ndarray:
-        """(M,) the door-plate term of the text in `observations` (0 when none was read)."""
-        if not observations.n_texts:
-            return np.zeros(len(np.asarray(particles).reshape(-1, 3)))
-        return self.plates.log_likelihood(particles, storeys, observations.texts)
+    def weigh(self, particles: np.ndarray, storeys: np.ndarray, frame: FrameData) -> Term | None:
+        """The frame's semantic term; its evidence is each particle's mean matched score over T, on an absolute
+        scale whatever the number of observations (what augmented MCL averages). None without observations."""
+        observations = frame.observations
+        if observations is None or len(observations) == 0:
+            return None
+        log_likelihood = self.log_likelihood(particles, storeys, observations)
+        return Term(log_likelihood, log_likelihood / self.count_scale(len(observations)))

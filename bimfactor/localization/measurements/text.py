@@ -6,10 +6,10 @@ in front of x (x is on the side its wall faces), whose text it matches:
     q_j(x) = exp(−cost(t, s_j)) · φ_dist(r, d_j(x)) · φ_ang(b, α_j(x))
     P(t | x) = ε + (1 − ε) · max_j q_j(x)
 
-with ε = `smcl.text_unexplained`, φ_dist and φ_ang the paper's terms with its σ_d and κ_α, and cost the cheapest
+with ε = `smcl.text.unexplained`, φ_dist and φ_ang the paper's terms with its σ_d and κ_α, and cost the cheapest
 edit of the normalised texts (`bim.plates.normalise_text`) into each other: a substitution of look-alike characters
-(`bim.plates.look_alikes`: "8" for "B") costs `smcl.text_look_alike_cost`, any other substitution, insertion or
-deletion `smcl.text_edit_cost`. OCR misreads a character mostly as its look-alike, so "8204" where "B204" hangs is a
+(`bim.plates.look_alikes`: "8" for "B") costs `smcl.text.look_alike_cost`, any other substitution, insertion or
+deletion `smcl.text.edit_cost`. OCR misreads a character mostly as its look-alike, so "8204" where "B204" hangs is a
 likely misread and "A204" an unlikely one. The readings of a
 step are independent, log P(z_text | x) = Σ_k log P(t_k | x). ε is the chance that a reading is a misread or a
 plate the model does not know: one reading moves a particle's weight by at most 1/ε against another's, and a
@@ -24,7 +24,8 @@ import numpy as np
 from bimfactor.bim.plates import door_plates, look_alikes, normalise_text
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import SmclConfig
-from bimfactor.localization.likelihood import bearing_similarity, distance_similarity, polar_coordinates
+from bimfactor.localization.measurements.base import FrameData, Term
+from bimfactor.localization.measurements.semantic import bearing_similarity, distance_similarity, polar_coordinates
 from bimfactor.types import TextObservations, wrap_angle
 
 MIN_TEXT_MATCH = 1e-3  # plates whose text matches a reading less than this (one edit at c = 6: e^−6) are not weighed
@@ -81,8 +82,11 @@ class PlateLikelihood:
     objects (`backend.factors.Landmarks.from_prior` lists them in the same order).
     """
 
+    name = "text"
+
     def __init__(self, prior: BimPrior, cfg: SmclConfig) -> None:
-        self.cfg = cfg
+        self.cfg = cfg.text
+        self.sigma_d_m, self.kappa_alpha = cfg.semantic.sigma_d_m, cfg.semantic.kappa_alpha  # the paper's φ_dist, φ_ang
         plates = door_plates(prior)
         self.texts = [normalise_text(p.text) for p in plates]
         self.xy = np.asarray([p.xy for p in plates], float).reshape(-1, 2)
@@ -98,8 +102,8 @@ class PlateLikelihood:
         """(P,) exp(−cost) of one reading against every plate's text (0 for a reading with no letter or digit)."""
         t = normalise_text(text)
         if t not in self._matches:
-            c = self.cfg.text_edit_cost
-            edits = np.asarray([edit_distance(t, s, self.cfg.text_look_alike_cost / c) for s in self.texts], float)
+            c = self.cfg.edit_cost
+            edits = np.asarray([edit_distance(t, s, self.cfg.look_alike_cost / c) for s in self.texts], float)
             self._matches[t] = np.exp(-c * edits) if t else np.zeros(len(self.texts))
         return self._matches[t]
 
@@ -118,14 +122,14 @@ class PlateLikelihood:
         d, alpha = polar_coordinates(particles[:, None, :], xy[None])
         in_front = np.einsum("mcj,cj->mc", particles[:, None, :2] - xy[None], normal) > 0.0
         here = storeys[:, None] == self.storey[candidates][None]
-        q = match[candidates] * distance_similarity(range_m, d, self.cfg.sigma_d_m)
-        q = q * bearing_similarity(bearing_rad, alpha, self.cfg.kappa_alpha) * (in_front & here)
+        q = match[candidates] * distance_similarity(range_m, d, self.sigma_d_m)
+        q = q * bearing_similarity(bearing_rad, alpha, self.kappa_alpha) * (in_front & here)
         return q, candidates
 
     def reading_likelihoods(self, particles: np.ndarray, storeys: np.ndarray, texts: TextObservations) -> np.ndarray:
         """(K, M) P(t_k | x) = ε + (1 − ε) · max_j q_j(x) of each of the step's K readings at M poses."""
         particles = np.asarray(particles, np.float64).reshape(-1, 3)
-        eps = self.cfg.text_unexplained
+        eps = self.cfg.unexplained
         out = np.full((len(texts.texts), len(particles)), eps)
         if not len(self):
             return out
@@ -141,9 +145,18 @@ class PlateLikelihood:
             return np.zeros(len(np.asarray(particles).reshape(-1, 3)))
         return np.log(self.reading_likelihoods(particles, storeys, texts)).sum(axis=0)
 
+    def weigh(self, particles: np.ndarray, storeys: np.ndarray, frame: FrameData) -> Term | None:
+        """The frame's door-plate term, with the (K, M) P(t_k | x) of its readings as evidence (the text reset
+        looks for readings the belief does not explain); None when nothing was read."""
+        observations = frame.observations
+        if observations is None or not observations.n_texts:
+            return None
+        per_reading = self.reading_likelihoods(particles, storeys, observations.texts)
+        return Term(np.log(per_reading).sum(axis=0), per_reading)
+
     def named_plates(self, text: str) -> np.ndarray:
         """Indices of the plates a reading names: their text matches it within one look-alike character."""
-        return np.flatnonzero(self.text_match(text) >= np.exp(-self.cfg.text_look_alike_cost) * (1 - 1e-9))
+        return np.flatnonzero(self.text_match(text) >= np.exp(-self.cfg.look_alike_cost) * (1 - 1e-9))
 
     def sample_poses(
         self, text: str, range_m: float, bearing_rad: float, n: int, rng: np.random.Generator

@@ -7,12 +7,14 @@ import pytest
 
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
-from bimfactor.config import Config, SmclConfig
-from bimfactor.localization.field import ScanLikelihood, scan_endpoints
-from bimfactor.localization.smcl import SemanticMCL
+from bimfactor.config import Config, SmclConfig, updated
+from bimfactor.localization.filter import SemanticMCL
+from bimfactor.localization.measurements import FrameData
+from bimfactor.localization.measurements.scan import ScanLikelihood, scan_endpoints
+from bimfactor.localization.recovery import LostMonitor
+from bimfactor.localization.recovery.augmented import AugmentedMCL
 from bimfactor.sim.sensors import camera_mount
 from bimfactor.types import CameraIntrinsics
-from tests.localization.handmade import object_id, observe
 
 W, H = 64, 48
 
@@ -24,7 +26,7 @@ def _camera(cfg: Config) -> tuple[CameraIntrinsics, np.ndarray]:
 def _endpoints(depth: np.ndarray, cfg: Config) -> np.ndarray:
     """The scan of a depth image from the test camera, up to the top of the grid's obstacle band."""
     intrinsics, T_base_camera = _camera(cfg)
-    return scan_endpoints(depth, intrinsics, T_base_camera, cfg.smcl, cfg.bim.grid.band_max_m)
+    return scan_endpoints(depth, intrinsics, T_base_camera, cfg.scan, cfg.sensor, cfg.bim.grid.band_max_m)
 
 
 def test_endpoints_are_the_nearest_surface_per_bearing_bin(test_config: Config) -> None:
@@ -32,7 +34,7 @@ def test_endpoints_are_the_nearest_surface_per_bearing_bin(test_config: Config) 
     depth = np.full((H, W), 3.0, np.float32)  # a wall 3 m ahead of the (level) camera
     wall = _endpoints(depth, test_config)
     np.testing.assert_allclose(wall[:, 0], forward + 3.0, atol=1e-9)
-    bins = np.floor(np.arctan2(wall[:, 1], wall[:, 0]) / np.deg2rad(test_config.smcl.scan_beam_deg))
+    bins = np.floor(np.arctan2(wall[:, 1], wall[:, 0]) / np.deg2rad(test_config.scan.beam_deg))
     assert len(np.unique(bins)) == len(wall)  # one endpoint per bin
     assert 40 <= len(wall) <= 46  # the 90° view in 2° bins (the bearings from the base origin span a bit less)
     # Rows at the camera's height hold a nearer surface: every bin's endpoint moves onto it.
@@ -49,9 +51,8 @@ def test_an_endpoint_is_the_median_of_its_nearest_surface_not_its_nearest_noisy_
     """A wall 5 m ahead seen with the camera's depth noise (σ ≈ 4 cm there): the nearest of a bin's hundreds of
     returns is ~3σ short, the median of the returns within 6σ of it is on the wall; a far wall behind does not
     count."""
-    cfg = test_config.smcl
-    sigma = float(cfg.scan_depth_noise.sigma_m(5.0))
-    surface_m = min(cfg.scan_surface_sigmas * sigma, cfg.scan_surface_m)
+    sigma = float(test_config.sensor.depth_noise.sigma_m(5.0))
+    surface_m = min(test_config.scan.surface_sigmas * sigma, test_config.scan.surface_m)
     rng = np.random.default_rng(0)
     depth = (5.0 + sigma * rng.standard_normal((H, W))).astype(np.float32)
     depth[:, ::7] = 9.0  # columns of a far wall seen through gaps: beyond the nearest surface
@@ -77,12 +78,12 @@ def test_a_low_table_seen_from_above_ends_the_scan_at_its_edge(test_config: Conf
     depth = np.where((on_top >= 1.0) & (on_top <= 1.8), on_top, 3.0) * np.ones((1, w))
 
     def ahead(c: Config) -> np.ndarray:
-        scan = scan_endpoints(depth.astype(np.float32), intrinsics, camera_mount(c.sim.camera), c.smcl, 1.2)
+        scan = scan_endpoints(depth.astype(np.float32), intrinsics, camera_mount(c.sim.camera), c.scan, c.sensor, 1.2)
         return scan[np.abs(scan[:, 1]) < 0.3, 0] - c.sim.camera.mount_forward_m  # the bins straight ahead
 
     assert len(ahead(cfg)) >= 3
     assert np.all(ahead(cfg) < 1.03)  # on the table's edge
-    fixed = cfg.model_copy(update={"smcl": cfg.smcl.model_copy(update={"scan_surface_min_m": 0.3})})
+    fixed = updated(cfg, {"scan.surface_min_m": 0.3})
     assert np.all(ahead(fixed) > 1.1)  # a fixed 0.3 m surface: the median return lies on the top, inside the table
 
 
@@ -97,7 +98,7 @@ def _divider_scan() -> np.ndarray:
 
 
 def test_scan_score_peaks_at_the_pose_that_put_the_walls_where_they_are(box_prior: BimPrior, smcl_cfg: SmclConfig):
-    field = ScanLikelihood(box_prior, smcl_cfg)
+    field = ScanLikelihood(box_prior, smcl_cfg.scan)
     poses = np.array(
         [
             [3.0, 3.0, 0.0],  # truth: every endpoint on the divider's face
@@ -108,25 +109,25 @@ def test_scan_score_peaks_at_the_pose_that_put_the_walls_where_they_are(box_prio
     )
     scores = field.scores(poses, np.zeros(4, np.int64), _divider_scan())
     assert scores[0] > 0.95
-    sigma = smcl_cfg.scan_sigma_m
+    sigma = smcl_cfg.scan.sigma_m
     # Endpoints at x = 6.5 fall in the cell centred at 6.525; the wall's last cell is centred at 6.175.
     assert scores[1] == pytest.approx(np.exp(-0.5 * (0.35 / sigma) ** 2), abs=0.5 / 255)  # the field in 1/255 steps
     assert scores[2] < 0.5 * scores[0]
     assert scores[3] == 0.0
     np.testing.assert_array_equal(field.scores(poses, np.zeros(4, np.int64), np.zeros((0, 2))), np.zeros(4))
     np.testing.assert_allclose(
-        field.log_likelihood(poses, np.zeros(4, np.int64), _divider_scan()), scores / smcl_cfg.scan_temperature
+        field.log_likelihood(poses, np.zeros(4, np.int64), _divider_scan()), scores / smcl_cfg.scan.temperature
     )
 
 
 def test_field_lookups_are_those_of_each_endpoint_placed_one_at_a_time(smcl_cfg: SmclConfig):
     """The batched lookup (one matrix product for all poses) against placing every endpoint by hand, on two storeys
     and with endpoints off the grid on every side (they score 0)."""
-    from bimfactor.localization.field import LikelihoodField
+    from bimfactor.localization.measurements.scan import LikelihoodField
     from tests.localization.handmade import make_prior
 
     prior = make_prior(n_storeys=2)
-    field = LikelihoodField(prior, smcl_cfg.scan_sigma_m)
+    field = LikelihoodField(prior, smcl_cfg.scan.sigma_m)
     grid = prior.grid
     rng = np.random.default_rng(3)
     poses = np.column_stack([rng.uniform(-2.0, 14.0, 40), rng.uniform(-2.0, 9.0, 40), rng.uniform(-np.pi, np.pi, 40)])
@@ -144,7 +145,7 @@ def test_field_lookups_are_those_of_each_endpoint_placed_one_at_a_time(smcl_cfg:
             )
             if 0 <= row < grid.rows and 0 <= col < grid.cols:
                 expected[m, n] = np.rint(
-                    255.0 * np.exp(-0.5 * (distance[storey, row, col] / smcl_cfg.scan_sigma_m) ** 2)
+                    255.0 * np.exp(-0.5 * (distance[storey, row, col] / smcl_cfg.scan.sigma_m) ** 2)
                 )
     assert (expected == 0).any() and (expected > 0).any()
     np.testing.assert_array_equal(values, expected)
@@ -158,36 +159,42 @@ def _two_particles(prior: BimPrior, visibility: VisibilityTable, cfg: SmclConfig
     return mcl
 
 
+def _augmented(mcl: SemanticMCL) -> AugmentedMCL:
+    return next(r for r in mcl.recoveries if isinstance(r, AugmentedMCL))
+
+
 def test_the_filter_weighs_by_the_scan_only_when_enabled(
     box_prior: BimPrior, box_visibility: VisibilityTable, smcl_cfg: SmclConfig
 ):
-    cfg = smcl_cfg.model_copy(update={"scan_likelihood": True, "augmented": True})
+    cfg = updated(smcl_cfg, {"scan.enabled": True, "augmented.enabled": True})
     mcl = _two_particles(box_prior, box_visibility, cfg)
-    mcl.update(None, _divider_scan())
-    expected = ScanLikelihood(box_prior, cfg).log_likelihood(mcl.particles, mcl.storeys, _divider_scan())
+    mcl.update(FrameData(scan=_divider_scan()))
+    expected = ScanLikelihood(box_prior, cfg.scan).log_likelihood(mcl.particles, mcl.storeys, _divider_scan())
     assert np.log(mcl.weights[0] / mcl.weights[1]) == pytest.approx(expected[0] - expected[1])
-    assert mcl.w_slow is None and mcl.w_fast is None  # augmented MCL watches the semantic term only
-    off = _two_particles(box_prior, box_visibility, cfg.model_copy(update={"scan_likelihood": False}))
-    off.update(None, _divider_scan())
+    augmented = _augmented(mcl)
+    assert augmented.w_slow is None and augmented.w_fast is None  # augmented MCL watches the semantic term only
+    off = _two_particles(box_prior, box_visibility, updated(cfg, {"scan.enabled": False}))
+    off.update(FrameData(scan=_divider_scan()))
     np.testing.assert_array_equal(off.weights, [0.5, 0.5])
 
 
 def test_injected_particles_stay_out_of_the_estimate_until_weighed(
     box_prior: BimPrior, box_visibility: VisibilityTable, smcl_cfg: SmclConfig
 ):
-    cfg = smcl_cfg.model_copy(update={"augmented": True, "injection": "uniform"})
+    cfg = updated(smcl_cfg, {"augmented.enabled": True, "augmented.injection": "uniform"})
     mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(3), num_particles=200)
     mcl.initialize()
     mcl.particles[:] = [3.0, 3.0, 0.5]
-    mcl.w_slow, mcl.w_fast = 1.0, 0.5  # inject about half of the particles
-    resampled, injected = mcl.resample_if_needed()
+    augmented = _augmented(mcl)
+    augmented.w_slow, augmented.w_fast = 1.0, 0.5  # inject about half of the particles
+    resampled, injected = mcl.resample(FrameData())
     assert resampled and 50 < injected < 150 and mcl.fresh.sum() == injected
     assert np.abs(mcl.particles[mcl.fresh] - [3.0, 3.0, 0.5]).max() > 1.0  # spread over the box
     np.testing.assert_allclose(mcl.estimate().pose, [3.0, 3.0, 0.5], atol=1e-9)
     # One source for every estimate (the filter's, the modes, the belief median): the injected weigh nothing.
     weights = mcl.estimation_weights()
     assert np.all(weights[mcl.fresh] == 0) and np.array_equal(weights[~mcl.fresh], mcl.weights[~mcl.fresh])
-    mcl.update(None, _divider_scan())  # a measurement weighs them: they count again
+    mcl.update(FrameData(scan=_divider_scan()))  # a measurement weighs them: they count again
     assert not mcl.fresh.any() and np.array_equal(mcl.estimation_weights(), mcl.weights)
     assert np.abs(mcl.estimate().pose - [3.0, 3.0, 0.5]).max() > 1e-6
 
@@ -197,84 +204,56 @@ def test_drawn_poses_are_screened_by_the_frame_scan(
 ):
     """Of 200 drawn poses that put the divider where the scan has it and 200 turned by 30°, the 100 kept are nearly
     all of the first kind; with no scan the first 100 come back as drawn."""
-    cfg = smcl_cfg.model_copy(update={"scan_likelihood": True})
-    mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(5), num_particles=10)
+    cfg = updated(smcl_cfg, {"scan.enabled": True})
+    sampler = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(5), num_particles=10).sampler
     drawn = np.repeat([[3.0, 3.0, 0.0], [3.0, 3.0, np.deg2rad(30.0)]], 200, axis=0)
     storeys = np.zeros(len(drawn), np.int64)
-    kept, kept_storeys = mcl.screen_by_scan(100, drawn, storeys, _divider_scan())
+    kept, kept_storeys = sampler.screen_by_scan(100, drawn, storeys, FrameData(scan=_divider_scan()))
     assert len(kept) == len(kept_storeys) == 100
     assert np.sum(kept[:, 2] == 0.0) >= 85
     assert len(np.unique(kept, axis=0)) == 2  # chosen among the drawn, not moved
-    as_drawn, _ = mcl.screen_by_scan(100, drawn, storeys, None)
+    as_drawn, _ = sampler.screen_by_scan(100, drawn, storeys, FrameData())
     np.testing.assert_array_equal(as_drawn, drawn[:100])
-    cfg_off = smcl_cfg.model_copy(update={"scan_likelihood": False})
-    off = SemanticMCL(box_prior, box_visibility, cfg_off, np.random.default_rng(5), num_particles=10)
-    np.testing.assert_array_equal(off.screen_by_scan(100, drawn, storeys, _divider_scan())[0], drawn[:100])
-
-
-def test_injected_particles_fit_the_frame_scan_when_screened(
-    box_prior: BimPrior, box_visibility: VisibilityTable, smcl_cfg: SmclConfig
-):
-    """Augmented MCL's particles drawn from one observation (the window 2 m straight ahead) lie on an arc about it;
-    screened by the frame's scan (the south wall square ahead, 1.9 m off) they crowd where the wall is square
-    ahead and fit the scan better (`injection_oversample` 4), unscreened (1) they spread along the arc."""
-    window = np.asarray(box_prior.objects[object_id(box_prior, "window")].position_m[:2])
-    obs = observe(("window", 2.0, 0.0))
-    wall = np.column_stack([np.full(11, 1.9), np.linspace(-1.0, 1.0, 11)])
-    spread, fit = {}, {}
-    for oversample in (1, 4):
-        cfg = smcl_cfg.model_copy(
-            update={"augmented": True, "injection": "observations", "injection_oversample": oversample}
-        )
-        mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0), num_particles=400)
-        mcl.initialize()
-        mcl.w_slow, mcl.w_fast = 1.0, 0.0
-        resampled, injected = mcl.resample_if_needed(obs, wall)
-        assert resampled and injected == 400
-        offset = mcl.particles[:, :2] - window
-        np.testing.assert_allclose(np.median(np.hypot(*offset.T)), 2.0, atol=0.3)  # they explain the window
-        spread[oversample] = np.median(np.abs(np.arctan2(offset[:, 0], offset[:, 1])))  # off the wall's normal
-        fit[oversample] = ScanLikelihood(box_prior, cfg).scores(mcl.particles, mcl.storeys, wall).mean()
-    assert spread[4] < 0.75 * spread[1]  # 0.41 against 0.62 rad
-    assert fit[4] > fit[1] + 0.1  # 0.63 against 0.49
+    cfg_off = updated(smcl_cfg, {"scan.enabled": False})
+    off = SemanticMCL(box_prior, box_visibility, cfg_off, np.random.default_rng(5), num_particles=10).sampler
+    np.testing.assert_array_equal(
+        off.screen_by_scan(100, drawn, storeys, FrameData(scan=_divider_scan()))[0], drawn[:100]
+    )
 
 
 # ------------------------------------------------------------------------------------------ the kidnapped robot
 
 
 def _lost_cfg(smcl_cfg: SmclConfig, relocalize: bool = True) -> SmclConfig:
-    return smcl_cfg.model_copy(
-        update={
-            "scan_likelihood": True,
-            "augmented": False,
-            "relocalize": relocalize,
-            "lost_fit_ratio": 0.5,
-            "lost_frames": 2,
-            "lost_cusum_drift": 0.4,
-            "lost_cusum_threshold": 1.0,
-            "lost_min_fit": 0.35,
-            "lost_fit_alpha": 0.1,
-            "lost_min_endpoints": 10,
-            "sigma_trans_m": 0.0,
-            "sigma_rot_deg": 0.0,
-        }
+    return updated(
+        smcl_cfg,
+        {
+            "scan.enabled": True,
+            "augmented.enabled": False,
+            "relocalize.enabled": relocalize,
+            "relocalize.fit_ratio": 0.5,
+            "relocalize.frames": 2,
+            "relocalize.cusum_drift": 0.4,
+            "relocalize.cusum_threshold": 1.0,
+            "relocalize.min_fit": 0.35,
+            "relocalize.fit_alpha": 0.1,
+            "relocalize.min_endpoints": 10,
+            "motion.sigma_trans_m": 0.0,
+            "motion.sigma_rot_deg": 0.0,
+        },
     )
 
 
 def _tracking_monitor(smcl_cfg: SmclConfig):
     """A monitor armed by ten frames that fit 0.6."""
-    from bimfactor.localization.smcl import LostMonitor
-
-    monitor = LostMonitor(_lost_cfg(smcl_cfg))
+    monitor = LostMonitor(_lost_cfg(smcl_cfg).relocalize)
     assert not any(monitor.lost(0.6, 40) for _ in range(10))
     assert monitor.frames == 10 and monitor.average == pytest.approx(0.6)
     return monitor
 
 
 def test_the_lost_monitor_calls_a_sudden_or_a_held_drop_of_the_scan_fit_below_its_average(smcl_cfg: SmclConfig):
-    from bimfactor.localization.smcl import LostMonitor
-
-    unarmed = LostMonitor(_lost_cfg(smcl_cfg))
+    unarmed = LostMonitor(_lost_cfg(smcl_cfg).relocalize)
     assert not any(unarmed.lost(0.6, 40) for _ in range(9))
     assert not unarmed.lost(0.01, 40) and unarmed.cusum == 0.0  # fewer than 1 / α = 10 frames: not armed ...
     assert unarmed.frames == 10 and unarmed.average == pytest.approx(0.541)  # ... so the frame entered the average
@@ -296,9 +275,9 @@ def test_the_lost_monitor_calls_a_sudden_or_a_held_drop_of_the_scan_fit_below_it
     assert not any(near.lost(0.42, 40) for _ in range(50))  # 0.7 of the average, above e^−0.4: never adds up
     recovers = _tracking_monitor(smcl_cfg)
     assert not any(recovers.lost(fit, 40) for fit in (0.2, 0.6, 0.6, 0.6, 0.6, 0.2, 0.6))  # good frames pay it back
-    spread = LostMonitor(_lost_cfg(smcl_cfg))
+    spread = LostMonitor(_lost_cfg(smcl_cfg).relocalize)
     assert not any(spread.lost(fit, 40) for fit in (0.1,) * 12 + (0.01,) * 4)  # never reached 0.35: never lost
-    assert not LostMonitor(_lost_cfg(smcl_cfg)).lost(None, 0)
+    assert not LostMonitor(_lost_cfg(smcl_cfg).relocalize).lost(None, 0)
 
 
 def _kidnapped_scan() -> np.ndarray:

@@ -1,4 +1,5 @@
-"""The measurement model: each score term against hand-computed values, the assignment against brute force."""
+"""The semantic term of the measurement model (the paper's, Eqs. 1-4): each score term against hand-computed
+values, the assignment against brute force."""
 
 from __future__ import annotations
 
@@ -7,8 +8,8 @@ import itertools
 import numpy as np
 import pytest
 
-from bimfactor.config import SmclConfig
-from bimfactor.localization.likelihood import (
+from bimfactor.config import SmclConfig, updated
+from bimfactor.localization.measurements.semantic import (
     SemanticLikelihood,
     assignment_sums,
     bearing_similarity,
@@ -46,8 +47,9 @@ def test_distance_and_bearing_terms():
 
 def test_pair_score_is_the_product_and_screens_by_the_semantic_threshold(smcl_cfg: SmclConfig):
     expected = 0.9 * np.exp(-0.5 / 1.2) * np.exp(5.0 * (np.cos(0.2) - 1.0))
-    assert pair_score(0.9, 2.0, 1.5, 0.2, 0.0, smcl_cfg) == pytest.approx(expected)
-    assert pair_score(smcl_cfg.semantic_threshold - 0.01, 2.0, 2.0, 0.0, 0.0, smcl_cfg) == 0.0
+    semantic = smcl_cfg.semantic
+    assert pair_score(0.9, 2.0, 1.5, 0.2, 0.0, semantic) == pytest.approx(expected)
+    assert pair_score(semantic.threshold - 0.01, 2.0, 2.0, 0.0, 0.0, semantic) == 0.0
 
 
 def test_likelihood_is_exp_score_over_temperature():
@@ -56,7 +58,7 @@ def test_likelihood_is_exp_score_over_temperature():
 
 
 def test_pair_scores_of_one_particle_match_hand_computed_values(box_prior, box_visibility, smcl_cfg):
-    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg.model_copy(update={"footprint_match": False}))
+    scorer = SemanticLikelihood(box_prior, box_visibility, updated(smcl_cfg.semantic, {"footprint_match": False}))
     particle = np.array([[4.0, 3.0, np.pi]])  # facing west: the chair is 1 m straight ahead
     obs = observe(("chair", 1.5, 0.2), ("cabinet", 3.0, -0.5))
     phi, ids = scorer.pair_scores(particle, np.array([0]), obs)
@@ -74,7 +76,7 @@ def test_pair_scores_of_one_particle_match_hand_computed_values(box_prior, box_v
 
 
 def test_an_unmatched_observation_counts_zero_in_the_mean(box_prior, box_visibility, smcl_cfg):
-    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
+    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg.semantic)
     particle = np.array([[4.0, 3.0, np.pi]])
     exact = observe(("chair", 1.0, 0.0))
     with_unexplained = observe(("chair", 1.0, 0.0), ("table", 2.0, 0.0))  # the table is behind the wall
@@ -88,7 +90,7 @@ def test_the_count_exponent_scales_the_mean_score_from_the_papers_mean_to_the_su
     both = observe(("chair", 1.0, 0.0), ("cabinet", np.sqrt(13.0), np.arctan2(2.0, -3.0) - np.pi))
     half = observe(("chair", 1.0, 0.0), ("table", 2.0, 0.0))  # the table is behind the wall: scores 0
     for gamma, scale in ((1.0, 1.0), (0.5, np.sqrt(2.0)), (0.0, 2.0)):
-        cfg = smcl_cfg.model_copy(update={"score_count_exponent": gamma, "detection_probability": 0.0})
+        cfg = updated(smcl_cfg.semantic, {"count_exponent": gamma})
         scorer = SemanticLikelihood(box_prior, box_visibility, cfg)
         assert scorer.scores(particle, storey, both)[0] == pytest.approx(1.0, abs=1e-3)  # the mean, whatever γ
         assert scorer.count_scale(2) == pytest.approx(scale)
@@ -97,55 +99,14 @@ def test_the_count_exponent_scales_the_mean_score_from_the_papers_mean_to_the_su
         assert scorer.count_scale(1) == 1.0  # one observation weighs the same either way
 
 
-def test_a_low_confidence_observation_counts_by_its_confidence_ramp(box_prior, box_visibility, smcl_cfg):
-    ramp = smcl_cfg.model_copy(update={"confidence_zero": 0.2, "confidence_full": 0.4})
-    particle = np.array([[4.0, 3.0, np.pi]])
-    obs = observe(("chair", 1.0, 0.0), ("table", 2.0, 0.0))  # the chair scores 1, the table (behind a wall) 0
-    obs.confidence = np.array([0.3, 0.9])
-    scorer = SemanticLikelihood(box_prior, box_visibility, ramp)
-    np.testing.assert_allclose(scorer.observation_weights(obs), [0.5, 1.0])
-    assert scorer.scores(particle, np.array([0]), obs)[0] == pytest.approx(0.5 / 2)  # still the mean over K = 2
-    np.testing.assert_allclose(
-        scorer.observation_weights(Observations(obs.embeddings, obs.range_m, obs.bearing_rad, confidence=None)), 1.0
-    )
-    off = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)  # the defaults: every observation counts 1
-    assert off.scores(particle, np.array([0]), obs)[0] == pytest.approx(1.0 / 2)
-    step = SemanticLikelihood(box_prior, box_visibility, ramp.model_copy(update={"confidence_zero": 0.4}))
-    np.testing.assert_allclose(step.observation_weights(obs), [0.0, 1.0])  # c0 = c1: a threshold
-
-
-def test_missed_detections_cost_log_one_minus_p_d_each(box_prior, box_visibility, smcl_cfg):
-    cfg = smcl_cfg.model_copy(update={"detection_probability": 0.3, "detection_range_m": 4.0})
-    scorer = SemanticLikelihood(box_prior, box_visibility, cfg)
-    # From (4, 3) facing west: the chair 1 m ahead and the cabinet at (1, 5), 3.6 m and 34° to the right, are
-    # within 4 m and the FOV; the window at (3, 0.1) is 71° to the left, outside it. Facing east: nothing.
-    particles = np.array([[4.0, 3.0, np.pi], [4.0, 3.0, 0.0]])
-    storeys = np.zeros(2, np.int64)
-    np.testing.assert_array_equal(scorer.expected_detections(particles, storeys), [2, 0])
-    chair_seen = observe(("chair", 1.0, 0.0))
-    semantic, missed = scorer.log_likelihood_terms(particles, storeys, chair_seen)
-    np.testing.assert_allclose(semantic, [1.0 / cfg.temperature, 0.0])
-    np.testing.assert_allclose(missed, [np.log(0.7), 0.0])  # the cabinet was missed
-    np.testing.assert_allclose(scorer.log_likelihood(particles, storeys, chair_seen), semantic + missed)
-    nothing = Observations(np.zeros((0, 5), np.float32), np.zeros(0), np.zeros(0))
-    np.testing.assert_allclose(scorer.log_likelihood_terms(particles, storeys, nothing)[1], [2 * np.log(0.7), 0.0])
-    near = SemanticLikelihood(box_prior, box_visibility, cfg.model_copy(update={"detection_range_m": 2.0}))
-    np.testing.assert_array_equal(near.expected_detections(particles, storeys), [1, 0])  # the cabinet is too far
-    no_chairs = cfg.model_copy(update={"detection_ignore_labels": ["chair"]})
-    unexpected = SemanticLikelihood(box_prior, box_visibility, no_chairs)
-    np.testing.assert_array_equal(unexpected.expected_detections(particles, storeys), [1, 0])
-    paper = SemanticLikelihood(box_prior, box_visibility, cfg.model_copy(update={"detection_probability": 0.0}))
-    np.testing.assert_array_equal(paper.log_likelihood_terms(particles, storeys, nothing)[1], [0.0, 0.0])
-
-
 def test_candidates_outside_the_field_of_view_do_not_score(box_prior, box_visibility, smcl_cfg):
-    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
+    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg.semantic)
     facing_east = np.array([[4.0, 3.0, 0.0]])  # the chair is behind the robot
     assert scorer.scores(facing_east, np.array([0]), observe(("chair", 1.0, 0.0)))[0] == 0.0
 
 
 def test_no_observations_score_zero_for_every_particle(box_prior, box_visibility, smcl_cfg):
-    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg)
+    scorer = SemanticLikelihood(box_prior, box_visibility, smcl_cfg.semantic)
     empty = Observations(np.zeros((0, 5), np.float32), np.zeros(0), np.zeros(0))
     np.testing.assert_array_equal(scorer.scores(np.zeros((4, 3)), np.zeros(4, int), empty), np.zeros(4))
 
@@ -188,8 +149,8 @@ def test_a_partly_seen_object_is_a_candidate_at_the_edge_of_the_view(box_prior, 
     # right, outside the 90° FOV, but most of its footprint is inside.
     particle = np.array([[8.2, 2.2, np.deg2rad(90.5)]])
     obs = observe(("table", 1.1, -np.deg2rad(40.0)))
-    paper = smcl_cfg.model_copy(update={"footprint_match": False})
-    centre_only = SemanticLikelihood(box_prior, box_visibility, paper.model_copy(update={"fov_extent": False}))
+    paper = updated(smcl_cfg.semantic, {"footprint_match": False})
+    centre_only = SemanticLikelihood(box_prior, box_visibility, updated(paper, {"fov_extent": False}))
     assert centre_only.scores(particle, np.array([0]), obs)[0] == 0.0
     extent = SemanticLikelihood(box_prior, box_visibility, paper)
     d = np.hypot(0.8, 0.8)
@@ -200,12 +161,12 @@ def test_a_partly_seen_object_is_a_candidate_at_the_edge_of_the_view(box_prior, 
 
 def test_footprint_match_expects_a_node_at_the_nearest_point_of_its_object(box_prior, box_visibility, smcl_cfg):
     # The table's footprint is x 8.4–9.6, y 2.6–3.4. From (6, 3) facing east its centre is 3 m ahead.
-    cfg = smcl_cfg.model_copy(update={"semantic": "cosine"})  # one-hot embeddings: φ_sem = 1 for the label
+    cfg = updated(smcl_cfg.semantic, {"similarity": "cosine"})  # one-hot embeddings: φ_sem = 1 for the label
     particle = np.array([[6.0, 3.0, 0.0]])
     on_near_end = observe(("table", 2.6, 0.0))  # (8.6, 3): on the footprint, 0.4 m from its near edge
     beyond = observe(("table", 1.9, 0.0))  # (7.9, 3): 0.5 m short of the near edge (8.4, 3)
     footprint = SemanticLikelihood(box_prior, box_visibility, cfg)
-    centre = SemanticLikelihood(box_prior, box_visibility, cfg.model_copy(update={"footprint_match": False}))
+    centre = SemanticLikelihood(box_prior, box_visibility, updated(cfg, {"footprint_match": False}))
     assert footprint.scores(particle, np.array([0]), on_near_end)[0] == pytest.approx(1.0)
     assert centre.scores(particle, np.array([0]), on_near_end)[0] == pytest.approx(np.exp(-0.4 / 1.2))
     assert footprint.scores(particle, np.array([0]), beyond)[0] == pytest.approx(np.exp(-0.5 / 1.2))
@@ -217,7 +178,7 @@ def test_footprint_match_expects_a_node_at_the_nearest_point_of_its_object(box_p
 
 
 def test_softmax_semantic_term_is_the_class_probability_over_the_prior_labels(box_prior, box_visibility, smcl_cfg):
-    cfg = smcl_cfg.model_copy(update={"semantic": "softmax", "semantic_softmax_temperature": 0.5})
+    cfg = updated(smcl_cfg.semantic, {"similarity": "softmax", "softmax_temperature": 0.5})
     scorer = SemanticLikelihood(box_prior, box_visibility, cfg)
     mixed = np.array([[0.8, 0.6, 0.0, 0.0, 0.0]], np.float32)  # 0.8 chair + 0.6 table in the one-hot label space
     obs = Observations(mixed, np.array([1.0]), np.array([0.0]), labels=["chair"])
@@ -227,6 +188,6 @@ def test_softmax_semantic_term_is_the_class_probability_over_the_prior_labels(bo
     assert sem[object_id(box_prior, "chair")] == pytest.approx(p[0], rel=1e-5)
     assert sem[object_id(box_prior, "table")] == pytest.approx(p[1], rel=1e-5)
     assert sem[object_id(box_prior, "bookshelf")] == pytest.approx(p[4], rel=1e-5)
-    cosine_cfg = smcl_cfg.model_copy(update={"semantic": "cosine"})
+    cosine_cfg = updated(smcl_cfg.semantic, {"similarity": "cosine"})
     cosine = SemanticLikelihood(box_prior, box_visibility, cosine_cfg).semantic(obs)[0]
     assert cosine[object_id(box_prior, "chair")] == pytest.approx(0.8)

@@ -1,13 +1,13 @@
 """The scan term of the measurement model: the depth frame's horizontal scan against the BIM's likelihood field.
 
 Beyond the paper, whose measurement model is semantic only. The depth image is cut to the obstacle band of the
-occupancy grid and turned into a 2-D scan like a laser's: per bearing bin of `scan_beam_deg`, the nearest return
+occupancy grid and turned into a 2-D scan like a laser's: per bearing bin of `scan.beam_deg`, the nearest return
 (`scan_endpoints`). A particle's scan score is the likelihood-field model (Thrun et al., Probabilistic Robotics,
 Table 6.3) with the prior's clearance layer as the field: each endpoint, placed in the world by the particle's
 pose, scores exp(−d² / 2σ²) with d its distance to the nearest BIM obstacle (walls and furniture), and the
 particle's score is the mean over the endpoints, in [0, 1]. The mean, not the product, keeps clutter and moved
 furniture (endpoints far from any BIM obstacle) at a bounded cost and puts the term on the semantic score's
-scale: log P(z_scan|x) = score / `scan_temperature`.
+scale: log P(z_scan|x) = score / `smcl.scan.temperature`.
 
 Walls constrain yaw and position wherever the robot looks, also when no object is in view; the semantic term
 tells places of the same shape apart.
@@ -19,7 +19,8 @@ import numpy as np
 from scipy import ndimage
 
 from bimfactor.bim.prior import BimPrior
-from bimfactor.config import Config, SmclConfig
+from bimfactor.config import Config, ScanConfig, ScanTermConfig, SensorConfig
+from bimfactor.localization.measurements.base import FrameData, Term
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
 
 
@@ -43,36 +44,39 @@ def height_band(points: np.ndarray, min_z_m: float, max_z_m: float) -> np.ndarra
 
 
 def scan_endpoints(
-    depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, cfg: SmclConfig, max_z_m: float
+    depth_m: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    T_base_camera: np.ndarray,
+    cfg: ScanConfig,
+    sensor: SensorConfig,
+    max_z_m: float,
 ) -> np.ndarray:
     """(N, 2) base-frame x, y of one endpoint per bearing bin: the nearest surface's median return.
 
-    Points are kept between `scan_min_z_m` and `max_z_m` (the top of the grid's obstacle band) above the floor
-    and within `scan_max_range_m` (horizontal); bins are `scan_beam_deg` wide. NaN depth is no return. In each bin
+    Points are kept between `sensor.min_z_m` and `max_z_m` (the top of the grid's obstacle band) above the floor
+    and within `sensor.max_range_m` (horizontal); bins are `beam_deg` wide. NaN depth is no return. In each bin
     the returns within w of the nearest one form the nearest surface, and the endpoint is their median by range:
     the nearest return alone is the minimum of hundreds of noisy samples of a wall, biased short by about 3σ of the
-    depth noise (15 cm at 5 m for a RealSense-like camera). w = `scan_surface_sigmas` (6) σ(r) of the noise
-    (`scan_depth_noise`) at the nearest return's range r, within `scan_surface_min_m` … `scan_surface_m`: it holds
+    depth noise (15 cm at 5 m for a RealSense-like camera). w = `surface_sigmas` (6) σ(r) of the noise
+    (`sensor.depth_noise`) at the nearest return's range r, within `surface_min_m` … `surface_m`: it holds
     a wall's ±3σ spread, and no more. A fixed 0.3 m took in the top of a low table seen from above, whose returns
     lie behind its edge, and put the endpoint 0.15–0.2 m inside the table (`bimfactor bench scanmatch`).
     """
     points = backproject_depth(depth_m, intrinsics, T_base_camera)
-    points = height_band(points, cfg.scan_min_z_m, max_z_m)
+    points = height_band(points, sensor.min_z_m, max_z_m)
     ranges = np.hypot(points[:, 0], points[:, 1])
-    keep = ranges <= cfg.scan_max_range_m
+    keep = ranges <= sensor.max_range_m
     points, ranges = points[keep], ranges[keep]
     if len(points) == 0:
         return np.zeros((0, 2))
-    bins = np.floor(np.arctan2(points[:, 1], points[:, 0]) / np.deg2rad(cfg.scan_beam_deg)).astype(np.int64)
+    bins = np.floor(np.arctan2(points[:, 1], points[:, 0]) / np.deg2rad(cfg.beam_deg)).astype(np.int64)
     order = np.lexsort((ranges, bins))  # by bin, then nearest first
     bins, ranges = bins[order], ranges[order]
     _, first, counts = np.unique(bins, return_index=True, return_counts=True)
     # Sorted by range within each bin, the nearest surface is a prefix of the bin's run; its median is halfway.
     group = np.repeat(np.arange(len(first)), counts)
     nearest = ranges[first]
-    surface = np.clip(
-        cfg.scan_surface_sigmas * cfg.scan_depth_noise.sigma_m(nearest), cfg.scan_surface_min_m, cfg.scan_surface_m
-    )
+    surface = np.clip(cfg.surface_sigmas * sensor.depth_noise.sigma_m(nearest), cfg.surface_min_m, cfg.surface_m)
     on_surface = ranges <= (nearest + surface)[group]
     surface_counts = np.bincount(group, weights=on_surface, minlength=len(first)).astype(np.int64)
     return points[order[first + surface_counts // 2], :2]
@@ -80,7 +84,9 @@ def scan_endpoints(
 
 def frame_endpoints(frame: Frame, meta: SequenceMeta, cfg: Config) -> np.ndarray:
     """`scan_endpoints` of one frame's depth image, up to the top of the configured obstacle band."""
-    return scan_endpoints(frame.depth_m, meta.intrinsics, meta.T_base_camera, cfg.smcl, cfg.bim.grid.band_max_m)
+    return scan_endpoints(
+        frame.depth_m, meta.intrinsics, meta.T_base_camera, cfg.scan, cfg.sensor, cfg.bim.grid.band_max_m
+    )
 
 
 def face_distances(prior: BimPrior) -> np.ndarray:
@@ -207,9 +213,11 @@ class LikelihoodField:
 class ScanLikelihood:
     """Scores particles' poses by how well a base-frame scan lands on the prior's obstacles."""
 
-    def __init__(self, prior: BimPrior, cfg: SmclConfig) -> None:
+    name = "scan"
+
+    def __init__(self, prior: BimPrior, cfg: ScanTermConfig) -> None:
         self.cfg = cfg
-        self.field = LikelihoodField(prior, cfg.scan_sigma_m)
+        self.field = LikelihoodField(prior, cfg.sigma_m)
 
     def scores(self, particles: np.ndarray, storeys: np.ndarray, endpoints: np.ndarray) -> np.ndarray:
         """(M,) mean over the (N, 2) endpoints of exp(−d² / 2σ²) at each particle's pose; 0 for an empty scan.
@@ -222,5 +230,13 @@ class ScanLikelihood:
         return values.mean(axis=1, dtype=np.float64) / 255.0
 
     def log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, endpoints: np.ndarray) -> np.ndarray:
-        """(M,) log P(z_scan|x) = score / `scan_temperature`."""
-        return self.scores(particles, storeys, endpoints) / self.cfg.scan_temperature
+        """(M,) log P(z_scan|x) = score / `temperature`."""
+        return self.scores(particles, storeys, endpoints) / self.cfg.temperature
+
+    def weigh(self, particles: np.ndarray, storeys: np.ndarray, frame: FrameData) -> Term | None:
+        """The frame's scan term, with each particle's score in [0, 1] as evidence (the belief's predicted fit,
+        which the relocalization watches); None without a scan."""
+        if not frame.has_scan:
+            return None
+        scores = self.scores(particles, storeys, frame.scan)
+        return Term(scores / self.cfg.temperature, scores)
