@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 import typing
 from collections import Counter
 from collections.abc import Callable
@@ -38,7 +37,7 @@ from bimfactor.config import Config, config_file
 from bimfactor.embed.text import TextEmbedder, make_text_embedder
 from bimfactor.errors import FormatError, IfcError, InputError
 from bimfactor.io.atomic import check_output_dir, output_dir
-from bimfactor.progress import progress
+from bimfactor.progress import Laps, progress
 from bimfactor.resources import check_grid_memory
 from bimfactor.textfile import read_utf8
 
@@ -344,15 +343,7 @@ def ensure_prior_destination(out_dir: str | Path, ifc_path: str | Path) -> None:
 
 def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None = None) -> BimPrior:
     """Run the offline stage on one IFC file."""
-    timings: dict[str, float] = {}
-    clock = time.perf_counter()
-
-    def lap(name: str) -> None:
-        nonlocal clock
-        now = time.perf_counter()
-        timings[name] = now - clock
-        clock = now
-
+    lap = Laps()
     bim = cfg.bim
     model = load_ifc(ifc_path, bim.ifc)
     lap("read_ifc")
@@ -429,7 +420,7 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
         room_edges=[tuple(e) for e in room_edges],
         object_edges=object_edges,
         room_matches=matches,
-        timings_s=timings,
+        timings_s=lap.times,
     )
     prior.visibility = VisibilityTable.build(prior, cfg.bim.visibility)
     lap("visibility")

@@ -19,7 +19,6 @@ proportion to area, and the motion model keeps a particle on its storey, so the 
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +37,7 @@ from bimfactor.localization.particles import FreeSpace, ParticleSampler
 from bimfactor.localization.recovery import Recovery, make_recoveries
 from bimfactor.localization.resampling import make_resampler, systematic_resample
 from bimfactor.localization.stats import effective_sample_size, weighted_pose_stats
+from bimfactor.progress import Laps
 from bimfactor.types import Observations, wrap_angle
 
 log = logging.getLogger(__name__)
@@ -119,19 +119,6 @@ class FilterModels:
         )
 
 
-class _Laps:
-    """Milliseconds of each named part of a step."""
-
-    def __init__(self) -> None:
-        self.ms: dict[str, float] = {}
-        self._clock = time.perf_counter()
-
-    def __call__(self, name: str) -> None:
-        now = time.perf_counter()
-        self.ms[name] = (now - self._clock) * 1e3
-        self._clock = now
-
-
 class SemanticMCL:
     """The S-MCL particle filter against one BimPrior; every random draw comes from `rng`. A given
     `num_particles` is fixed (benchmarks); otherwise `cfg.num_particles`, sized by `cfg.resampler`."""
@@ -179,7 +166,7 @@ class SemanticMCL:
         if not self._initialized:
             self.initialize()
         frame = FrameData(observations, scan)
-        lap = _Laps()
+        lap = Laps(per_second=1e3)
         # 1. Predict: the odometry increment and the motion noise.
         if odom_increment is not None:
             self.predict(odom_increment)
@@ -216,7 +203,7 @@ class SemanticMCL:
             resampled=resampled,
             injected=injected,
             n_observations=0 if observations is None else len(observations),
-            timings_ms=lap.ms,
+            timings_ms=lap.times,
             n_particles=self.num_particles,
             scan_fit=update.scan_fit,
             relocalized=lost_frames > 0,

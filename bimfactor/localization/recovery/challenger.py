@@ -24,7 +24,7 @@ import numpy as np
 
 from bimfactor.config import ChallengerConfig
 from bimfactor.localization.measurements.base import FrameData
-from bimfactor.localization.recovery.base import RecoveryBase, WeightedSet
+from bimfactor.localization.recovery.base import NO_POSES, RecoveryBase, WeightedSet
 
 if TYPE_CHECKING:
     from bimfactor.localization.filter import PoseEstimate, SemanticMCL
@@ -46,7 +46,7 @@ class Challenger(RecoveryBase):
         """Draw the challenger from this frame: poses that explain its observations, screened by its scan."""
         sampler, n = self.rival.sampler, self.cfg.particles
         drawn = self.cfg.oversample * n
-        poses, storeys = sampler.uniform(0)
+        poses, storeys = NO_POSES
         if frame.observations is not None:
             poses, storeys = sampler.from_observations(drawn, frame.observations)
         if len(poses) < drawn:
