@@ -301,6 +301,44 @@ def main(
     """
 
 
+# ------------------------------------------------------------------------------------------ config
+
+
+@app.command("config", short_help="Print the resolved configuration: the essential keys, or every key.")
+def config_cmd(
+    all_keys: Annotated[
+        bool, typer.Option("--all", help="Every key (expert keys too), as YAML that `-c` reads back.")
+    ] = False,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    debug: DebugOption = False,
+) -> None:
+    """Print the configuration a command would run with, after the preset (-c) and the overrides (--set).
+
+    Without --all: the essential keys (the robot, the sensor, the detector, the start, the variant), one
+    `key: value  # what it means` line each, in the dotted form `--set` takes. With --all: the whole tree as YAML.
+
+    \b
+    Examples:
+      bimfactor config
+      bimfactor config -c paper
+      bimfactor config --all --set smcl.num_particles=5000 > my.yaml && bimfactor demo -c my.yaml
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose=False)
+        if all_keys:
+            typer.echo(cfg.dump_yaml(), nl=False)
+            return
+        from bimfactor.config import ESSENTIAL_KEYS, leaf_keys, value_at
+
+        fields = dict(leaf_keys())
+        rows = [(f"{key}: {json.dumps(value_at(cfg, key), ensure_ascii=False)}", key) for key in ESSENTIAL_KEYS]
+        width = max(len(text) for text, _ in rows)
+        for text, key in rows:
+            description = " ".join((fields[key].description or "").split())
+            typer.echo(f"{text:<{width}}  # {description}")
+
+
 # ------------------------------------------------------------------------------------------ synth
 
 

@@ -9,12 +9,14 @@ it, and any other file can be given by path; `--set a.b=value` on the command li
 from __future__ import annotations
 
 import copy
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, PositiveFloat, ValidationError, model_validator
+from pydantic.fields import FieldInfo
 
 from bimfactor.errors import ConfigError
 from bimfactor.resources import check_particle_memory
@@ -821,6 +823,56 @@ class Config(_Strict):
     def dump_yaml(self) -> str:
         """The resolved configuration as YAML, written next to every output."""
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+ESSENTIAL_KEYS = (
+    "seed",
+    "bim.ifc.cache_dir",
+    "bim.grid.resolution_m",
+    "bim.grid.robot_radius_m",
+    "bim.rooms.source",
+    "embed.text_model",
+    "embed.clip_weights",
+    "perception.backend",
+    "perception.device",
+    "perception.vlm.yolo_world_weights",
+    "perception.vlm.sam_weights",
+    "perception.text.enabled",
+    "sensor.min_z_m",
+    "sensor.max_range_m",
+    "odometry.alpha",
+    "smcl.num_particles",
+    "smcl.start.pose",
+    "smcl.start.storeys",
+    "smcl.resampler.kind",
+    "smcl.resampler.max_particles",
+    "localization.variant",
+    "localization.keyframe_distance_m",
+    "localization.keyframe_angle_deg",
+    "localization.output",
+    "backend.max_modes",
+    "registration.method",
+)
+"""The keys a run is most often set by: the robot, the sensor, the detector, the start and the variant. `bimfactor
+config` prints them; every other key is an expert key, documented in docs/config-reference.md with its default."""
+
+
+def leaf_keys(model: type[BaseModel] | None = None, prefix: str = "") -> Iterator[tuple[str, FieldInfo]]:
+    """Every leaf key of the config tree (dotted, in declaration order) with its field: what it means and its bounds."""
+    for name, field in (model or Config).model_fields.items():
+        dotted = f"{prefix}{name}"
+        if isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel):
+            yield from leaf_keys(field.annotation, f"{dotted}.")
+        else:
+            yield dotted, field
+
+
+def value_at(model: BaseModel, dotted: str) -> Any:
+    """The value at a dotted key, as the YAML files write it (`value_at(cfg, "smcl.start.pose")`)."""
+    node: Any = model.model_dump(mode="json")
+    for key in dotted.split("."):
+        node = node[key]
+    return node
 
 
 _Model = TypeVar("_Model", bound=BaseModel)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import re
 import shutil
 import subprocess
@@ -11,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from bimfactor.config import CONFIG_DIR, PRESETS, Config, load_config
+from bimfactor.config import CONFIG_DIR, ESSENTIAL_KEYS, PRESETS, Config, leaf_keys, load_config
 from bimfactor.errors import ConfigError
 from tests.cli import assert_one_line_error, invoke
 
@@ -146,3 +147,39 @@ def test_the_cli_takes_a_preset_by_name(tmp_path: Path, cli_config_args: list[st
     result = invoke("synth", "-o", tmp_path / "x.ifc", "-c", "paper", *cli_config_args)
     assert result.exit_code == 0, result.output
     assert_one_line_error(invoke("synth", "-o", tmp_path / "y.ifc", "-c", "papr"), contains="config file not found")
+
+
+# ------------------------------------------------------------------------------------------------ what a user sees
+
+
+def test_the_essential_keys_are_few_documented_leaf_keys() -> None:
+    keys = dict(leaf_keys())
+    assert 20 <= len(ESSENTIAL_KEYS) <= 30 < len(keys)
+    assert len(set(ESSENTIAL_KEYS)) == len(ESSENTIAL_KEYS)
+    assert all(keys[key].description for key in ESSENTIAL_KEYS)
+    assert [key for key, field in keys.items() if not field.description] == []
+
+
+def test_bimfactor_config_prints_the_essential_keys_as_a_run_resolves_them(tmp_path: Path) -> None:
+    result = invoke("config", "-c", "paper", "--set", "smcl.num_particles=7")
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert [line.split(":")[0] for line in lines] == list(ESSENTIAL_KEYS)
+    assert any(re.match(r"smcl\.num_particles: 7 +# M \(paper: 1000\)", line) for line in lines)
+    assert any(line.startswith('smcl.resampler.kind: "systematic" ') for line in lines)
+
+    # --all is the whole tree, and it reads back as the same configuration.
+    result = invoke("config", "--all", "-c", "paper", "--set", "smcl.num_particles=7")
+    assert result.exit_code == 0, result.output
+    (tmp_path / "all.yaml").write_text(result.output)
+    assert load_config(tmp_path / "all.yaml") == load_config("paper", ["smcl.num_particles=7"])
+    assert_one_line_error(invoke("config", "--set", "smcl.particles=7"), contains="unknown config key 'smcl.particles'")
+
+
+def test_the_configuration_pages_are_current() -> None:
+    """docs/configuration.md's essential keys and docs/config-reference.md are generated from the models and presets:
+    a changed key, default or description fails here until `tools/render_config.py` is run."""
+    spec = importlib.util.spec_from_file_location("render_config", REPO / "tools/render_config.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.main(["--check"]) == 0

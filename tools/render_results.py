@@ -277,13 +277,26 @@ def results_page(sources: list[Source], page: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def replace_block(text: str, block: str) -> str:
-    """`text` with what lies between the results markers replaced by `block`."""
-    if text.count(BEGIN) != 1 or text.count(END) != 1 or text.index(BEGIN) > text.index(END):
-        raise SystemExit(f"error: README must hold {BEGIN} and then {END}, once each")
-    head, rest = text.split(BEGIN)
-    _, tail = rest.split(END)
-    return f"{head}{BEGIN}\n{block}\n{END}{tail}"
+def replace_block(text: str, block: str, begin: str = BEGIN, end: str = END) -> str:
+    """`text` with what lies between the markers (the results', by default) replaced by `block`."""
+    if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
+        raise SystemExit(f"error: the file must hold {begin} and then {end}, once each")
+    head, rest = text.split(begin)
+    _, tail = rest.split(end)
+    return f"{head}{begin}\n{block}\n{end}{tail}"
+
+
+def write_or_check(wanted: dict[Path, str], check: bool, tool: str) -> int:
+    """Write each file whose text differs from `wanted`; with `check`, write nothing and exit 1 when one does."""
+    stale = [path for path, text in wanted.items() if not path.exists() or path.read_text() != text]
+    if check:
+        for path in stale:
+            print(f"{path}: out of date (run {tool})", file=sys.stderr)
+        return 1 if stale else 0
+    for path in stale:
+        path.write_text(wanted[path])
+        print(f"wrote {path}")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -299,15 +312,7 @@ def main(argv: list[str] | None = None) -> int:
         args.readme: replace_block(readme_text, readme_block(sources, args.readme)),
         args.page: results_page(sources, args.page),
     }
-    stale = [path for path, text in wanted.items() if not path.exists() or path.read_text() != text]
-    if args.check:
-        for path in stale:
-            print(f"{path}: out of date (run tools/render_results.py)", file=sys.stderr)
-        return 1 if stale else 0
-    for path in stale:
-        path.write_text(wanted[path])
-        print(f"wrote {path}")
-    return 0
+    return write_or_check(wanted, args.check, "tools/render_results.py")
 
 
 if __name__ == "__main__":
