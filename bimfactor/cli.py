@@ -109,6 +109,15 @@ ConfigOption = Annotated[
         "the fewest milliseconds per keyframe, or your own overrides; merged over bimfactor/configs/default.yaml.",
     ),
 ]
+DetectionsOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--detections",
+        metavar="FILE",
+        help="A detector's detections of the frames (JSON Lines, docs/perception.md), for this run instead of "
+        "SEQ_DIR/detections.jsonl or the simulator's.",
+    ),
+]
 SetOption = Annotated[
     list[str] | None,
     typer.Option(
@@ -684,7 +693,9 @@ def simulate(
 
     The IFC file the prior was built from must still be where the prior says (its hash is checked).
     Writes SEQ_DIR (sequence.json, frames.csv, rgb/, depth/, instances/, groundtruth.txt, odometry.txt,
-    config.yaml), SEQ_DIR/preview.png (frames) and SEQ_DIR/trajectory.png (the drive over the floor plan).
+    config.yaml), SEQ_DIR/detections.jsonl (the sim perception backend's noisy detections, masks and embeddings in the
+    format any detector can write: docs/perception.md), SEQ_DIR/preview.png (frames) and SEQ_DIR/trajectory.png (the
+    drive over the floor plan).
 
     \b
     Examples:
@@ -733,13 +744,22 @@ def _simulate_to_disk(
 
     import numpy as np
 
+    from bimfactor.embed.text import make_text_embedder, text_model_name
     from bimfactor.evaluation.plots import save_trajectory_plot
     from bimfactor.io.atomic import output_dir
     from bimfactor.io.preview import write_preview
     from bimfactor.io.sequence import read_sequence, write_sequence_files
+    from bimfactor.perception.detections import DETECTIONS_FILE
+    from bimfactor.perception.pipeline import write_sim_detections
     from bimfactor.sim.simulate import build_world, kidnap, load_world_inputs, simulate_sequence
 
     prior, model = load_world_inputs(prior_dir, cfg)
+    if text_model_name(cfg.embed) != prior.embedding_model:
+        raise ConfigError(
+            f"the prior's objects are embedded with {prior.embedding_model}, but this config embeds with "
+            f"{text_model_name(cfg.embed)}: the simulated detector's labels and embeddings would not compare; "
+            "simulate with the embed.* settings the prior was built with"
+        )
     world = build_world(prior, model, cfg, seed)
     result = simulate_sequence(prior, model, cfg, trajectory, seed, world=world)
     meta, frames, drive = result.meta, result.frames, result.trajectory
@@ -760,6 +780,9 @@ def _simulate_to_disk(
     odom = np.asarray([f.odom_pose for f in frames])
     with output_dir(output, "sequence", inputs=[prior_dir], replace=overwrite) as folder:
         write_sequence_files(folder, meta, frames, label=str(output))
+        # from the frames as stored (depth in millimetres), so they are what the sim backend sees in this folder
+        stored = read_sequence(folder)
+        write_sim_detections(folder / DETECTIONS_FILE, cfg, meta, stored, make_text_embedder(cfg.embed), seed)
         (folder / "config.yaml").write_text(cfg.dump_yaml())
         preview = write_preview(read_sequence(folder), folder / "preview.png")
         save_trajectory_plot(
@@ -777,24 +800,53 @@ def _simulate_to_disk(
     )
 
 
-@app.command(short_help="Convert a TUM RGB-D folder or a ROS 2 bag into a bimfactor sequence.")
+@app.command(short_help="Convert a TUM RGB-D folder or a ROS 1 / ROS 2 / MCAP bag into a bimfactor sequence.")
 def convert(
     kind: Annotated[str, typer.Argument(metavar="KIND", help="tum, rosbag or sequence.")],
     source: Annotated[
-        Path, typer.Argument(metavar="SOURCE", help="TUM RGB-D folder, ROS 2 bag folder or bimfactor sequence.")
+        Path,
+        typer.Argument(
+            metavar="SOURCE",
+            help="TUM RGB-D folder; ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap file; or bimfactor sequence.",
+        ),
     ],
     output: Annotated[Path, typer.Option("--output", "-o", metavar="SEQ_DIR", help="Sequence folder to write.")],
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
     all_frames: Annotated[
         bool, typer.Option("--all-frames", help="Keep every synchronised frame, not only the keyframes.")
     ] = False,
+    base_frame: Annotated[
+        str | None,
+        typer.Option(
+            "--base-frame",
+            metavar="FRAME",
+            help="rosbag: the robot's base frame in tf, on the floor (default io.rosbag.base_frame: base_link); the "
+            "camera mount and the odometry refer to it.",
+        ),
+    ] = None,
+    camera_mount: Annotated[
+        str | None,
+        typer.Option(
+            "--camera-mount",
+            metavar="X,Y,Z,ROLL,PITCH,YAW",
+            help="rosbag: the camera mount, instead of the bag's tf: the camera's position in the base frame "
+            "(metres) and the roll, pitch, yaw (degrees, about the base's x, y, z axes in that order) of its body "
+            "frame (x forward, y left, z up, as a ROS camera_link). 0,0,0 looks straight ahead and a positive pitch "
+            "looks down; the images' optical frame (x right, y down, z forward) is fixed to the body frame.",
+        ),
+    ] = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
     debug: DebugOption = False,
 ) -> None:
-    """Read a recording (topics of a bag from the config's io.rosbag; or a bimfactor sequence, to keep its keyframes
-    at another spacing) and write it as a bimfactor sequence.
+    """Read a recording (a bag's topics found by message type, or named in the config's io.rosbag; or a bimfactor
+    sequence, to keep its keyframes at another spacing) and write it as a bimfactor sequence.
+
+    A bag's camera mount comes from /tf_static and /tf (base frame → the colour images' frame), its intrinsics and
+    lens distortion from CameraInfo (images are undistorted, depth registered to colour where it is not), its
+    odometry from nav_msgs/Odometry or the odom → base transform on /tf, interpolated at each colour image. What
+    the conversion found and assumed is printed and kept in sequence.json's extras.
 
     A recording with odometry keeps its keyframes: the first frame, then each frame whose odometry has moved
     localization.keyframe_distance_m or turned keyframe_angle_deg from the last one kept, the spacing the
@@ -804,27 +856,35 @@ def convert(
     \b
     Examples:
       bimfactor convert tum rgbd_dataset_freiburg1_room -o runs/fr1-room
-      bimfactor convert rosbag my_bag -o runs/bag --set io.rosbag.odom_topic=/wheel/odom
+      bimfactor convert rosbag my_bag -o runs/bag
+      bimfactor convert rosbag run.bag -o runs/bag --base-frame base_footprint --set io.rosbag.odom_topic=/wheel/odom
+      bimfactor convert rosbag run.mcap -o runs/bag --camera-mount 0.15,0,0.35,0,10,0
       bimfactor convert sequence runs/bag-all -o runs/bag-1m --set localization.keyframe_distance_m=1.0
     """
     with _cli_errors(debug):
-        cfg = _start(config, overrides, verbose)
+        frame_override = [] if base_frame is None else [f"io.rosbag.base_frame={json.dumps(base_frame)}"]
+        cfg = _start(config, [*(overrides or []), *frame_override], verbose)
         from bimfactor.io.atomic import check_output_dir, output_dir
         from bimfactor.io.preview import write_preview
-        from bimfactor.io.rosbag import read_rosbag
+        from bimfactor.io.rosbag import conversion_report, read_rosbag
         from bimfactor.io.sequence import read_sequence, write_sequence_files
         from bimfactor.io.tum_rgbd import read_tum_rgbd
         from bimfactor.odometry import keyframe_indices
 
         if kind not in ("tum", "rosbag", "sequence"):
             raise InputError(f"unknown recording kind '{kind}' (expected tum, rosbag or sequence)")
+        if kind != "rosbag" and (base_frame is not None or camera_mount is not None):
+            raise InputError(f"--base-frame and --camera-mount apply to rosbag recordings, not to {kind}")
+        mount = None if camera_mount is None else _camera_mount(camera_mount)
         if not source.exists():
             raise InputError(f"no such file or folder: {source}")
         check_output_dir(output, "sequence", inputs=[source], replace=overwrite)
+        report: list[str] = []
         if kind == "tum":
             sequence = read_tum_rgbd(source, max_sync_dt_s=cfg.io.tum_max_sync_dt_s)
         elif kind == "rosbag":
-            sequence = read_rosbag(source, cfg.io.rosbag)
+            sequence = read_rosbag(source, cfg.io.rosbag, T_base_camera=mount, mount_source="--camera-mount")
+            report = conversion_report(sequence.meta.extras)
         else:
             sequence = read_sequence(source)
         recorded, odometry = len(sequence), sequence.odometry()
@@ -843,6 +903,21 @@ def convert(
             write_sequence_files(folder, sequence.meta, sequence, label=str(output))
             write_preview(read_sequence(folder), folder / "preview.png")
         typer.echo(f"wrote {output}: {kept} from {kind} {source}; preview {output / 'preview.png'}")
+        for line in report:
+            typer.echo(f"  {line}")
+
+
+def _camera_mount(text: str) -> Any:
+    """`--camera-mount X,Y,Z,ROLL,PITCH,YAW` (metres, degrees) as a (4, 4) T_base_camera."""
+    from bimfactor.io.rosbag import mount_from_xyz_rpy
+
+    try:
+        values = [float(p) for p in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 6 or not all(math.isfinite(v) for v in values):
+        raise InputError(f"--camera-mount '{text}': expected X,Y,Z,ROLL,PITCH,YAW (six numbers: metres, degrees)")
+    return mount_from_xyz_rpy(values)
 
 
 # ------------------------------------------------------------------------------------------ localize
@@ -914,6 +989,44 @@ def _check_building(meta: Any, prior: BimPrior, force: bool) -> None:
         typer.echo(f"warning: {mismatch}", err=True)
 
 
+def _perception_source(
+    cfg: Config, sequence: Any, sequence_dir: Path, detections: Path | None, prior: BimPrior
+) -> tuple[Config, Any, str]:
+    """The perception a run uses (`perception.pipeline.choose_backend`; `--detections FILE` asks for the detections
+    backend): the config with `perception.backend` resolved (what config.yaml records), the checked detections file
+    when that backend reads one, and the line that says which perception it is. Bad input fails here, before any
+    heavy work."""
+    from bimfactor.config import updated
+    from bimfactor.perception.detections import DETECTIONS_FILE, read_detections
+    from bimfactor.perception.pipeline import choose_backend
+
+    if detections is not None:
+        if not detections.is_file():
+            raise InputError(f"no such detections file: {detections}")
+        if cfg.perception.backend not in ("auto", "detections"):
+            raise ConfigError(
+                f"--detections reads a detector's detections, but perception.backend is {cfg.perception.backend}: "
+                "leave it auto or set detections"
+            )
+        cfg = updated(cfg, {"perception.backend": "detections"})
+    path = detections if detections is not None else sequence_dir / DETECTIONS_FILE
+    backend = choose_backend(cfg.perception, sequence.meta, path.is_file())
+    cfg = updated(cfg, {"perception.backend": backend})
+    if backend == "sim":
+        return cfg, None, f"perception: sim (the simulator's instance buffer, error preset {cfg.perception.sim_preset})"
+    if backend == "vlm":
+        return cfg, None, "perception: vlm (YOLO-World + SAM + CLIP on the colour frames)"
+    table = read_detections(
+        path,
+        sequence.timestamps(),
+        sequence.indices(),
+        sequence.meta.intrinsics,
+        embedding_dim=int(prior.object_embeddings.shape[1]),
+        encoder=prior.embedding_model,
+    )
+    return cfg, table, f"perception: detections from {path}: {table.summary()}"
+
+
 def _metrics_line(metrics: Any) -> str:
     """One line of a run's TrajectoryMetrics."""
     return (
@@ -940,13 +1053,16 @@ def localize(
     seed: SeedOption = None,
     initial_pose: InitialPoseOption = None,
     storey: StoreyOption = None,
+    detections: DetectionsOption = None,
     force: ForceOption = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
     debug: DebugOption = False,
 ) -> None:
-    """Run perception (the config's backend) and the semantic particle filter over every frame of a sequence;
+    """Run perception (the config's backend; auto: the simulator's for a simulated sequence, else the detector's
+    detections in SEQ_DIR/detections.jsonl or --detections FILE, else YOLO-World + SAM + CLIP when their weights are
+    set) and the semantic particle filter over every frame of a sequence;
     with --variant smcl+graph the filter's modes each update a GTSAM pose graph and the most probable mode is
     the estimate; --variant full also registers each keyframe's depth scan against the BIM walls (ICP) from the
     most probable mode and feeds accepted fits into its graph.
@@ -967,6 +1083,7 @@ def localize(
       bimfactor localize runs/prior/duplex runs/duplex-k0 -o runs/loc-duplex --set smcl.num_particles=5000
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-guess --initial-pose 63.5,7.9,-97
       bimfactor localize runs/prior/ac11 runs/ac11-k2 -o runs/loc-ac11-k2 --storey 2
+      bimfactor localize runs/prior/office runs/office-bag -o runs/loc-bag --detections yolo-world.jsonl
     """
     with _cli_errors(debug):
         cfg = _start(
@@ -983,10 +1100,13 @@ def localize(
         from bimfactor.io.sequence import read_sequence
         from bimfactor.pipeline import localize_sequence, skipped_frames_note
 
-        ensure_run_destination(output, [prior_dir, sequence_dir])
-        prior = BimPrior.load(prior_dir)
+        inputs = [prior_dir, sequence_dir, *([detections] if detections is not None else [])]
+        ensure_run_destination(output, inputs)
         sequence = read_sequence(sequence_dir)
+        prior = BimPrior.load(prior_dir)
         _check_building(sequence.meta, prior, force)
+        cfg, table, perception_line = _perception_source(cfg, sequence, sequence_dir, detections, prior)
+        typer.echo(perception_line)
         _warn_dense_steps(sequence, sequence_dir, cfg)
         n = len(sequence)
         snapshot_steps = sorted({0, n // 10, n // 4, n // 2, n - 1})
@@ -998,6 +1118,7 @@ def localize(
             cfg.seed if seed is None else seed,
             snapshot_steps=snapshot_steps,
             prior_dir=prior_dir,
+            detections=table,
         )
         figures = write_run(
             run,
@@ -1005,7 +1126,7 @@ def localize(
             output,
             cfg.dump_yaml(),
             title=f"{sequence.meta.name} against {prior_dir}",
-            inputs=[prior_dir, sequence_dir],
+            inputs=inputs,
         )
         typer.echo(f"wrote {output}: {n} steps ({run.variant}); figures " + ", ".join(f.name for f in figures))
         relocalized = [str(i) for i, spread in enumerate(run.relocalized) if spread]
@@ -1042,6 +1163,7 @@ def refine(
     seed: SeedOption = None,
     initial_pose: InitialPoseOption = None,
     storey: StoreyOption = None,
+    detections: DetectionsOption = None,
     force: ForceOption = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
@@ -1083,10 +1205,12 @@ def refine(
             raise InputError(
                 f"refine needs a pose-graph forward pass ({', '.join(GRAPH_VARIANTS)}), not {cfg.localization.variant}"
             )
-        ensure_run_destination(output, [prior_dir, sequence_dir])
+        ensure_run_destination(output, [prior_dir, sequence_dir, *([detections] if detections is not None else [])])
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
         _check_building(sequence.meta, prior, force)
+        cfg, table, perception_line = _perception_source(cfg, sequence, sequence_dir, detections, prior)
+        typer.echo(perception_line)
         _warn_dense_steps(sequence, sequence_dir, cfg)
         matcher = scan_matcher(prior, cfg)
         run = localize_sequence(
@@ -1097,6 +1221,7 @@ def refine(
             cfg.seed if seed is None else seed,
             prior_dir=prior_dir,
             matcher=matcher,
+            detections=table,
         )
         skipped = skipped_frames_note(run)
         if skipped is not None:

@@ -170,7 +170,8 @@ class TextReadingConfig(_Strict):
         description="Read text each frame (sim backend: the simulator's door plates; vlm backend: RapidOCR)."
     )
     reader: Literal["auto", "sim", "rapidocr"] = Field(
-        description="auto: the backend's own (sim: the simulator's plates and error model; vlm: RapidOCR); rapidocr: "
+        description="auto: the backend's own (sim: the simulator's plates and error model; vlm, detections: RapidOCR); "
+        "rapidocr: "
         "RapidOCR on the colour frames whatever the backend (on simulated frames it reads the printed plates)."
     )
     min_score: float = Field(ge=0.0, le=1.0, description="OCR: readings below this confidence are dropped.")
@@ -202,8 +203,10 @@ class TextReadingConfig(_Strict):
 
 
 class PerceptionConfig(_Strict):
-    backend: Literal["sim", "vlm"] = Field(
-        description="sim: the simulator's instance buffer with an error model; vlm: YOLO-World + SAM + CLIP."
+    backend: Literal["auto", "sim", "detections", "vlm"] = Field(
+        description="auto: from what the sequence holds (sim for a simulated one, else detections when it has a "
+        "detections file, else vlm when its weights are set); sim: the simulator's instance buffer with an error "
+        "model; detections: a detector's detections file (docs/perception.md); vlm: YOLO-World + SAM + CLIP."
     )
     device: str = Field(description="torch device of the vlm backend ('cpu', 'cuda', 'cuda:1').")
     sim_preset: str = Field(description="Error preset of the sim backend: a name in `sim_presets_file`.")
@@ -543,11 +546,23 @@ class SimConfig(_Strict):
 
 
 class RosbagConfig(_Strict):
-    rgb_topic: str = Field(description="sensor_msgs/Image colour topic.")
-    depth_topic: str = Field(description="sensor_msgs/Image depth topic (16UC1 mm or 32FC1 m).")
-    camera_info_topic: str = Field(description="sensor_msgs/CameraInfo of the depth camera.")
-    odom_topic: str = Field(description="nav_msgs/Odometry topic.")
-    max_sync_dt_s: float = Field(gt=0.0, description="Largest time offset when pairing rgb, depth and odometry.")
+    rgb_topic: str = Field(description="sensor_msgs/Image colour topic; '' finds it by message type and encoding.")
+    depth_topic: str = Field(description="sensor_msgs/Image depth topic (16UC1 mm or 32FC1 m); '' finds it.")
+    camera_info_topic: str = Field(description="sensor_msgs/CameraInfo of the colour camera; '' finds it.")
+    depth_camera_info_topic: str = Field(
+        description="CameraInfo of the depth camera, read only when depth is not registered to colour; '' finds it."
+    )
+    odom_topic: str = Field(
+        description="nav_msgs/Odometry topic; '' finds it, or without one reads odom_frame → base_frame from /tf."
+    )
+    base_frame: str = Field(
+        min_length=1, description="The robot's base frame in tf (on the floor): the mount and odometry refer to it."
+    )
+    odom_frame: str = Field(min_length=1, description="tf odometry frame, read when the bag has no Odometry topic.")
+    max_sync_dt_s: float = Field(gt=0.0, description="Largest time offset between a colour image and its depth image.")
+    max_odom_gap_s: float = Field(
+        gt=0.0, description="Longest gap between odometry samples that a colour frame is interpolated across."
+    )
 
 
 class IoConfig(_Strict):

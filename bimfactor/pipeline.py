@@ -66,6 +66,7 @@ from bimfactor.localization.stats import (
     weighted_geometric_median,
 )
 from bimfactor.odometry import odometry_increment
+from bimfactor.perception.detections import DetectionsTable
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
 from bimfactor.registration.correlative import CorrelativeMatcher
@@ -312,7 +313,8 @@ class Localizer:
     The full variant reads the IFC file the prior was built from (its surface models, built once per building);
     `prior_dir` helps find a relative `source_file`. Graph variants use `matcher` for the scan factors, or build
     their own (`scan_matcher`). `twins` are the building's twin motions (`bim.symmetry.twin_motions`, found here
-    when not given): each step reports the belief's weight at the output pose's twin.
+    when not given): each step reports the belief's weight at the output pose's twin. `detections` (a checked
+    detections file) feeds the detections perception backend.
     """
 
     def __init__(
@@ -325,6 +327,7 @@ class Localizer:
         prior_dir: str | Path | None = None,
         matcher: CorrelativeMatcher | None = None,
         twins: dict[int, Motion] | None = None,
+        detections: DetectionsTable | None = None,
     ) -> None:
         self.prior = prior
         self.twins = twin_motions(prior) if twins is None else twins
@@ -338,7 +341,7 @@ class Localizer:
                 "localize with the embed.* settings the prior was built with, or rebuild the prior with these"
             )
         embedder = text_embedder or make_text_embedder(cfg.embed)
-        self.perception = make_perception(cfg, meta, embedder, seed=seed)
+        self.perception = make_perception(cfg, meta, embedder, seed=seed, detections=detections)
         self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
         if cfg.perception.text.enabled and not len(self.filter.models.plates):
             log.warning(
@@ -583,18 +586,20 @@ def localize_sequence(
     prior_dir: str | Path | None = None,
     matcher: CorrelativeMatcher | None = None,
     twins: dict[int, Motion] | None = None,
+    detections: DetectionsTable | None = None,
 ) -> LocalizationRun:
     """Localize every frame of a sequence; ground truth, when the frames have it, is carried along.
 
     `prior_dir`, the prior's folder, helps the full variant find a relative IFC `source_file`; `matcher` is the
     graph variants' scan matcher (`scan_matcher`; built when not given); `twins` the building's twin motions
-    (`bim.symmetry.twin_motions`; found when not given). The frames are checked against the prior first
+    (`bim.symmetry.twin_motions`; found when not given); `detections` a detector's detections of the frames
+    (`perception.detections.read_detections`) for the detections backend. The frames are checked against the prior first
     (`check_sequence_against_prior`: InputError); implausible frames are skipped (`LocalizationRun.skipped`).
     """
     if not isinstance(frames, SequenceFolder):  # a sequence folder answers without loading its images
         frames = list(frames)
     check_sequence_against_prior(frames, prior)
-    localizer = Localizer(prior, meta, cfg, seed, text_embedder, prior_dir, matcher, twins)
+    localizer = Localizer(prior, meta, cfg, seed, text_embedder, prior_dir, matcher, twins, detections)
     frames = list(frames)
     snapshot_steps = set(snapshot_steps)
     rows: list[LocalizerStep] = []

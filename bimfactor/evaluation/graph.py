@@ -301,7 +301,7 @@ def evaluate_sequence(
     if figure_path is not None:
         title = (
             f"{sim.meta.name}: {report['n_nodes']} nodes, precision {report['precision']:.2f}, "
-            f"recall {report['recall']:.2f} ({cfg.perception.backend}/{report['preset']})"
+            f"recall {report['recall']:.2f} ({perception.backend}/{report['preset']})"
         )
         figure = save_scene_graph_figure(figure_path, perception.graph, report, prior, storey, title, gt[:, :2])
         report["figure"] = str(figure)

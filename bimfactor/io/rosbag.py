@@ -1,34 +1,50 @@
-"""ROS 2 bags (sqlite3 or mcap) as a `Sequence`, read with the pure-Python `rosbags` library.
+"""Robot recordings as a `Sequence`: ROS 1 bags (.bag), ROS 2 bags (a folder with metadata.yaml, sqlite3 or mcap
+storage, or a lone .db3 / .mcap file), read with the `rosbags` library's AnyReader.
 
-Topics come from `RosbagConfig`:
+What is read (the topic keys of `RosbagConfig`, io.rosbag; a key left "" is found by message type):
 
-- `rgb_topic`: sensor_msgs/msg/Image, encoding rgb8, bgr8, rgba8 or bgra8 (alpha dropped);
-- `depth_topic`: sensor_msgs/msg/Image, 16UC1 / mono16 in millimetres (0 = no return) or 32FC1 in metres
-  (NaN, ±inf and values ≤ 0 = no return); it must have the colour image's size (use an aligned depth topic);
-- `camera_info_topic`: sensor_msgs/msg/CameraInfo; the first message's K gives the intrinsics (distortion is
-  ignored, with a warning when not zero). Optional when intrinsics are passed in;
-- `odom_topic`: nav_msgs/msg/Odometry; pose.pose projected onto the plane is T_odom_base.
+- colour: sensor_msgs/Image in rgb8, bgr8, rgba8 or bgra8 (alpha dropped); found as the one Image topic whose first
+  message has a colour encoding (several: those named color/colour/rgb);
+- depth: sensor_msgs/Image in 16UC1 / mono16 millimetres (0 = no return) or 32FC1 metres (NaN, ±inf, ≤ 0 = no
+  return); found by encoding 16UC1 / 32FC1 (several: those named depth, then aligned);
+- CameraInfo of the colour camera (the colour topic's sibling `camera_info`, else the one with its frame_id): K gives
+  the intrinsics, a plumb_bob or rational_polynomial distortion is undistorted with OpenCV (colour bilinear, depth at
+  the nearest pixel), another model with non-zero coefficients is refused. A topic whose name says "rect" is
+  already rectified: P gives its intrinsics and nothing is undistorted;
+- depth not registered to colour (another frame_id or size) is registered: its own CameraInfo, the depth → colour
+  transform from tf, and a z-buffered reprojection (`io.rectify.register_depth`);
+- /tf_static and /tf (tf2_msgs/TFMessage): the camera mount T_base_camera is the chain `base_frame` → the colour
+  image's frame_id (an optical frame: x right, y down, z forward, as bimfactor's camera frame); a chain with moving
+  links is taken at the sample nearest the first colour image;
+- odometry: nav_msgs/Odometry (pose.pose is T_odom_child; a child frame other than base_frame is moved onto it
+  through tf), or without such a topic the `odom_frame` → `base_frame` chain on /tf. Its planar poses are
+  interpolated at every colour stamp (x, y linear, yaw along the shorter arc).
 
-Times are the messages' header stamps; a frame's `timestamp_s` is its colour stamp in ns / 1e9. Each colour
-image is paired one-to-one with the depth image nearest in time and with the odometry message nearest in time,
-both within `max_sync_dt_s`; colour images without both are dropped (logged), and of images with the same stamp
-only the first is kept. The bag is scanned once when opened (headers and odometry only); images are decoded when
-a frame is accessed, and iterating streams the bag in one pass. `meta.source` is "rosbag"; there is no ground
-truth. Missing topics, wrong message types or unsupported encodings are InputErrors that name them.
+Times are header stamps (a message stamped zero takes its log time). Each colour image takes the depth
+image nearest in time within `max_sync_dt_s`, one-to-one; colour images without one, outside the odometry's time
+span, or across an odometry gap longer than `max_odom_gap_s` are dropped and counted by reason. The bag is scanned
+twice when opened (tf, camera info and odometry, then the image headers); images are decoded when a frame is
+accessed, and iterating streams the bag in one pass. Everything the conversion assumed goes into `meta.extras`
+(topics, mount and its source, intrinsics and distortion, depth registration, time offsets, drops);
+`conversion_report` turns it into lines. A recording that cannot be read as asked is an InputError naming the topic,
+frame or transform, raised before the images are read where it can be.
 """
 
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from bimfactor.config import RosbagConfig
 from bimfactor.errors import DependencyError, FormatError, InputError
+from bimfactor.io.rectify import distortion_problem, register_depth, remap_colour, remap_depth, undistort_maps
 from bimfactor.io.sequence import (
     DEPTH_SCALE_PER_M,
     FrameImages,
@@ -38,27 +54,34 @@ from bimfactor.io.sequence import (
     depth_from_mm,
     level_camera_mount,
 )
-from bimfactor.io.tum import MAX_TILT_DEG, planar_from_matrices, quaternion_to_matrix
-from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
+from bimfactor.io.tf import TfChain, TfTree, describe_chain, frame_name, stamp_ns, transform_matrix
+from bimfactor.io.tum import MAX_TILT_DEG, planar_from_matrices
+from bimfactor.progress import progress
+from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta, wrap_angle
 
 log = logging.getLogger(__name__)
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 RGB_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8")
 DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
+FOUND_DEPTH_ENCODINGS = ("16UC1", "32FC1")  # mono16 is also an infrared format: read only from a named topic
+R_LINK_OPTICAL = level_camera_mount()[:3, :3]
+"""A camera body frame (ROS camera_link: x forward, y left, z up) → its optical frame (x right, y down, z forward)."""
 
 
-def _rosbags() -> tuple[Any, Any, Any]:
-    """The rosbags Reader, its error type and a ROS 2 typestore (imported on first use: optional dependency)."""
+def _rosbags() -> tuple[Any, tuple[type[BaseException], ...], Any]:
+    """AnyReader, the errors it raises on a bad file, and a ROS 2 typestore for bags without message definitions
+    (imported on first use: optional dependency)."""
     try:
-        from rosbags.rosbag2 import Reader, ReaderError
+        from rosbags.highlevel import AnyReader, AnyReaderError
         from rosbags.typesys import Stores, get_typestore
     except ImportError:
-        raise DependencyError("reading ROS 2 bags needs the 'rosbags' package: pip install rosbags") from None
-    # Image, CameraInfo and Odometry are the same in every ROS 2 distribution
-    return Reader, ReaderError, get_typestore(Stores.ROS2_HUMBLE)
+        raise DependencyError("reading ROS bags needs the 'rosbags' package: pip install rosbags") from None
+    return AnyReader, (AnyReaderError, FileNotFoundError), get_typestore(Stores.ROS2_HUMBLE)
 
 
 @dataclass(frozen=True)
@@ -70,132 +93,254 @@ class _MessageRef:
     stamp_ns: int
 
 
+@dataclass(frozen=True)
+class CameraInfo:
+    """What bimfactor reads of a sensor_msgs/CameraInfo (ROS 1's K, D, P are ROS 2's k, d, p)."""
+
+    topic: str
+    frame_id: str
+    width: int
+    height: int
+    K: np.ndarray  # (3, 3)
+    D: np.ndarray  # (n,)
+    P: np.ndarray  # (3, 4)
+    model: str
+    binning: tuple[int, int]
+    roi_wh: tuple[int, int]
+
+    @classmethod
+    def from_msg(cls, topic: str, msg: Any) -> CameraInfo:
+        def field(name: str) -> np.ndarray:
+            value = getattr(msg, name, None)
+            return np.asarray(getattr(msg, name.upper()) if value is None else value, dtype=np.float64)
+
+        return cls(
+            topic,
+            frame_name(msg.header.frame_id),
+            int(msg.width),
+            int(msg.height),
+            field("k").reshape(-1),
+            field("d").reshape(-1),
+            field("p").reshape(-1),
+            str(msg.distortion_model),
+            (int(msg.binning_x), int(msg.binning_y)),
+            (int(msg.roi.width), int(msg.roi.height)),
+        )
+
+    def problem(self, image_wh: tuple[int, int], what: str) -> str | None:
+        """Why these intrinsics cannot describe the `what` images of size `image_wh`, or None."""
+        w, h = image_wh
+        if (self.width, self.height) != (w, h):
+            return f"{what} images are {w}x{h} but CameraInfo on {self.topic} says {self.width}x{self.height}"
+        if max(self.binning) > 1 or (0 < self.roi_wh[0] < w) or (0 < self.roi_wh[1] < h):
+            return f"CameraInfo on {self.topic} uses binning {self.binning} or a region of interest {self.roi_wh}"
+        if self.K.size != 9 or not np.isfinite(self.K).all() or not (self.K[0] > 0 and self.K[4] > 0):
+            return f"CameraInfo on {self.topic} has no valid K ({self.K.tolist()})"
+        cx, cy = self.K[2], self.K[5]
+        if not (0 <= cx < w and 0 <= cy < h):
+            return f"CameraInfo on {self.topic}: principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image"
+        return None
+
+    def matrix(self, rectified: bool) -> np.ndarray:
+        """(3, 3) camera matrix: K, or for an already rectified image P's left 3x3 (K when P is not set)."""
+        if rectified and self.P.size == 12 and self.P[0] > 0 and self.P[5] > 0:
+            return self.P.reshape(3, 4)[:, :3].copy()
+        return self.K.reshape(3, 3).copy()
+
+
+@dataclass
+class _Rectifier:
+    """What turns a frame's raw messages into pinhole images: colour remap tables, the depth's remap tables (in its
+    own camera), and the depth → colour registration (K_depth, T_colour_depth, K_colour, size) or None."""
+
+    colour_maps: tuple[np.ndarray, np.ndarray] | None = None
+    depth_maps: tuple[np.ndarray, np.ndarray] | None = None
+    registration: tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]] | None = None
+    depth_size_wh: tuple[int, int] | None = None  # the raw depth image's size when it is registered
+
+
 def read_rosbag(
     path: str | Path,
     config: RosbagConfig,
     *,
     intrinsics: CameraIntrinsics | None = None,
     T_base_camera: np.ndarray | None = None,
+    mount_source: str = "given by the caller",
     max_tilt_deg: float = MAX_TILT_DEG,
 ) -> RosbagSequence:
-    """Open a ROS 2 bag folder (or a single .db3 / .mcap file) as a `Sequence` of synchronised RGB-D frames.
+    """Open a ROS 1 or ROS 2 bag as a `Sequence` of synchronised RGB-D frames with interpolated odometry.
 
-    `T_base_camera` (4, 4) defaults to a level camera at the base origin (`level_camera_mount()`).
+    `intrinsics` replaces the CameraInfo (no undistortion then); `T_base_camera` (4, 4) replaces the tf mount
+    (`mount_source` says where it came from, for the report).
     """
-    Reader, ReaderError, typestore = _rosbags()
+    AnyReader, reader_errors, default_typestore = _rosbags()
     path = Path(path)
     if not path.exists():
-        raise InputError(f"no such ROS 2 bag: {path}")
+        raise InputError(f"no such bag: {path}")
     not_a_bag = _not_a_bag(path)
     if not_a_bag:
         raise InputError(f"{path}: not a readable ROS 2 bag: {not_a_bag}")
-    wanted = {
-        config.rgb_topic: IMAGE_TYPE,
-        config.depth_topic: IMAGE_TYPE,
-        config.odom_topic: ODOMETRY_TYPE,
-    }
-    if intrinsics is None:
-        wanted[config.camera_info_topic] = CAMERA_INFO_TYPE
-
-    refs: dict[str, list[_MessageRef]] = {config.rgb_topic: [], config.depth_topic: []}
-    odom_stamps: list[int] = []
-    odom_xyz: list[tuple[float, float, float]] = []
-    odom_quat: list[tuple[float, float, float, float]] = []
-    camera_info = None
+    kind = "ROS 1" if path.suffix == ".bag" else "ROS 2"
     try:
-        with Reader(path) as reader:
-            present = {topic: info.msgtype for topic, info in reader.topics.items()}
-            _check_topics(path, wanted, present)
-            connections = [c for c in reader.connections if c.topic in wanted]
-            for connection, log_ns, raw in reader.messages(connections=connections):
-                msg = typestore.deserialize_cdr(raw, connection.msgtype)
-                stamp_ns = _stamp_ns(msg)
-                if connection.topic in refs:
-                    refs[connection.topic].append(_MessageRef(connection.topic, log_ns, stamp_ns))
-                elif connection.topic == config.odom_topic:
-                    p, q = msg.pose.pose.position, msg.pose.pose.orientation
-                    odom_stamps.append(stamp_ns)
-                    odom_xyz.append((p.x, p.y, p.z))
-                    odom_quat.append((q.x, q.y, q.z, q.w))
-                elif camera_info is None:
-                    camera_info = msg
-    except (FileNotFoundError, ReaderError) as exc:
+        with AnyReader([path], default_typestore=default_typestore) as reader:
+            return _read(reader, path, config, intrinsics, T_base_camera, mount_source, max_tilt_deg)
+    except reader_errors as exc:
         said = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
-        raise InputError(f"{path}: not a readable ROS 2 bag ({said})") from None
+        raise InputError(f"{path}: not a readable {kind} bag ({said})") from None
 
+
+def _read(
+    reader: Any,
+    path: Path,
+    config: RosbagConfig,
+    intrinsics: CameraIntrinsics | None,
+    T_base_camera: np.ndarray | None,
+    mount_source: str,
+    max_tilt_deg: float,
+) -> RosbagSequence:
+    """`read_rosbag` on an open AnyReader: the streams, the camera, tf and odometry, then the image headers."""
+    topics = {topic: info.msgtype for topic, info in reader.topics.items()}
+    connections: dict[str, list[Any]] = {}
+    for c in reader.connections:
+        connections.setdefault(c.topic, []).append(c)
+    first = _FirstMessages(reader, connections)
+    found: dict[str, str] = {}
+
+    # 1. the streams: colour and depth images, their camera infos, odometry
+    rgb_topic = _image_topic(path, "colour", "rgb_topic", config.rgb_topic, topics, first, found)
+    depth_topic = _image_topic(path, "depth", "depth_topic", config.depth_topic, topics, first, found)
+    rgb_first, depth_first = first(rgb_topic), first(depth_topic)
+    colour_frame, depth_frame = frame_name(rgb_first.header.frame_id), frame_name(depth_first.header.frame_id)
+    colour_wh = (int(rgb_first.width), int(rgb_first.height))
+    depth_wh = (int(depth_first.width), int(depth_first.height))
+    depth_registered = depth_frame == colour_frame and depth_wh == colour_wh
+    extras: dict[str, Any] = {"bag": str(path), "bag_format": _bag_format(path)}
+
+    colour_info = None
     if intrinsics is None:
-        if camera_info is None:
-            raise InputError(f"{path}: no message on {config.camera_info_topic}; pass the intrinsics instead")
-        intrinsics = _intrinsics_from_camera_info(camera_info, path)
-    mount = level_camera_mount() if T_base_camera is None else T_base_camera
-    problem = camera_problem(intrinsics, mount)
+        colour_info = _camera_info(
+            path, "colour", "camera_info_topic", config.camera_info_topic, rgb_topic, colour_frame, topics, first, found
+        )
+        problem = colour_info.problem(colour_wh, "colour")
+        if problem:
+            raise InputError(f"{path}: {problem}")
+    depth_info = None
+    if not depth_registered:
+        depth_info = _camera_info(
+            path,
+            "depth",
+            "depth_camera_info_topic",
+            config.depth_camera_info_topic,
+            depth_topic,
+            depth_frame,
+            topics,
+            first,
+            found,
+        )
+        problem = depth_info.problem(depth_wh, "depth")
+        if problem:
+            raise InputError(f"{path}: {problem}")
+
+    # 2. intrinsics and distortion, checked before anything else is read
+    rectifier = _Rectifier()
+    if colour_info is not None:
+        intrinsics, rectifier.colour_maps, extras["intrinsics"], extras["distortion"] = _colour_camera(
+            path, colour_info, colour_wh, rectified="rect" in rgb_topic.lower()
+        )
+        if depth_registered:
+            rectifier.depth_maps = rectifier.colour_maps  # depth shares the colour image's pixels and lens
+    else:
+        extras["intrinsics"] = {"from": "given by the caller"}
+        extras["distortion"] = {"model": "none (given intrinsics)", "coefficients": [], "undistorted": False}
+    extras["intrinsics"].update({k: getattr(intrinsics, k) for k in ("width", "height", "fx", "fy", "cx", "cy")})
+    problem = camera_problem(intrinsics, level_camera_mount() if T_base_camera is None else T_base_camera)
     if problem:
         raise InputError(f"{path}: {problem}")
+    odom_topic = _odometry_topic(path, config.odom_topic, topics, found)
+    tf_topics = sorted(t for t, m in topics.items() if m in TF_TYPES)
 
-    # pair colour ↔ depth one-to-one, colour → odometry nearest, all by header stamp
-    rgb_refs = _sorted_unique(refs[config.rgb_topic], path)
-    depth_refs = _sorted_unique(refs[config.depth_topic], path)
-    if not rgb_refs or not depth_refs or not odom_stamps:
-        empty = [
-            t
-            for t, n in (
-                (config.rgb_topic, rgb_refs),
-                (config.depth_topic, depth_refs),
-                (config.odom_topic, odom_stamps),
-            )
-            if not n
-        ]
-        raise InputError(f"{path}: no messages on {', '.join(empty)}")
-    # seconds from the first colour stamp: float64 keeps nanoseconds there, unlike seconds since 1970
-    t0 = rgb_refs[0].stamp_ns
-    rgb_t = np.array([(r.stamp_ns - t0) / 1e9 for r in rgb_refs])
-    depth_t = np.array([(r.stamp_ns - t0) / 1e9 for r in depth_refs])
-    order = np.argsort(np.array(odom_stamps, dtype=np.int64), kind="stable")
-    odom_t = (np.array(odom_stamps, dtype=np.int64)[order] - t0) / 1e9
-    i_rgb, i_depth = associate_nearest(rgb_t, depth_t, config.max_sync_dt_s, one_to_one=True)
-    i_frame, i_odom = associate_nearest(rgb_t[i_rgb], odom_t, config.max_sync_dt_s, one_to_one=False)
-    i_rgb, i_depth = i_rgb[i_frame], i_depth[i_frame]
-    if len(i_rgb) == 0:
-        raise InputError(
-            f"{path}: no colour image has both depth and odometry within max_sync_dt_s={config.max_sync_dt_s} s"
+    # 3. tf and odometry: one pass over their messages
+    tree = TfTree()
+    odom_msgs: list[tuple[int, Any]] = []
+    wanted = [c for t in [*tf_topics, *([odom_topic] if odom_topic else [])] for c in connections[t]]
+    for connection, log_ns, raw in reader.messages(connections=wanted) if wanted else ():
+        msg = reader.deserialize(raw, connection.msgtype)
+        if connection.topic == odom_topic:
+            odom_msgs.append((log_ns, msg))
+        else:
+            tree.add(msg, static=connection.topic.rstrip("/").endswith("tf_static"))
+    t_first_ns = _stamp_or_log(rgb_first, 0)
+
+    # 4. the camera mount: the tf chain base → colour optical frame, unless given
+    base = frame_name(config.base_frame)
+    if T_base_camera is None:
+        T_base_camera, mount_source = _mount_from_tf(path, tree, base, colour_frame, rgb_topic, t_first_ns)
+        problem = camera_problem(intrinsics, T_base_camera)
+        if problem:
+            raise InputError(f"{path}: the tf chain {base} → {colour_frame}: {problem}")
+    extras["camera_mount"] = {
+        "frames": f"{base} → {colour_frame or '(none)'}",
+        "xyz_m": [float(v) for v in T_base_camera[:3, 3]],
+        "rpy_deg": [float(v) for v in mount_rpy_deg(T_base_camera)],
+        "from": mount_source,
+    }
+
+    # 5. depth → colour registration
+    if depth_registered:
+        extras["depth"] = {"registration": f"as recorded: already in the colour frame {colour_frame or '(none)'}"}
+    else:
+        assert depth_info is not None
+        rectifier.depth_maps, rectifier.registration, extras["depth"] = _depth_registration(
+            path, tree, depth_info, depth_topic, colour_frame, intrinsics, t_first_ns
         )
-    if len(i_rgb) < len(rgb_refs):
-        log.info(
-            "%s: %d of %d colour images dropped (no depth or odometry within %s s)",
-            path,
-            len(rgb_refs) - len(i_rgb),
-            len(rgb_refs),
-            config.max_sync_dt_s,
-        )
+        rectifier.depth_size_wh = depth_wh
 
-    T_odom = np.tile(np.eye(4), (len(order), 1, 1))
-    T_odom[:, :3, :3] = quaternion_to_matrix(np.array(odom_quat)[order])
-    T_odom[:, :3, 3] = np.array(odom_xyz)[order]
-    odom_planar = planar_from_matrices(T_odom, what=f"{path} {config.odom_topic}", max_tilt_deg=max_tilt_deg)
+    # 6. odometry samples: (M,) stamps and (M, 3) planar T_odom_base
+    odom_stamps, odom_planar, odom_from = _odometry_samples(path, config, odom_topic, odom_msgs, tree, max_tilt_deg)
 
+    # 7. the image headers, then colour ↔ depth ↔ odometry by time
+    refs: dict[str, list[_MessageRef]] = {rgb_topic: [], depth_topic: []}
+    images = [c for t in refs for c in connections[t]]
+    total = sum(topics_info.msgcount for t, topics_info in reader.topics.items() if t in refs)
+    for connection, log_ns, raw in progress(
+        reader.messages(connections=images), desc="reading image headers", total=total, unit="msg"
+    ):
+        msg = reader.deserialize(raw, connection.msgtype)
+        refs[connection.topic].append(_MessageRef(connection.topic, log_ns, _stamp_or_log(msg, log_ns)))
+    rgb_refs, depth_refs = (_with_stamps(path, refs[t], t) for t in (rgb_topic, depth_topic))
+    kept, odom_poses, sync, dropped = _associate(path, config, rgb_refs, depth_refs, odom_stamps, odom_planar)
+
+    extras["topics"] = {
+        "rgb": rgb_topic,
+        "depth": depth_topic,
+        "camera_info": None if colour_info is None else colour_info.topic,
+        "depth_camera_info": None if depth_info is None else depth_info.topic,
+        "odometry": odom_from,
+        "tf": tf_topics,
+        "found_by_type": sorted(found),
+    }
+    extras["base_frame"] = base
+    extras["sync"] = sync
+    extras["frames"] = {"colour_images": len(refs[rgb_topic]), "kept": len(kept[0]), "dropped": dropped}
     meta = SequenceMeta(
         name=path.stem if path.is_file() else path.name,
         source="rosbag",
         intrinsics=intrinsics,
-        T_base_camera=np.asarray(mount, dtype=float),
-        extras={
-            "bag": str(path),
-            "rgb_topic": config.rgb_topic,
-            "depth_topic": config.depth_topic,
-            "odom_topic": config.odom_topic,
-        },
+        T_base_camera=np.asarray(T_base_camera, dtype=float),
+        extras=extras,
     )
     return RosbagSequence(
         path,
         meta,
-        rgb_refs=[rgb_refs[i] for i in i_rgb],
-        depth_refs=[depth_refs[i] for i in i_depth],
-        odom_poses=odom_planar[i_odom],
+        rgb_refs=[rgb_refs[i] for i in kept[0]],
+        depth_refs=[depth_refs[i] for i in kept[1]],
+        odom_poses=odom_poses,
+        rectifier=rectifier,
     )
 
 
 class RosbagSequence(Sequence):
-    """A `Sequence` over a ROS 2 bag; `__getitem__` reads one frame's messages, `__iter__` streams the bag."""
+    """A `Sequence` over a bag; `__getitem__` reads one frame's messages, `__iter__` streams the bag."""
 
     def __init__(
         self,
@@ -205,22 +350,27 @@ class RosbagSequence(Sequence):
         rgb_refs: list[_MessageRef],
         depth_refs: list[_MessageRef],
         odom_poses: np.ndarray,
+        rectifier: _Rectifier | None = None,
     ) -> None:
         timestamps = np.array([r.stamp_ns / 1e9 for r in rgb_refs])  # Python int / float: correctly rounded
         super().__init__(meta, timestamps, self._load_frame_images, odom_poses=odom_poses)
         self._path = path
         self._rgb_refs = rgb_refs
         self._depth_refs = depth_refs
+        self._rectifier = rectifier or _Rectifier()
+
+    def _open(self) -> Any:
+        AnyReader, _, default_typestore = _rosbags()
+        return AnyReader([self._path], default_typestore=default_typestore)
 
     def _load_frame_images(self, i: int) -> FrameImages:
-        Reader, _, typestore = _rosbags()
         decoded = {}
-        with Reader(self._path) as reader:
+        with self._open() as reader:
             for role, ref in (("rgb", self._rgb_refs[i]), ("depth", self._depth_refs[i])):
                 connections = [c for c in reader.connections if c.topic == ref.topic]
-                for connection, _log_ns, raw in reader.messages(connections, start=ref.log_ns, stop=ref.log_ns + 1):
-                    msg = typestore.deserialize_cdr(raw, connection.msgtype)
-                    if _stamp_ns(msg) == ref.stamp_ns:
+                for connection, log_ns, raw in reader.messages(connections, start=ref.log_ns, stop=ref.log_ns + 1):
+                    msg = reader.deserialize(raw, connection.msgtype)
+                    if _MessageRef(ref.topic, log_ns, _stamp_or_log(msg, log_ns)) == ref:
                         decoded[role] = msg
                         break
                 else:
@@ -228,7 +378,8 @@ class RosbagSequence(Sequence):
         return self._images(decoded["rgb"], decoded["depth"])
 
     def __iter__(self) -> Iterator[Frame]:
-        Reader, _, typestore = _rosbags()
+        if not len(self):
+            return
         wanted: dict[_MessageRef, list[tuple[int, str]]] = {}
         for i, (rgb, depth) in enumerate(zip(self._rgb_refs, self._depth_refs, strict=True)):
             wanted.setdefault(rgb, []).append((i, "rgb"))
@@ -236,11 +387,11 @@ class RosbagSequence(Sequence):
         topics = {self._rgb_refs[0].topic, self._depth_refs[0].topic}
         pending: dict[int, dict[str, Any]] = {}
         next_frame = 0
-        with Reader(self._path) as reader:
+        with self._open() as reader:
             connections = [c for c in reader.connections if c.topic in topics]
             for connection, log_ns, raw in reader.messages(connections):
-                msg = typestore.deserialize_cdr(raw, connection.msgtype)
-                for i, role in wanted.pop(_MessageRef(connection.topic, log_ns, _stamp_ns(msg)), ()):
+                msg = reader.deserialize(raw, connection.msgtype)
+                for i, role in wanted.pop(_MessageRef(connection.topic, log_ns, _stamp_or_log(msg, log_ns)), ()):
                     pending.setdefault(i, {})[role] = msg
                 while len(pending.get(next_frame, ())) == 2:
                     msgs = pending.pop(next_frame)
@@ -250,16 +401,453 @@ class RosbagSequence(Sequence):
             raise FormatError(f"{self._path}: messages of frame {next_frame} not found on a second pass")
 
     def _images(self, rgb_msg: Any, depth_msg: Any) -> FrameImages:
-        rgb = rgb_image(rgb_msg, str(self._path))
-        depth = depth_image(depth_msg, str(self._path))
+        where, fix = str(self._path), self._rectifier
+        rgb = rgb_image(rgb_msg, where)
+        depth = depth_image(depth_msg, where)
         K = self.meta.intrinsics
-        for what, image in (("colour", rgb), ("depth", depth)):
-            if image.shape[:2] != (K.height, K.width):
+        raw_depth_wh = fix.depth_size_wh or (K.width, K.height)
+        for what, image, (w, h) in (("colour", rgb, (K.width, K.height)), ("depth", depth, raw_depth_wh)):
+            if image.shape[:2] != (h, w):
                 raise InputError(
-                    f"{self._path}: {what} image is {image.shape[1]}x{image.shape[0]}, the camera info says "
-                    f"{K.width}x{K.height} (use a depth topic aligned to the colour image)"
+                    f"{where}: a {what} image is {image.shape[1]}x{image.shape[0]}, the first one was {w}x{h}"
                 )
+        if fix.colour_maps is not None:
+            rgb = remap_colour(rgb, fix.colour_maps)
+        if fix.depth_maps is not None:
+            depth = remap_depth(depth, fix.depth_maps)
+        if fix.registration is not None:
+            depth = register_depth(depth, *fix.registration)
         return FrameImages(rgb, depth, None)
+
+
+# ------------------------------------------------------------------------------------------ the camera mount
+
+
+def mount_from_xyz_rpy(values: list[float] | tuple[float, ...] | np.ndarray) -> np.ndarray:
+    """(4, 4) T_base_camera from x, y, z (metres) and roll, pitch, yaw (degrees) of the camera body frame.
+
+    The body frame is a ROS camera_link (x forward, y left, z up); roll, pitch, yaw turn it about the base's fixed x,
+    y, z axes in that order (ROS RPY), so 0, 0, 0 looks straight ahead and a positive pitch looks down. The optical
+    frame (x right, y down, z forward), which T_base_camera maps, follows by the fixed camera_link → optical rotation.
+    """
+    x, y, z, roll, pitch, yaw = (float(v) for v in values)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [roll, pitch, yaw], degrees=True).as_matrix() @ R_LINK_OPTICAL
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def mount_rpy_deg(T_base_camera: np.ndarray) -> np.ndarray:
+    """(3,) roll, pitch, yaw in degrees of a mount, in the convention of `mount_from_xyz_rpy`."""
+    R_base_link = np.asarray(T_base_camera, dtype=np.float64)[:3, :3] @ R_LINK_OPTICAL.T
+    return Rotation.from_matrix(R_base_link).as_euler("xyz", degrees=True)
+
+
+def _chain_source(tree: TfTree, chain: TfChain) -> str:
+    if tree.is_static(chain):
+        return f"tf static: {describe_chain(chain)}"
+    return f"tf (moving links at the sample nearest the first colour image): {describe_chain(chain)}"
+
+
+def _frames_seen(tree: TfTree) -> str:
+    return ", ".join(sorted(tree.frames_seen)) or "none"
+
+
+def _mount_from_tf(
+    path: Path, tree: TfTree, base: str, colour_frame: str, rgb_topic: str, t_ns: int
+) -> tuple[np.ndarray, str]:
+    """T_base_camera (4, 4) from the tf chain base → the colour images' frame, and where it came from."""
+    if not colour_frame:
+        raise InputError(
+            f"{path}: the colour images on {rgb_topic} have no header.frame_id, so their mount cannot be looked up in "
+            "tf; give --camera-mount x,y,z,roll,pitch,yaw"
+        )
+    chain = tree.chain(base, colour_frame)
+    if chain is None:
+        raise InputError(
+            f"{path}: no transform from {base} to {colour_frame} in /tf_static or /tf (frames seen: "
+            f"{_frames_seen(tree)}); give --camera-mount x,y,z,roll,pitch,yaw or --base-frame"
+        )
+    return tree.transforms(chain, np.array([t_ns]), nearest=True)[0], _chain_source(tree, chain)
+
+
+# ------------------------------------------------------------------------------------------ camera models
+
+
+def _colour_camera(
+    path: Path, info: CameraInfo, size_wh: tuple[int, int], *, rectified: bool
+) -> tuple[CameraIntrinsics, tuple[np.ndarray, np.ndarray] | None, dict[str, Any], dict[str, Any]]:
+    """The colour camera's pinhole intrinsics, the remap tables that undistort its images (None: nothing to undo),
+    and the report's intrinsics and distortion entries."""
+    K = info.matrix(rectified)
+    intrinsics = CameraIntrinsics(
+        size_wh[0], size_wh[1], float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    )
+    distortion = _distortion_extras(path, info, rectified)
+    maps = undistort_maps(K, info.D, size_wh) if distortion["undistorted"] else None
+    note = " (P: the topic is rectified)" if rectified else ""
+    return intrinsics, maps, {"from": f"CameraInfo {info.topic}{note}"}, distortion
+
+
+def _depth_registration(
+    path: Path,
+    tree: TfTree,
+    info: CameraInfo,
+    depth_topic: str,
+    colour_frame: str,
+    intrinsics: CameraIntrinsics,
+    t_ns: int,
+) -> tuple[
+    tuple[np.ndarray, np.ndarray] | None,
+    tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]],
+    dict[str, Any],
+]:
+    """For depth not registered to colour: the remap tables that undistort it in its own camera (or None), the
+    registration's arguments (K_depth, T_colour_depth, K_colour, colour size) and the report's depth entry."""
+    rectified = "rect" in depth_topic.lower()
+    K_depth = info.matrix(rectified)
+    distortion = _distortion_extras(path, info, rectified)
+    maps = undistort_maps(K_depth, info.D, (info.width, info.height)) if distortion["undistorted"] else None
+    chain = tree.chain(colour_frame, info.frame_id)
+    if chain is None:
+        raise InputError(
+            f"{path}: depth ({info.frame_id or 'no frame_id'}) is not registered to colour ({colour_frame}) and there "
+            f"is no transform between them in /tf_static or /tf (frames seen: {_frames_seen(tree)}); record an "
+            "aligned depth topic or name it in io.rosbag.depth_topic"
+        )
+    T_colour_depth = tree.transforms(chain, np.array([t_ns]), nearest=True)[0]
+    report = {
+        "registration": f"registered to colour from {info.frame_id} ({_chain_source(tree, chain)})",
+        "baseline_m": float(np.linalg.norm(T_colour_depth[:3, 3])),
+        "depth_camera_info": info.topic,
+        "depth_distortion": distortion,
+    }
+    return maps, (K_depth, T_colour_depth, intrinsics.K, (intrinsics.width, intrinsics.height)), report
+
+
+# ------------------------------------------------------------------------------------------ topics
+
+
+class _FirstMessages:
+    """The first message of a topic, deserialised, read once (to learn a topic's encoding, frame_id and size)."""
+
+    def __init__(self, reader: Any, connections: dict[str, list[Any]]) -> None:
+        self._reader = reader
+        self._connections = connections
+        self._first: dict[str, Any] = {}
+
+    def __call__(self, topic: str) -> Any:
+        if topic not in self._first:
+            message = next(iter(self._reader.messages(connections=self._connections[topic])), None)
+            self._first[topic] = None if message is None else self._reader.deserialize(message[2], message[0].msgtype)
+        return self._first[topic]
+
+
+def _image_topic(
+    path: Path,
+    role: str,
+    key: str,
+    named: str,
+    topics: dict[str, str | None],
+    first: _FirstMessages,
+    found: dict[str, str],
+) -> str:
+    """The colour or depth topic: the one named in io.rosbag.`key`, checked, or the one found by encoding."""
+    encodings = RGB_ENCODINGS if role == "colour" else DEPTH_ENCODINGS
+    if named:
+        if named not in topics:
+            raise InputError(f"{path}: topic {named} (io.rosbag.{key}) is not in the bag; it has: {_listing(topics)}")
+        if topics[named] != IMAGE_TYPE:
+            raise InputError(f"{path}: topic {named} carries {topics[named]}, expected {IMAGE_TYPE}")
+        msg = first(named)
+        if msg is None:
+            raise InputError(f"{path}: no messages on {named}")
+        if (msg.encoding.lower() if role == "colour" else msg.encoding) not in encodings:
+            raise InputError(
+                f"{path}: {role} encoding {msg.encoding!r} on {named} not supported ({', '.join(encodings)})"
+            )
+        return named
+    images = sorted(t for t, m in topics.items() if m == IMAGE_TYPE)
+    if role == "colour":
+        candidates = [t for t in images if first(t) is not None and first(t).encoding.lower() in RGB_ENCODINGS]
+        preferences: tuple[tuple[str, ...], ...] = (("color", "colour", "rgb"),)
+    else:
+        encodings = FOUND_DEPTH_ENCODINGS
+        candidates = [t for t in images if first(t) is not None and first(t).encoding in encodings]
+        preferences = (("depth",), ("aligned",))
+    if not candidates:
+        seen = ", ".join(f"{t} ({first(t).encoding if first(t) is not None else 'empty'})" for t in images) or "none"
+        compressed = sorted(t for t, m in topics.items() if m == COMPRESSED_IMAGE_TYPE)
+        unread = f"; compressed images are not read ({', '.join(compressed)}): record them raw" if compressed else ""
+        raise InputError(
+            f"{path}: no {role} image topic (sensor_msgs/Image in {', '.join(encodings)}); Image topics: {seen}{unread}"
+        )
+    return _one_of(path, role, key, candidates, preferences, found)
+
+
+def _one_of(
+    path: Path,
+    role: str,
+    key: str,
+    candidates: list[str],
+    preferences: tuple[tuple[str, ...], ...],
+    found: dict[str, str],
+) -> str:
+    """The single candidate left after narrowing to names with each preference's words in turn; else InputError."""
+    for words in preferences:
+        narrowed = [t for t in candidates if any(w in t.lower() for w in words)]
+        candidates = narrowed or candidates
+    if len(candidates) > 1:
+        raise InputError(
+            f"{path}: several {role} topics ({', '.join(candidates)}); name one with --set io.rosbag.{key}=TOPIC"
+        )
+    found[key] = candidates[0]
+    return candidates[0]
+
+
+def _camera_info(
+    path: Path,
+    role: str,
+    key: str,
+    named: str,
+    image_topic: str,
+    frame_id: str,
+    topics: dict[str, str | None],
+    first: _FirstMessages,
+    found: dict[str, str],
+) -> CameraInfo:
+    """The CameraInfo of the colour or depth camera: named, else the image topic's sibling camera_info, else the
+    one whose frame_id is the images'."""
+    if named:
+        if topics.get(named) != CAMERA_INFO_TYPE:
+            carries = "is not in the bag" if named not in topics else f"carries {topics[named]}"
+            raise InputError(f"{path}: topic {named} (io.rosbag.{key}) {carries}, expected {CAMERA_INFO_TYPE}")
+        topic = named
+    else:
+        infos = sorted(t for t, m in topics.items() if m == CAMERA_INFO_TYPE)
+        if not infos:
+            raise InputError(
+                f"{path}: no {CAMERA_INFO_TYPE} topic in the bag: the {role} camera's intrinsics are unknown"
+            )
+        sibling = image_topic.rsplit("/", 1)[0] + "/camera_info"
+        if sibling in infos:
+            topic = sibling
+        else:
+            same_frame = [t for t in infos if first(t) is not None and frame_name(first(t).header.frame_id) == frame_id]
+            if not same_frame:
+                listing = ", ".join(
+                    f"{t} ({frame_name(first(t).header.frame_id) if first(t) is not None else 'empty'})" for t in infos
+                )
+                raise InputError(
+                    f"{path}: no CameraInfo for the {role} images on {image_topic} (frame {frame_id or 'none'}); "
+                    f"CameraInfo topics: {listing}; name one with --set io.rosbag.{key}=TOPIC"
+                )
+            topic = _one_of(path, f"{role} CameraInfo", key, same_frame, (), found)
+        found[key] = topic
+    msg = first(topic)
+    if msg is None:
+        raise InputError(f"{path}: no message on {topic}: the {role} camera's intrinsics are unknown")
+    return CameraInfo.from_msg(topic, msg)
+
+
+def _distortion_extras(path: Path, info: CameraInfo, rectified: bool) -> dict[str, Any]:
+    """The distortion as the report gives it; a model that cannot be undistorted is an InputError."""
+    out = {"model": info.model or "(none)", "coefficients": info.D.tolist(), "undistorted": False}
+    if rectified:
+        out["note"] = "topic already rectified: not undistorted"
+        return out
+    problem = distortion_problem(info.model, info.D)
+    if problem:
+        raise InputError(f"{path}: CameraInfo on {info.topic}: {problem}")
+    out["undistorted"] = bool(np.any(info.D))
+    return out
+
+
+def _odometry_topic(path: Path, named: str, topics: dict[str, str | None], found: dict[str, str]) -> str | None:
+    """The Odometry topic named or found by type; None when the bag has none (odometry then comes from tf)."""
+    if named:
+        if topics.get(named) != ODOMETRY_TYPE:
+            carries = "is not in the bag" if named not in topics else f"carries {topics[named]}"
+            raise InputError(f"{path}: topic {named} (io.rosbag.odom_topic) {carries}, expected {ODOMETRY_TYPE}")
+        return named
+    candidates = sorted(t for t, m in topics.items() if m == ODOMETRY_TYPE)
+    if not candidates:
+        return None
+    return _one_of(path, "odometry", "odom_topic", candidates, (), found)
+
+
+def _listing(topics: dict[str, str | None]) -> str:
+    return ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "none"
+
+
+def _bag_format(path: Path) -> str:
+    if path.suffix == ".bag":
+        return "ROS 1"
+    files = [path] if path.is_file() else sorted(path.iterdir())
+    storage = next((p.suffix for p in files if p.suffix in (".db3", ".mcap")), "")
+    return {".db3": "ROS 2 (sqlite3)", ".mcap": "ROS 2 (mcap)"}.get(storage, "ROS 2")
+
+
+# ------------------------------------------------------------------------------------------ odometry
+
+
+def _odometry_samples(
+    path: Path,
+    config: RosbagConfig,
+    odom_topic: str | None,
+    odom_msgs: list[tuple[int, Any]],
+    tree: TfTree,
+    max_tilt_deg: float,
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """(M,) stamps in ns, sorted and unique, (M, 3) planar T_odom_base, and where they came from."""
+    base = frame_name(config.base_frame)
+    if odom_topic is not None:
+        if not odom_msgs:
+            raise InputError(f"{path}: no messages on {odom_topic}")
+        stamps = np.array([_stamp_or_log(msg, log_ns) for log_ns, msg in odom_msgs], dtype=np.int64)
+        poses = [m.pose.pose for _, m in odom_msgs]
+        T = transform_matrix(
+            np.array([(p.position.x, p.position.y, p.position.z) for p in poses]),
+            np.array([(p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w) for p in poses]),
+        )
+        child = frame_name(odom_msgs[0][1].child_frame_id)
+        source = odom_topic
+        if child and child != base:
+            chain = tree.chain(child, base)
+            if chain is None or not tree.is_static(chain):
+                raise InputError(
+                    f"{path}: odometry on {odom_topic} is of frame {child}, not of the base frame {base}, and "
+                    f"/tf_static has no fixed transform between them; give --base-frame {child}"
+                )
+            T = T @ tree.transforms(chain, stamps[:1])[0]
+            source += f" (moved from {child} to {base} through tf)"
+        what = f"{path} {odom_topic}"
+    else:
+        odom = frame_name(config.odom_frame)
+        chain = tree.chain(odom, base)
+        stamps = np.zeros(0, np.int64) if chain is None else tree.dynamic_stamps(chain)
+        if not len(stamps):
+            raise InputError(
+                f"{path}: no {ODOMETRY_TYPE} topic and no moving {odom} → {base} transform on /tf (frames seen: "
+                f"{_frames_seen(tree)}); name the odometry with --set io.rosbag.odom_topic=TOPIC or "
+                "io.rosbag.odom_frame=FRAME"
+            )
+        assert chain is not None
+        T = tree.transforms(chain, stamps)
+        source = f"tf {describe_chain(chain)}"
+        what = f"{path} tf {odom} → {base}"
+    order = np.argsort(stamps, kind="stable")
+    stamps, T = stamps[order], T[order]
+    keep = np.r_[True, stamps[1:] != stamps[:-1]]
+    planar = planar_from_matrices(T[keep], what=what, max_tilt_deg=max_tilt_deg)
+    return stamps[keep], planar, source
+
+
+def interpolate_planar(t_samples: np.ndarray, poses: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """(N, 3) planar poses at (N,) query times from (M,) sorted sample times and (M, 3) x, y, yaw: x and y linear,
+    yaw along the shorter arc; NaN rows outside the samples' span."""
+    t_samples, poses, t_query = np.asarray(t_samples, float), np.asarray(poses, float), np.asarray(t_query, float)
+    out = np.full((len(t_query), 3), np.nan)
+    inside = (t_query >= t_samples[0]) & (t_query <= t_samples[-1])
+    if len(t_samples) == 1:
+        out[inside] = poses[0]
+        return out
+    i = np.clip(np.searchsorted(t_samples, t_query[inside], side="right") - 1, 0, len(t_samples) - 2)
+    a = (t_query[inside] - t_samples[i]) / (t_samples[i + 1] - t_samples[i])
+    step = poses[i + 1] - poses[i]
+    step[:, 2] = wrap_angle(step[:, 2])
+    out[inside] = poses[i] + a[:, None] * step
+    out[inside, 2] = wrap_angle(out[inside, 2])
+    return out
+
+
+# ------------------------------------------------------------------------------------------ association
+
+
+def _associate(
+    path: Path,
+    config: RosbagConfig,
+    rgb_refs: list[_MessageRef],
+    depth_refs: list[_MessageRef],
+    odom_stamps_ns: np.ndarray,
+    odom_planar: np.ndarray,
+) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, dict[str, float], dict[str, int]]:
+    """Colour ↔ depth (nearest, one-to-one, within max_sync_dt_s) and the odometry interpolated at each colour stamp.
+
+    Returns the kept (colour, depth) indices, (K, 3) odometry, the time offsets and the drops by reason."""
+    # seconds from the first colour stamp: float64 keeps nanoseconds there, unlike seconds since 1970
+    t0 = rgb_refs[0].stamp_ns
+    rgb_t = np.array([(r.stamp_ns - t0) / 1e9 for r in rgb_refs])
+    depth_t = np.array([(r.stamp_ns - t0) / 1e9 for r in depth_refs])
+    odom_t = (odom_stamps_ns - t0) / 1e9
+    dropped: Counter[str] = Counter()
+
+    i_rgb, i_depth = associate_nearest(rgb_t, depth_t, config.max_sync_dt_s, one_to_one=True)
+    if len(i_rgb) == 0:
+        nearest = np.abs(depth_t[np.clip(np.searchsorted(depth_t, rgb_t), 0, len(depth_t) - 1)] - rgb_t)
+        nearest = np.minimum(nearest, np.abs(depth_t[np.clip(np.searchsorted(depth_t, rgb_t) - 1, 0, None)] - rgb_t))
+        raise InputError(
+            f"{path}: colour ({rgb_refs[0].topic}) and depth ({depth_refs[0].topic}) are never within "
+            f"io.rosbag.max_sync_dt_s = {config.max_sync_dt_s:g} s of each other: the nearest depth image is "
+            f"{np.min(nearest):.3f} s to {np.max(nearest):.3f} s (median {np.median(nearest):.3f} s) from each colour "
+            "image; the streams are not synchronised"
+        )
+    dropped[f"no depth image within {config.max_sync_dt_s:g} s"] += len(rgb_t) - len(i_rgb)
+
+    odom = interpolate_planar(odom_t, odom_planar, rgb_t[i_rgb])
+    outside = np.isnan(odom[:, 0])
+    dropped["outside the odometry's time span"] += int(outside.sum())
+    if outside.all():
+        raise InputError(
+            f"{path}: no colour image lies within the odometry's time span (colour {rgb_t[0]:.3f} s to "
+            f"{rgb_t[-1]:.3f} s, odometry {odom_t[0]:.3f} s to {odom_t[-1]:.3f} s from the first colour image)"
+        )
+    # the odometry samples around each colour stamp: a long gap between them is a stream that stopped
+    right = np.clip(np.searchsorted(odom_t, rgb_t[i_rgb]), 0, len(odom_t) - 1)
+    left = np.clip(right - 1, 0, len(odom_t) - 1)
+    gap = np.where(odom_t[right] == rgb_t[i_rgb], 0.0, odom_t[right] - odom_t[left])
+    across_gap = ~outside & (gap > config.max_odom_gap_s)
+    dropped[f"odometry gap over {config.max_odom_gap_s:g} s"] += int(across_gap.sum())
+    keep = ~outside & ~across_gap
+    if not keep.any():
+        raise InputError(f"{path}: every colour image falls in an odometry gap over {config.max_odom_gap_s:g} s")
+    i_rgb, i_depth, odom = i_rgb[keep], i_depth[keep], odom[keep]
+
+    depth_dt = np.abs(depth_t[i_depth] - rgb_t[i_rgb])
+    odom_dt = np.minimum(np.abs(odom_t[left[keep]] - rgb_t[i_rgb]), np.abs(odom_t[right[keep]] - rgb_t[i_rgb]))
+    sync = {
+        "depth_dt_median_s": float(np.median(depth_dt)),
+        "depth_dt_max_s": float(np.max(depth_dt)),
+        "odom_dt_median_s": float(np.median(odom_dt)),
+        "odom_dt_max_s": float(np.max(odom_dt)),
+        "odom_interpolated": True,
+    }
+    drops = {reason: n for reason, n in dropped.items() if n}
+    if drops:
+        log.info("%s: %d of %d colour images dropped (%s)", path, sum(drops.values()), len(rgb_t), drops)
+    return (i_rgb, i_depth), odom, sync, drops
+
+
+def _with_stamps(path: Path, refs: list[_MessageRef], topic: str) -> list[_MessageRef]:
+    """Image references sorted by stamp, of repeated stamps the first (logged)."""
+    out: list[_MessageRef] = []
+    for ref in sorted(refs, key=lambda r: (r.stamp_ns, r.log_ns)):
+        if out and ref.stamp_ns == out[-1].stamp_ns:
+            log.warning("%s: %s has two images stamped %d ns; keeping the first", path, topic, ref.stamp_ns)
+            continue
+        out.append(ref)
+    if not out:
+        raise InputError(f"{path}: no messages on {topic}")
+    return out
+
+
+def _stamp_or_log(msg: Any, log_ns: int) -> int:
+    """A message's header stamp in ns; its log time when the header is stamped zero (some drivers never set it)."""
+    stamp = stamp_ns(msg.header.stamp)
+    return stamp if stamp else log_ns
+
+
+# ------------------------------------------------------------------------------------------ images
 
 
 def rgb_image(msg: Any, where: str) -> np.ndarray:
@@ -300,57 +888,65 @@ def _pixels(msg: Any, dtype: np.dtype, channels: int, where: str) -> np.ndarray:
     return values.reshape(h, w, channels) if channels > 1 else values.reshape(h, w)
 
 
-def _stamp_ns(msg: Any) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-
-
-def _sorted_unique(refs: list[_MessageRef], path: Path) -> list[_MessageRef]:
-    """Image references by header stamp, dropping repeated stamps (logged)."""
-    out: list[_MessageRef] = []
-    for ref in sorted(refs, key=lambda r: (r.stamp_ns, r.log_ns)):
-        if out and ref.stamp_ns == out[-1].stamp_ns:
-            log.warning("%s: %s has two images stamped %d ns; keeping the first", path, ref.topic, ref.stamp_ns)
-            continue
-        out.append(ref)
-    return out
-
-
 def _not_a_bag(path: Path) -> str | None:
-    """Why an existing path cannot be a ROS 2 bag the reader opens (None: it may be one): a folder needs the
-    metadata.yaml that `ros2 bag record` writes, a single file must be a .db3 or .mcap storage file."""
+    """Why an existing path cannot be a bag the reader opens (None: it may be one): a folder needs the metadata.yaml
+    that `ros2 bag record` writes; a single file must be a ROS 1 .bag or a ROS 2 .db3 or .mcap storage file."""
     if path.is_dir():
         if (path / "metadata.yaml").is_file():
             return None
         storage = sorted(p.name for p in path.iterdir() if p.suffix in (".db3", ".mcap"))
         if storage:
             return f"no metadata.yaml in the folder (open the storage file {path / storage[0]} instead)"
-        ros1 = [p.name for p in path.iterdir() if p.suffix == ".bag"]
+        ros1 = sorted(p.name for p in path.iterdir() if p.suffix == ".bag")
         if ros1:
-            return f"it holds a ROS 1 bag ({ros1[0]}); convert it to ROS 2 first (rosbags-convert)"
+            return f"it holds a ROS 1 bag ({ros1[0]}); open that file instead"
         return "the folder has no metadata.yaml (a ROS 2 bag is a folder with metadata.yaml, or a .db3 or .mcap file)"
-    if path.suffix == ".bag":
-        return "a ROS 1 bag; convert it to ROS 2 first (rosbags-convert)"
-    if path.suffix not in (".db3", ".mcap"):
+    if path.suffix not in (".bag", ".db3", ".mcap"):
         return (
-            f"a {path.suffix or 'suffix-less'} file; expected a bag folder with metadata.yaml, or a .db3 or .mcap file"
+            f"a {path.suffix or 'suffix-less'} file; expected a bag folder with metadata.yaml, a .db3 or .mcap file, "
+            "or a ROS 1 .bag file"
         )
     return None
 
 
-def _check_topics(path: Path, wanted: dict[str, str], present: dict[str, str | None]) -> None:
-    missing = sorted(t for t in wanted if t not in present)
-    if missing:
-        listing = ", ".join(f"{t} ({m})" for t, m in sorted(present.items())) or "none"
-        raise InputError(f"{path}: topic(s) {', '.join(missing)} not in the bag; it has: {listing}")
-    for topic, msgtype in wanted.items():
-        if topic in present and present[topic] != msgtype:
-            raise InputError(f"{path}: topic {topic} carries {present[topic]}, expected {msgtype}")
+# ------------------------------------------------------------------------------------------ the report
 
 
-def _intrinsics_from_camera_info(info: Any, path: Path) -> CameraIntrinsics:
-    K = np.asarray(info.k, dtype=float)
-    if K.size != 9 or not K[0] > 0 or not K[4] > 0 or info.width <= 0 or info.height <= 0:
-        raise InputError(f"{path}: camera info has no valid K / image size (K = {K.tolist()})")
-    if np.any(np.asarray(info.d, dtype=float) != 0):
-        log.warning("%s: camera info distortion %s ignored (pinhole model)", path, list(info.d))
-    return CameraIntrinsics(int(info.width), int(info.height), float(K[0]), float(K[4]), float(K[2]), float(K[5]))
+def conversion_report(extras: dict[str, Any]) -> list[str]:
+    """What a bag conversion assumed (a rosbag sequence's `meta.extras`), as lines for a person to check."""
+    topics, mount, K = extras["topics"], extras["camera_mount"], extras["intrinsics"]
+    found = set(topics.get("found_by_type", []))
+
+    def named(role: str, key: str) -> str:
+        return f"{topics[role]}" + (" (found by type)" if key in found else "")
+
+    lines = [
+        f"{extras['bag_format']} bag; colour {named('rgb', 'rgb_topic')}, depth {named('depth', 'depth_topic')}, "
+        f"odometry {named('odometry', 'odom_topic')}",
+    ]
+    x, y, z = mount["xyz_m"]
+    roll, pitch, yaw = mount["rpy_deg"]
+    lines.append(
+        f"camera mount {mount['frames']}: x {x:.3f} y {y:.3f} z {z:.3f} m, roll {roll:.2f}° pitch {pitch:.2f}° "
+        f"yaw {yaw:.2f}° (from {mount['from']})"
+    )
+    distortion = extras["distortion"]
+    state = "undistorted" if distortion["undistorted"] else distortion.get("note", "nothing to undistort")
+    lines.append(
+        f"intrinsics {K['width']}x{K['height']} fx {K['fx']:.2f} fy {K['fy']:.2f} cx {K['cx']:.2f} cy {K['cy']:.2f} "
+        f"(from {K['from']}); distortion {distortion['model']}: {state}"
+    )
+    lines.append(f"depth: {extras['depth']['registration']}")
+    sync = extras["sync"]
+    lines.append(
+        f"time offsets: depth |Δt| median {sync['depth_dt_median_s'] * 1e3:.1f} ms, max "
+        f"{sync['depth_dt_max_s'] * 1e3:.1f} ms; odometry interpolated, nearest sample median "
+        f"{sync['odom_dt_median_s'] * 1e3:.1f} ms, max {sync['odom_dt_max_s'] * 1e3:.1f} ms"
+    )
+    frames = extras["frames"]
+    dropped = "; ".join(f"{n} {reason}" for reason, n in frames["dropped"].items())
+    lines.append(
+        f"{frames['kept']} of {frames['colour_images']} colour images synchronised"
+        + (f"; dropped: {dropped}" if dropped else "")
+    )
+    return lines

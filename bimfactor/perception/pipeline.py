@@ -1,7 +1,8 @@
 """The perception runner: detect ▸ segment ▸ embed ▸ lift ▸ online scene graph, frame by frame.
 
-`make_perception` picks the backend that `perception.backend` names and wires it to an `OnlineSceneGraph`;
-`Perception.step` runs one frame and returns what the graph did and what the localizer should see.
+`make_perception` picks the backend that `perception.backend` names (`choose_backend`: `auto` picks from what the
+sequence holds) and wires it to an `OnlineSceneGraph`; `Perception.step` runs one frame and returns what the graph
+did and what the localizer should see.
 """
 
 from __future__ import annotations
@@ -10,13 +11,23 @@ import logging
 import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from bimfactor.bim.vocabulary import Vocabulary
-from bimfactor.config import Config, config_file
+from bimfactor.config import Config, PerceptionConfig, config_file, updated
 from bimfactor.embed.text import TextEmbedder
+from bimfactor.errors import InputError
 from bimfactor.perception.base import Detection, Detector, Embedder, Segmenter, TextReader, TextReading
+from bimfactor.perception.detections import (
+    DetectionsTable,
+    FileDetector,
+    FileEmbedder,
+    FileSegmenter,
+    detection_records,
+    write_detections,
+)
 from bimfactor.perception.scene_graph import OnlineSceneGraph, UpdateStats
 from bimfactor.perception.sim import LabelConfusion, SimDetector, SimEmbedder, SimSegmenter, load_sim_errors
 from bimfactor.perception.text import SimTextReader, locate_readings
@@ -57,12 +68,14 @@ class Perception:
         embedder: Embedder,
         graph: OnlineSceneGraph,
         reader: TextReader | None = None,
+        backend: str = "",
     ) -> None:
         self.detector = detector
         self.segmenter = segmenter
         self.embedder = embedder
         self.graph = graph
         self.reader = reader
+        self.backend = backend  # the `perception.backend` it runs (`auto` resolved)
 
     def perceive(self, frame: Frame) -> tuple[list[Detection], np.ndarray, np.ndarray]:
         """The 2D front end alone: detections, (N, H, W) masks, (N, D) embeddings."""
@@ -98,33 +111,76 @@ def sim_rng(seed: int, meta: SequenceMeta, stream: int) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(meta.name.encode()), stream])
 
 
+def choose_backend(p: PerceptionConfig, meta: SequenceMeta, has_detections: bool) -> str:
+    """The backend `perception.backend` names; `auto` picks from what the sequence holds: the simulator's instance
+    table → sim, a detections file → detections, vlm weights configured → vlm. InputError when nothing fits."""
+    if p.backend == "detections" and not has_detections:
+        raise InputError(
+            f"sequence {meta.name}: perception.backend=detections needs a detections file "
+            "(SEQ_DIR/detections.jsonl or localize --detections FILE)"
+        )
+    if p.backend != "auto":
+        return p.backend
+    if meta.instances:
+        return "sim"
+    if has_detections:
+        return "detections"
+    if p.vlm.yolo_world_weights.strip() or p.vlm.sam_weights.strip():
+        return "vlm"
+    raise InputError(
+        f"sequence {meta.name} gives perception nothing to work with (no simulator instance table, no detections "
+        "file, no vlm weights): put a detector's detections.jsonl in the sequence folder, pass localize --detections "
+        "FILE, or set perception.vlm.yolo_world_weights, perception.vlm.sam_weights and embed.clip_weights "
+        "(docs/perception.md)"
+    )
+
+
 def make_perception(
     cfg: Config,
     meta: SequenceMeta,
     text_embedder: TextEmbedder,
     seed: int | None = None,
     sim_preset: str | None = None,
+    detections: DetectionsTable | None = None,
 ) -> Perception:
-    """The perception stack `cfg.perception.backend` names for a sequence; `seed` defaults to `cfg.seed`.
+    """The perception stack `cfg.perception.backend` names for a sequence (`choose_backend`); `seed` defaults to
+    `cfg.seed`.
 
     The sim backend needs the simulator's instance table in `meta`; `sim_preset` overrides `perception.sim_preset`.
+    The detections backend reads `detections` (`detections.read_detections`).
     """
     p = cfg.perception
     seed = cfg.seed if seed is None else seed
+    backend = choose_backend(p, meta, detections is not None)
     vocabulary = household_vocabulary(cfg)
     graph = OnlineSceneGraph(p, meta.intrinsics, meta.T_base_camera, embedding_dim=text_embedder.dim)
     reader: TextReader | None = None
-    if p.text.enabled and (p.text.reader == "rapidocr" or (p.text.reader == "auto" and p.backend == "vlm")):
+    if p.text.enabled and (p.text.reader == "rapidocr" or (p.text.reader == "auto" and backend != "sim")):
         from bimfactor.perception.ocr import RapidOcrReader
 
         reader = RapidOcrReader(p.text.min_score)
     elif p.text.enabled:
         reader = SimTextReader(meta, p.text, sim_rng(seed, meta, READER_STREAM))
-    if p.backend == "vlm":
+    if backend == "vlm":
         from bimfactor.perception.vlm import make_vlm_backends
 
         vlm = make_vlm_backends(cfg, vocabulary, text_embedder)
-        return Perception(vlm.detector, vlm.segmenter, vlm.embedder, graph, reader)
+        return Perception(vlm.detector, vlm.segmenter, vlm.embedder, graph, reader, backend)
+    if backend == "detections":
+        assert detections is not None  # choose_backend checked it
+        if detections.embedding_dim not in (None, text_embedder.dim):
+            raise InputError(
+                f"{detections.path}: embeddings have {detections.embedding_dim} values, the text encoder "
+                f"({text_embedder.name}) gives {text_embedder.dim}"
+            )
+        return Perception(
+            FileDetector(detections, p.box_threshold, p.text_threshold),
+            FileSegmenter(meta.intrinsics, meta.T_base_camera, p, cfg.sensor.min_z_m),
+            FileEmbedder(text_embedder),
+            graph,
+            reader,
+            backend,
+        )
     errors = load_sim_errors(p, sim_preset)
     confusion = LabelConfusion(vocabulary, text_embedder, errors.confusion_temperature)
     detector = SimDetector(
@@ -132,4 +188,24 @@ def make_perception(
     )
     segmenter = SimSegmenter(errors, sim_rng(seed, meta, SEGMENTER_STREAM))
     embedder = SimEmbedder(meta, text_embedder, vocabulary, errors, seed, sim_rng(seed, meta, EMBEDDER_STREAM))
-    return Perception(detector, segmenter, embedder, graph, reader)
+    return Perception(detector, segmenter, embedder, graph, reader, backend)
+
+
+def write_sim_detections(
+    path: str | Path, cfg: Config, meta: SequenceMeta, frames: Iterable[Frame], text_embedder: TextEmbedder, seed: int
+) -> int:
+    """Write the sim backend's detections of a simulated sequence's frames as a detections file (what `bimfactor
+    simulate` puts beside the frames): its noisy detector's labels, box scores and boxes, its masks and its crop
+    embeddings, drawn from the streams the sim backend draws from with `seed`. Returns the number of detections."""
+    sim = updated(cfg, {"perception.backend": "sim", "perception.text.enabled": False})
+    perception = make_perception(sim, meta, text_embedder, seed)
+    count = 0
+
+    def perceive(frame: Frame) -> tuple[list[Detection], np.ndarray, np.ndarray]:
+        nonlocal count
+        detections, masks, embeddings = perception.perceive(frame)
+        count += len(detections)
+        return detections, masks, embeddings
+
+    write_detections(path, detection_records(frames, perceive))
+    return count

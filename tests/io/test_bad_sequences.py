@@ -199,7 +199,7 @@ def test_the_tum_and_rosbag_readers_check_a_camera_passed_in(tmp_path: Path, tes
     from tests.io.test_rosbag import _write_bag
 
     config = test_config.io.rosbag
-    _write_bag(tmp_path / "bag", config, "16UC1")
+    _write_bag(tmp_path / "bag", "16UC1")
     with pytest.raises(InputError, match=r"bag: intrinsics\.fx must be a positive finite number, got -25\.0"):
         read_rosbag(tmp_path / "bag", config, intrinsics=CameraIntrinsics(W, H, -25.0, 25.0, 15.5, 11.5))
     with pytest.raises(InputError, match="T_base_camera must be finite"):
@@ -288,7 +288,7 @@ def test_a_folder_that_is_not_a_bag_says_what_a_bag_is(tmp_path: Path, test_conf
         "metadata.yaml, or a .db3 or .mcap file)"
     )
     (folder / "run.bag").write_bytes(b"#ROSBAG V2.0\n")
-    with pytest.raises(InputError, match=r"holds a ROS 1 bag \(run\.bag\); convert it to ROS 2 first"):
+    with pytest.raises(InputError, match=r"holds a ROS 1 bag \(run\.bag\); open that file instead"):
         read_rosbag(folder, config)
     with pytest.raises(InputError, match=r"notes\.txt: not a readable ROS 2 bag: a \.txt file; expected a bag folder"):
         read_rosbag(folder / "notes.txt", config)
