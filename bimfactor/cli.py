@@ -835,6 +835,15 @@ def convert(
             "looks down; the images' optical frame (x right, y down, z forward) is fixed to the body frame.",
         ),
     ] = None,
+    detections: Annotated[
+        Path | None,
+        typer.Option(
+            "--detections",
+            metavar="FILE",
+            help="A detector's detections of the recording's colour frames (JSON Lines, docs/perception.md), checked "
+            "and stored in the sequence; lines of frames the keyframe selection leaves out are left out.",
+        ),
+    ] = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -887,6 +896,7 @@ def convert(
             report = conversion_report(sequence.meta.extras)
         else:
             sequence = read_sequence(source)
+        found_detections = _recording_detections(sequence, source if kind == "sequence" else None, detections)
         recorded, odometry = len(sequence), sequence.odometry()
         if not all_frames and odometry is not None:
             steps = cfg.localization
@@ -901,10 +911,48 @@ def convert(
             kept = f"{recorded} frames" + ("" if odometry is not None else " (no odometry: every frame kept)")
         with output_dir(output, "sequence", inputs=[source], replace=overwrite) as folder:
             write_sequence_files(folder, sequence.meta, sequence, label=str(output))
+            if found_detections is not None:
+                report.append(_store_detections(folder, sequence, *found_detections))
             write_preview(read_sequence(folder), folder / "preview.png")
         typer.echo(f"wrote {output}: {kept} from {kind} {source}; preview {output / 'preview.png'}")
         for line in report:
             typer.echo(f"  {line}")
+
+
+def _recording_detections(sequence: Any, source_sequence: Path | None, file: Path | None) -> tuple[Any, str] | None:
+    """The detections a converted sequence keeps, checked against every recorded frame before anything is written:
+    `--detections FILE`, else a bag's Detection2DArray topic, else a source sequence's detections.jsonl; with where
+    they came from. None: no detections."""
+    from bimfactor.perception.detections import DETECTIONS_FILE, read_detections
+
+    if file is not None:
+        if not file.is_file():
+            raise InputError(f"no such detections file: {file}")
+        path, origin = file, str(file)
+    elif getattr(sequence, "detections", None) is not None:
+        topic = sequence.meta.extras["topics"]["detections"]
+        return [line for line in sequence.detections if line["detections"]], f"the bag's {topic}"
+    elif source_sequence is not None and (source_sequence / DETECTIONS_FILE).is_file():
+        path, origin = source_sequence / DETECTIONS_FILE, str(source_sequence / DETECTIONS_FILE)
+    else:
+        return None
+    table = read_detections(path, sequence.timestamps(), sequence.indices(), sequence.meta.intrinsics)
+    return (path, table), origin
+
+
+def _store_detections(folder: Path, sequence: Any, found: Any, origin: str) -> str:
+    """Write the kept frames' detections into the sequence folder; the report's line."""
+    from bimfactor.perception.detections import DETECTIONS_FILE, attach_detections
+
+    if isinstance(found, list):  # a bag's lines, named by their frames' stamps
+        kept = {float(t) for t in sequence.timestamps()}
+        lines = [line for line in found if line["timestamp"] in kept]
+        text = "".join(json.dumps(line) + "\n" for line in lines)
+        (folder / DETECTIONS_FILE).write_text(text, encoding="utf-8")
+        table = attach_detections(folder, folder / DETECTIONS_FILE)
+    else:
+        table = attach_detections(folder, found[0], unknown_frames="drop")
+    return f"detections: {table.summary()} from {origin}"
 
 
 def _camera_mount(text: str) -> Any:

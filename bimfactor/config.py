@@ -559,6 +559,9 @@ class RosbagConfig(_Strict):
         min_length=1, description="The robot's base frame in tf (on the floor): the mount and odometry refer to it."
     )
     odom_frame: str = Field(min_length=1, description="tf odometry frame, read when the bag has no Odometry topic.")
+    detections_topic: str = Field(
+        description="vision_msgs/Detection2DArray topic of a detector's output (docs/perception.md); '' finds it."
+    )
     max_sync_dt_s: float = Field(gt=0.0, description="Largest time offset between a colour image and its depth image.")
     max_odom_gap_s: float = Field(
         gt=0.0, description="Longest gap between odometry samples that a colour frame is interpolated across."

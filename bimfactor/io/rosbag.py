@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -66,6 +67,23 @@ CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
+DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
+# vision_msgs 4 (ROS 2 Humble and later), for ROS 2 bags that carry no message definitions (ROS 1 bags and MCAP files
+# carry their own, so vision_msgs 1-3 read from them too).
+VISION_MSGS = {
+    "vision_msgs/msg/Point2D": "float64 x\nfloat64 y\n",
+    "vision_msgs/msg/Pose2D": "vision_msgs/Point2D position\nfloat64 theta\n",
+    "vision_msgs/msg/BoundingBox2D": "vision_msgs/Pose2D center\nfloat64 size_x\nfloat64 size_y\n",
+    "vision_msgs/msg/ObjectHypothesis": "string class_id\nfloat64 score\n",
+    "vision_msgs/msg/ObjectHypothesisWithPose": (
+        "vision_msgs/ObjectHypothesis hypothesis\ngeometry_msgs/PoseWithCovariance pose\n"
+    ),
+    "vision_msgs/msg/Detection2D": (
+        "std_msgs/Header header\nvision_msgs/ObjectHypothesisWithPose[] results\nvision_msgs/BoundingBox2D bbox\n"
+        "string id\n"
+    ),
+    "vision_msgs/msg/Detection2DArray": "std_msgs/Header header\nvision_msgs/Detection2D[] detections\n",
+}
 RGB_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8")
 DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
 FOUND_DEPTH_ENCODINGS = ("16UC1", "32FC1")  # mono16 is also an infrared format: read only from a named topic
@@ -78,10 +96,21 @@ def _rosbags() -> tuple[Any, tuple[type[BaseException], ...], Any]:
     (imported on first use: optional dependency)."""
     try:
         from rosbags.highlevel import AnyReader, AnyReaderError
-        from rosbags.typesys import Stores, get_typestore
     except ImportError:
         raise DependencyError("reading ROS bags needs the 'rosbags' package: pip install rosbags") from None
-    return AnyReader, (AnyReaderError, FileNotFoundError), get_typestore(Stores.ROS2_HUMBLE)
+    return AnyReader, (AnyReaderError, FileNotFoundError), ros2_typestore()
+
+
+def ros2_typestore() -> Any:
+    """The ROS 2 Humble typestore with vision_msgs' detection messages added."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    types: dict[str, Any] = {}
+    for name, text in VISION_MSGS.items():
+        types.update(get_types_from_msg(text, name))
+    store.register(types)
+    return store
 
 
 @dataclass(frozen=True)
@@ -257,16 +286,21 @@ def _read(
     if problem:
         raise InputError(f"{path}: {problem}")
     odom_topic = _odometry_topic(path, config.odom_topic, topics, found)
+    detections_topic = _detections_topic(path, config.detections_topic, topics, found)
     tf_topics = sorted(t for t, m in topics.items() if m in TF_TYPES)
 
-    # 3. tf and odometry: one pass over their messages
+    # 3. tf, odometry and a detector's detections: one pass over their messages
     tree = TfTree()
     odom_msgs: list[tuple[int, Any]] = []
-    wanted = [c for t in [*tf_topics, *([odom_topic] if odom_topic else [])] for c in connections[t]]
+    detection_msgs: list[tuple[int, Any]] = []
+    streams = [*tf_topics, *([odom_topic] if odom_topic else []), *([detections_topic] if detections_topic else [])]
+    wanted = [c for t in streams for c in connections[t]]
     for connection, log_ns, raw in reader.messages(connections=wanted) if wanted else ():
         msg = reader.deserialize(raw, connection.msgtype)
         if connection.topic == odom_topic:
             odom_msgs.append((log_ns, msg))
+        elif connection.topic == detections_topic:
+            detection_msgs.append((_stamp_or_log(msg, log_ns), msg))
         else:
             tree.add(msg, static=connection.topic.rstrip("/").endswith("tf_static"))
     t_first_ns = _stamp_or_log(rgb_first, 0)
@@ -310,8 +344,16 @@ def _read(
     rgb_refs, depth_refs = (_with_stamps(path, refs[t], t) for t in (rgb_topic, depth_topic))
     kept, odom_poses, sync, dropped = _associate(path, config, rgb_refs, depth_refs, odom_stamps, odom_planar)
 
+    frame_rgb = [rgb_refs[i] for i in kept[0]]
+    detections = None
+    if detections_topic is not None:
+        lens = None if colour_info is None or rectifier.colour_maps is None else (colour_info.K, colour_info.D)
+        detections, extras["detections"] = _detections_at_frames(
+            detection_msgs, frame_rgb, config.max_sync_dt_s, intrinsics, lens
+        )
     extras["topics"] = {
         "rgb": rgb_topic,
+        "detections": detections_topic,
         "depth": depth_topic,
         "camera_info": None if colour_info is None else colour_info.topic,
         "depth_camera_info": None if depth_info is None else depth_info.topic,
@@ -332,10 +374,11 @@ def _read(
     return RosbagSequence(
         path,
         meta,
-        rgb_refs=[rgb_refs[i] for i in kept[0]],
+        rgb_refs=frame_rgb,
         depth_refs=[depth_refs[i] for i in kept[1]],
         odom_poses=odom_poses,
         rectifier=rectifier,
+        detections=detections,
     )
 
 
@@ -351,9 +394,14 @@ class RosbagSequence(Sequence):
         depth_refs: list[_MessageRef],
         odom_poses: np.ndarray,
         rectifier: _Rectifier | None = None,
+        detections: list[dict[str, Any]] | None = None,
     ) -> None:
         timestamps = np.array([r.stamp_ns / 1e9 for r in rgb_refs])  # Python int / float: correctly rounded
         super().__init__(meta, timestamps, self._load_frame_images, odom_poses=odom_poses)
+        self.detections = detections
+        """A detector's detections on the bag (vision_msgs/Detection2DArray): one line of the detections file
+        (docs/perception.md: timestamp, detections of label, score, box) per frame that has a message within
+        max_sync_dt_s, named by the frame's stamp; None: the bag has no such topic."""
         self._path = path
         self._rgb_refs = rgb_refs
         self._depth_refs = depth_refs
@@ -674,6 +722,72 @@ def _odometry_topic(path: Path, named: str, topics: dict[str, str | None], found
     if not candidates:
         return None
     return _one_of(path, "odometry", "odom_topic", candidates, (), found)
+
+
+def _detections_topic(path: Path, named: str, topics: dict[str, str | None], found: dict[str, str]) -> str | None:
+    """The Detection2DArray topic named or found by type; None when the bag has none."""
+    if named:
+        if topics.get(named) != DETECTIONS_TYPE:
+            carries = "is not in the bag" if named not in topics else f"carries {topics[named]}"
+            raise InputError(
+                f"{path}: topic {named} (io.rosbag.detections_topic) {carries}, expected {DETECTIONS_TYPE}"
+            )
+        return named
+    candidates = sorted(t for t, m in topics.items() if m == DETECTIONS_TYPE)
+    return _one_of(path, "detections", "detections_topic", candidates, (), found) if candidates else None
+
+
+def _detections_at_frames(
+    messages: list[tuple[int, Any]],
+    frames: list[_MessageRef],
+    max_dt_s: float,
+    intrinsics: CameraIntrinsics,
+    lens: tuple[np.ndarray, np.ndarray] | None,
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Each frame's Detection2DArray (the nearest in time, within `max_dt_s`, one message per frame) as a line of the
+    detections file at the frame's stamp, boxes moved into the undistorted image when `lens` (K, D) undistorts the
+    colour images; and the report's entry."""
+    lines: list[dict[str, Any]] = []
+    if messages and frames:
+        stamps = np.array([s for s, _ in messages], dtype=np.int64)
+        frame_t = np.array([(r.stamp_ns - frames[0].stamp_ns) / 1e9 for r in frames])
+        msg_t = (stamps - frames[0].stamp_ns) / 1e9
+        i_frame, i_msg = associate_nearest(frame_t, msg_t, max_dt_s, one_to_one=True)
+        for i, j in zip(i_frame, i_msg, strict=True):
+            found = (_detection_entry(d, intrinsics, lens) for d in messages[j][1].detections)
+            lines.append({"timestamp": frames[i].stamp_ns / 1e9, "detections": [d for d in found if d is not None]})
+    entry = {
+        "messages": len(messages),
+        "frames_with_detections": len(lines),
+        "detections": sum(len(line["detections"]) for line in lines),
+    }
+    return lines, entry
+
+
+def _detection_entry(
+    detection: Any, intrinsics: CameraIntrinsics, lens: tuple[np.ndarray, np.ndarray] | None
+) -> dict[str, Any] | None:
+    """One vision_msgs/Detection2D (version 4: hypothesis.class_id, bbox.center.position; versions 1-3: id,
+    bbox.center.x) as a detections-file entry of its best hypothesis; None when it has no hypothesis."""
+    if not len(detection.results):
+        return None
+    scored = []
+    for result in detection.results:
+        hypothesis = getattr(result, "hypothesis", result)
+        label = getattr(hypothesis, "class_id", None)
+        scored.append((float(hypothesis.score), str(label if label is not None else hypothesis.id)))
+    score, label = max(scored)
+    centre = getattr(detection.bbox.center, "position", detection.bbox.center)
+    cx, cy = float(centre.x), float(centre.y)
+    half = np.array([float(detection.bbox.size_x), float(detection.bbox.size_y)]) / 2
+    corners = np.array([[cx, cy]]) + half * np.array([[-1, -1], [1, -1], [-1, 1], [1, 1]])
+    if lens is not None:
+        K = np.asarray(lens[0], dtype=np.float64).reshape(3, 3)
+        corners = cv2.undistortPoints(corners.reshape(-1, 1, 2), K, lens[1], P=K).reshape(-1, 2)
+    size = [intrinsics.width, intrinsics.height]
+    x0, y0 = np.clip(corners.min(axis=0), 0, size)
+    x1, y1 = np.clip(corners.max(axis=0), 0, size)
+    return {"label": label, "score": min(max(score, 0.0), 1.0), "box": [float(x0), float(y0), float(x1), float(y1)]}
 
 
 def _listing(topics: dict[str, str | None]) -> str:

@@ -13,6 +13,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bimfactor.io.rosbag import ros2_typestore
+
 FORMATS = ("sqlite3", "mcap", "ros1")
 R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera_link → optical frame
 TRANSPORT_NS = 1_000_000  # log time = stamp + 1 ms
@@ -41,7 +43,8 @@ class TestBag:
         assert fmt in FORMATS
         self.path, self.fmt = Path(path), fmt
         self.ros1 = fmt == "ros1"
-        self.ts = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
+        # ROS 2: Humble's types and vision_msgs 4 (the reader's typestore)
+        self.ts = get_typestore(Stores.ROS1_NOETIC) if self.ros1 else ros2_typestore()
         if self.ros1:
             self.ts.register(
                 get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
@@ -146,6 +149,34 @@ class TestBag:
             ),
         )
         self.add(topic, "nav_msgs/msg/Odometry", msg, t_ns)
+
+    def detections(self, topic: str, t_ns: int, frame_id: str, entries: list[dict[str, Any]]) -> None:
+        """A vision_msgs/Detection2DArray (version 4) of detections-file entries (label, score, box x0 y0 x1 y1)."""
+        T, header = self.T, self.header(t_ns, frame_id)
+        covariance = T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+            ),
+            covariance=np.zeros(36),
+        )
+        detections = []
+        for e in entries:
+            x0, y0, x1, y1 = e["box"]
+            centre = T["vision_msgs/msg/Pose2D"](
+                position=T["vision_msgs/msg/Point2D"](x=(x0 + x1) / 2, y=(y0 + y1) / 2), theta=0.0
+            )
+            hypothesis = T["vision_msgs/msg/ObjectHypothesis"](class_id=e["label"], score=e["score"])
+            detections.append(
+                T["vision_msgs/msg/Detection2D"](
+                    header=header,
+                    results=[T["vision_msgs/msg/ObjectHypothesisWithPose"](hypothesis=hypothesis, pose=covariance)],
+                    bbox=T["vision_msgs/msg/BoundingBox2D"](center=centre, size_x=x1 - x0, size_y=y1 - y0),
+                    id="",
+                )
+            )
+        msg = T["vision_msgs/msg/Detection2DArray"](header=header, detections=detections)
+        self.add(topic, "vision_msgs/msg/Detection2DArray", msg, t_ns)
 
     # ---------------------------------------------------------------- writing
 

@@ -443,3 +443,31 @@ def test_localize_detections_option_needs_a_file_and_a_backend_that_reads_it(
         "localize", paper_floor_prior, simulated, "-o", run, "--detections", given, "--set", "perception.backend=sim"
     )
     assert_one_line_error(sim, contains="--detections reads a detector's detections, but perception.backend is sim")
+
+
+def test_convert_keeps_the_detections_of_the_frames_it_keeps(simulated: Path, tmp_path: Path) -> None:
+    """`convert sequence` carries a sequence's detections.jsonl over to the keyframes it keeps; `--detections FILE`
+    stores a given file instead; a line for a frame the recording does not have is refused before anything is
+    written."""
+    kept = tmp_path / "every-metre"
+    result = invoke("convert", "sequence", simulated, "-o", kept, "--set", "localization.keyframe_distance_m=1.0")
+    assert result.exit_code == 0, result.output
+    assert "detections: " in result.stdout and f"from {simulated / DETECTIONS_FILE}" in result.stdout
+    source = [json.loads(line) for line in (simulated / DETECTIONS_FILE).read_text().splitlines()]
+    stored = [json.loads(line) for line in (kept / DETECTIONS_FILE).read_text().splitlines()]
+    times = {float(t) for t in read_sequence(kept).timestamps()}
+    assert 0 < len(stored) < len(source)
+    assert stored == [line for line in source if line["timestamp"] in times]
+
+    given = tmp_path / "given.jsonl"
+    given.write_text(json.dumps(source[3]) + "\n")
+    one = tmp_path / "one"
+    result = invoke("convert", "sequence", simulated, "-o", one, "--all-frames", "--detections", given)
+    assert result.exit_code == 0, result.output
+    assert (one / DETECTIONS_FILE).read_text().splitlines() == [json.dumps(source[3])]
+
+    stray = tmp_path / "stray.jsonl"
+    stray.write_text(json.dumps({"timestamp": 12345.0, "detections": []}) + "\n")
+    result = invoke("convert", "sequence", simulated, "-o", tmp_path / "none", "--detections", stray)
+    assert_one_line_error(result, contains=f"{stray} line 1")
+    assert not (tmp_path / "none").exists()
