@@ -873,6 +873,7 @@ def convert(
     with _cli_errors(debug):
         frame_override = [] if base_frame is None else [f"io.rosbag.base_frame={json.dumps(base_frame)}"]
         cfg = _start(config, [*(overrides or []), *frame_override], verbose)
+        from bimfactor.evaluation.recording import recording_checks
         from bimfactor.io.atomic import check_output_dir, output_dir
         from bimfactor.io.preview import write_preview
         from bimfactor.io.rosbag import conversion_report, read_rosbag
@@ -913,8 +914,13 @@ def convert(
             write_sequence_files(folder, sequence.meta, sequence, label=str(output))
             if found_detections is not None:
                 report.append(_store_detections(folder, sequence, *found_detections))
-            write_preview(read_sequence(folder), folder / "preview.png")
-        typer.echo(f"wrote {output}: {kept} from {kind} {source}; preview {output / 'preview.png'}")
+            written = read_sequence(folder)
+            write_preview(written, folder / "preview.png")
+            report.append(recording_checks(written, folder / "checks.png")[0])
+        typer.echo(
+            f"wrote {output}: {kept} from {kind} {source}; preview {output / 'preview.png'}, mount and odometry "
+            f"{output / 'checks.png'}"
+        )
         for line in report:
             typer.echo(f"  {line}")
 

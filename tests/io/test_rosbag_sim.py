@@ -5,6 +5,7 @@ the conversion must find every topic by type and recover the mount, the intrinsi
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -204,6 +205,14 @@ def test_camera_mount_flag_replaces_tf(tmp_path: Path, sim_run: SimRun) -> None:
     assert result.exit_code == 0, result.output
     assert "(from --camera-mount)" in result.stdout
     _assert_recovers_the_run(out, sim_run)
+    # the converted recording's mount check finds the floor at z = 0 and draws checks.png ...
+    found = re.search(r"mount check: the floor lies at z = ([-+0-9.]+) m in the base frame .* \(ok\)", result.stdout)
+    assert found and abs(float(found[1])) <= 0.02 and (out / "checks.png").stat().st_size > 0
+    # ... and a mount 15 cm too low puts it 15 cm below
+    low = tmp_path / "low"
+    result = invoke("convert", "rosbag", bag, "-o", low, "--all-frames", "--camera-mount", "0.15,0,0.20,0,10,0")
+    found = re.search(r"the floor lies at z = ([-+0-9.]+) m .* \(WRONG MOUNT\? expected 0 ± 0.05 m\)", result.stdout)
+    assert result.exit_code == 0 and found and float(found[1]) == pytest.approx(-0.15, abs=0.02), result.stdout
     assert_one_line_error(
         invoke("convert", "rosbag", bag, "-o", tmp_path / "x", "--camera-mount", "0.15,0,0.35"),
         contains="--camera-mount '0.15,0,0.35': expected X,Y,Z,ROLL,PITCH,YAW",
