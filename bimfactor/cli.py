@@ -835,6 +835,24 @@ def convert(
             "looks down; the images' optical frame (x right, y down, z forward) is fixed to the body frame.",
         ),
     ] = None,
+    odometry_source: Annotated[
+        str,
+        typer.Option(
+            "--odometry",
+            metavar="auto|rgbd|none",
+            help="auto: the recording's odometry, or RGB-D odometry from its frames when it has none; rgbd: RGB-D "
+            "odometry even when it has some; none: keep every frame without odometry (localize refuses it).",
+        ),
+    ] = "auto",
+    intrinsics_text: Annotated[
+        str | None,
+        typer.Option(
+            "--intrinsics",
+            metavar="FX,FY,CX,CY",
+            help="tum: the colour camera's intrinsics in pixels, instead of the Freiburg camera the folder's name "
+            "suggests.",
+        ),
+    ] = None,
     detections: Annotated[
         Path | None,
         typer.Option(
@@ -885,19 +903,33 @@ def convert(
             raise InputError(f"unknown recording kind '{kind}' (expected tum, rosbag or sequence)")
         if kind != "rosbag" and (base_frame is not None or camera_mount is not None):
             raise InputError(f"--base-frame and --camera-mount apply to rosbag recordings, not to {kind}")
+        if odometry_source not in ("auto", "rgbd", "none"):
+            raise InputError(f"--odometry {odometry_source}: expected auto, rgbd or none")
+        if kind != "tum" and intrinsics_text is not None:
+            raise InputError(f"--intrinsics applies to tum folders, not to {kind} (a bag's come from CameraInfo)")
         mount = None if camera_mount is None else _camera_mount(camera_mount)
         if not source.exists():
             raise InputError(f"no such file or folder: {source}")
         check_output_dir(output, "sequence", inputs=[source], replace=overwrite)
         report: list[str] = []
         if kind == "tum":
-            sequence = read_tum_rgbd(source, max_sync_dt_s=cfg.io.tum_max_sync_dt_s)
+            intrinsics = None if intrinsics_text is None else _tum_intrinsics(intrinsics_text, source)
+            sequence = read_tum_rgbd(source, max_sync_dt_s=cfg.io.tum_max_sync_dt_s, intrinsics=intrinsics)
         elif kind == "rosbag":
-            sequence = read_rosbag(source, cfg.io.rosbag, T_base_camera=mount, mount_source="--camera-mount")
+            sequence = read_rosbag(
+                source,
+                cfg.io.rosbag,
+                T_base_camera=mount,
+                mount_source="--camera-mount",
+                needs_odometry=odometry_source == "none",
+            )
             report = conversion_report(sequence.meta.extras)
         else:
             sequence = read_sequence(source)
         found_detections = _recording_detections(sequence, source if kind == "sequence" else None, detections)
+        if odometry_source == "rgbd" or (odometry_source == "auto" and sequence.odometry() is None):
+            sequence, line = _with_rgbd_odometry(sequence)
+            report.append(line)
         recorded, odometry = len(sequence), sequence.odometry()
         if not all_frames and odometry is not None:
             steps = cfg.localization
@@ -959,6 +991,47 @@ def _store_detections(folder: Path, sequence: Any, found: Any, origin: str) -> s
     else:
         table = attach_detections(folder, found[0], unknown_frames="drop")
     return f"detections: {table.summary()} from {origin}"
+
+
+def _tum_intrinsics(text: str, folder: Path) -> Any:
+    """`--intrinsics FX,FY,CX,CY` as the CameraIntrinsics of the folder's images (their size from its first image)."""
+    from bimfactor.io.tum_rgbd import tum_default_intrinsics
+    from bimfactor.types import CameraIntrinsics
+
+    try:
+        values = [float(p) for p in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise InputError(f"--intrinsics '{text}': expected FX,FY,CX,CY (four numbers, pixels)")
+    size = tum_default_intrinsics(folder.name)
+    return CameraIntrinsics(size.width, size.height, *values)
+
+
+def _with_rgbd_odometry(sequence: Any) -> tuple[Any, str]:
+    """The sequence with odometry from its own colour and depth frames (`io.rgbd_odometry`), and the report's line."""
+    import numpy as np
+
+    from bimfactor.io.rgbd_odometry import rgbd_odometry
+
+    if len(sequence) < 2:
+        raise InputError("RGB-D odometry needs two frames or more")
+    result = rgbd_odometry(sequence)
+    travelled = float(np.sum(np.hypot(*np.diff(result.odom_poses[:, :2], axis=0).T)))
+    fell_back = int(result.fell_back.sum())
+    extras = {
+        "odometry": {
+            "from": "rgbd (ORB + PnP, refined by point-to-plane ICP on the depth; docs/rgbd-odometry.md)",
+            "pairs": len(result.pairs),
+            "pairs_without_pnp": fell_back,
+            "fitness_median": float(np.median(result.fitness)) if len(result.pairs) else None,
+        }
+    }
+    line = (
+        f"odometry: RGB-D odometry over {len(sequence)} frames, {travelled:.1f} m travelled; {fell_back} of "
+        f"{len(result.pairs)} pairs without a feature match (depth alone)"
+    )
+    return sequence.with_odometry(result.odom_poses, extras), line
 
 
 def _camera_mount(text: str) -> Any:
@@ -1043,6 +1116,15 @@ def _check_building(meta: Any, prior: BimPrior, force: bool) -> None:
         typer.echo(f"warning: {mismatch}", err=True)
 
 
+def _check_vlm(cfg: Config, detections: Path | None) -> None:
+    """With perception.backend=vlm its weight files, the CLIP text encoder and its libraries are checked before the
+    prior and the sequence are read (`perception.vlm.check_vlm_ready`): a missing file fails in milliseconds."""
+    if cfg.perception.backend == "vlm" and detections is None:
+        from bimfactor.perception.vlm import check_vlm_ready
+
+        check_vlm_ready(cfg)
+
+
 def _perception_source(
     cfg: Config, sequence: Any, sequence_dir: Path, detections: Path | None, prior: BimPrior
 ) -> tuple[Config, Any, str]:
@@ -1069,6 +1151,7 @@ def _perception_source(
     if backend == "sim":
         return cfg, None, f"perception: sim (the simulator's instance buffer, error preset {cfg.perception.sim_preset})"
     if backend == "vlm":
+        _check_vlm(cfg, None)  # auto chose it: checked here, before the models load
         return cfg, None, "perception: vlm (YOLO-World + SAM + CLIP on the colour frames)"
     table = read_detections(
         path,
@@ -1156,6 +1239,7 @@ def localize(
 
         inputs = [prior_dir, sequence_dir, *([detections] if detections is not None else [])]
         ensure_run_destination(output, inputs)
+        _check_vlm(cfg, detections)
         sequence = read_sequence(sequence_dir)
         prior = BimPrior.load(prior_dir)
         _check_building(sequence.meta, prior, force)
@@ -1260,6 +1344,7 @@ def refine(
                 f"refine needs a pose-graph forward pass ({', '.join(GRAPH_VARIANTS)}), not {cfg.localization.variant}"
             )
         ensure_run_destination(output, [prior_dir, sequence_dir, *([detections] if detections is not None else [])])
+        _check_vlm(cfg, detections)
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
         _check_building(sequence.meta, prior, force)

@@ -118,7 +118,10 @@ class EmbedConfig(_Strict):
         description="Text embedder: the bundled all-MiniLM-L6-v2, or CLIP's text tower (needs weights)."
     )
     clip_model: str = Field(description="open_clip architecture name, e.g. ViT-L-14.")
-    clip_weights: str = Field(description="Local path of the CLIP checkpoint; '' when not available.")
+    clip_weights: str = Field(
+        description="Local path of the CLIP checkpoint, read for both towers: the BIM text (prior) and the vlm "
+        "backend's crops; '' when not available."
+    )
 
 
 class SimPerceptionErrors(_Strict):
@@ -156,11 +159,17 @@ class SimPerceptionErrors(_Strict):
 
 
 class VlmConfig(_Strict):
-    """Local weight files of the vision-language backend (CLIP comes from `embed.clip_model` / `clip_weights`)."""
+    """Local weight files of the vision-language backend. Its third file, CLIP's, is `embed.clip_weights` (+
+    `embed.clip_model`): one checkpoint serves CLIP's image tower here and its text tower, which embeds the BIM when
+    the prior is built, with or without this backend (docs/decisions.md)."""
 
-    yolo_world_weights: str = Field(description="YOLO-World checkpoint, e.g. yolov8s-worldv2.pt; '' when absent.")
+    yolo_world_weights: str = Field(
+        description="YOLO-World checkpoint, e.g. yolov8s-worldv2.pt (ultralytics/assets releases); '' when absent."
+    )
     sam_model_type: Literal["vit_h", "vit_l", "vit_b"] = Field(description="Segment Anything backbone.")
-    sam_weights: str = Field(description="SAM checkpoint matching `sam_model_type`; '' when absent.")
+    sam_weights: str = Field(
+        description="SAM checkpoint matching `sam_model_type`, e.g. sam_vit_b_01ec64.pth; '' when absent."
+    )
 
 
 class TextReadingConfig(_Strict):
@@ -991,10 +1000,21 @@ MOVED_KEYS = {
 }
 """Keys of earlier versions and where they are now: an old config file's error names the new key."""
 
+KEYS_ELSEWHERE = {
+    "perception.vlm.clip_weights": "embed.clip_weights",
+    "perception.vlm.clip_model": "embed.clip_model",
+}
+"""Keys a user may look for in one block that live in another: the error names the one that exists."""
+
 
 def _unknown_key(dotted: str) -> str:
     moved = MOVED_KEYS.get(dotted)
-    return f"unknown config key '{dotted}'" + (f": it is now '{moved}'" if moved else "")
+    if moved:
+        return f"unknown config key '{dotted}': it is now '{moved}'"
+    elsewhere = KEYS_ELSEWHERE.get(dotted)
+    if elsewhere:
+        return f"unknown config key '{dotted}': the key is '{elsewhere}' (shared with the text encoder)"
+    return f"unknown config key '{dotted}'"
 
 
 def _first_error(exc: ValidationError) -> str:

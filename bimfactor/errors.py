@@ -1,6 +1,7 @@
 """One exception tree for the whole library; the CLI maps it to one-line messages and exit codes."""
 
 import importlib
+from pathlib import Path
 from types import ModuleType
 
 
@@ -40,3 +41,23 @@ def import_optional(module: str, what: str, install_hint: str) -> ModuleType:
         return importlib.import_module(module)
     except ImportError as exc:
         raise DependencyError(f"{what} needs the Python package '{exc.name or module}': {install_hint}") from exc
+
+
+def weights_problem(path: str, what: str, config_key: str, source: str) -> str | None:
+    """Why the model weight file `path` cannot be used (unset, missing, a folder), in words that name the config key
+    and where the file is downloaded (`source`); None when it is a file."""
+    if not str(path).strip():
+        return f"{what} needs a local weight file: set {config_key} (download {source})"
+    resolved = Path(path).expanduser()
+    if not resolved.is_file():
+        kind = "is a folder, not a weights file" if resolved.is_dir() else "not found"
+        return f"{what} weights file {kind}: {resolved} (from {config_key}; download {source})"
+    return None
+
+
+def require_weights(path: str, what: str, config_key: str, source: str) -> Path:
+    """The model weight file `path` as a Path; a DependencyError of one line (`weights_problem`) otherwise."""
+    problem = weights_problem(path, what, config_key, source)
+    if problem is not None:
+        raise DependencyError(problem)
+    return Path(path).expanduser()

@@ -2,6 +2,9 @@
 # One-step set-up of bimfactor on a fresh Debian/Ubuntu machine with Python 3.11; safe to run again.
 #
 #   bash tools/setup.sh            (from the repository root, as root or as a user with sudo)
+#   bash tools/setup.sh --vlm      the same, plus the vlm perception backend's libraries (the `vlm` extra:
+#                                  YOLO-World through ultralytics-opencv-headless, segment-anything, open-clip-torch);
+#                                  its weight files are downloaded by hand (docs/perception.md)
 #
 # 1. system library libusb-1.0 (Open3D's native library links against it), via apt-get when missing
 # 2. .venv with python3 (PYTHON=/path/to/python3.11 to choose another interpreter)
@@ -9,15 +12,40 @@
 #    packages), then bimfactor itself in editable mode with its dev and ocr extras (pytest, ruff; ONNX
 #    Runtime for the door-plate reader), then RapidOCR without its declared dependencies: it asks for the GUI
 #    build of OpenCV, which would replace the headless one bimfactor uses (and needs libGL).
+#    --vlm adds the `vlm` extra in the same pip run with torch pinned, so torch stays 2.13.0, and torchvision
+#    pinned to the release built against it (0.28.0); beside a CPU torch (2.13.0+cpu) torchvision comes as
+#    0.28.0+cpu from PyTorch's CPU index, as PyPI's torchvision needs the CUDA torch's libraries. The extra names
+#    ultralytics-opencv-headless (Ultralytics' own build of ultralytics, on opencv-python-headless); should
+#    opencv-python (the GUI build, same cv2 module) still come in, it is uninstalled and the headless wheel of the
+#    same version reinstalled over it. The script ends by importing cv2, open3d and bimfactor (and with --vlm
+#    torchvision and the three libraries) in the venv.
+#    VENV=/path/to/venv installs into another virtual environment.
 set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 PYTHON="${PYTHON:-python3}"
-VENV=".venv"
+VENV="${VENV:-.venv}"
 TORCH_VERSION="2.13.0"
+TORCHVISION_VERSION="0.28.0" # the torchvision release built against torch $TORCH_VERSION (--vlm)
+TORCH_CPU_INDEX="https://download.pytorch.org/whl/cpu"
 RAPIDOCR_VERSION="1.4.4"
 
 say() { printf '[setup] %s\n' "$*"; }
+
+VLM=""
+for arg in "$@"; do
+    case "$arg" in
+        --vlm) VLM=1 ;;
+        -h | --help)
+            sed -n '2,/^set -euo pipefail/p' "${BASH_SOURCE[0]}" | sed -e '$d' -e 's/^# \{0,1\}//'
+            exit 0
+            ;;
+        *)
+            say "unknown option: $arg (options: --vlm)" >&2
+            exit 2
+            ;;
+    esac
+done
 
 as_root() {
     if [ "$(id -u)" -eq 0 ]; then
@@ -72,12 +100,59 @@ say "upgrading pip"
 "${PIP[@]}" install --upgrade pip
 say "installing torch==$TORCH_VERSION (CPU wheel)"
 "${PIP[@]}" install --progress-bar off "torch==$TORCH_VERSION"
-say "installing bimfactor (editable) with dev and ocr extras"
-"${PIP[@]}" install --progress-bar off -e '.[dev,ocr]'
+installed_version() { "$VENV/bin/python" -m pip list --format=freeze 2>/dev/null | sed -n "s/^$1==//Ip"; }
+PINS=("torch==$TORCH_VERSION")
+if [ -n "$VLM" ]; then
+    PINS+=("torchvision==$TORCHVISION_VERSION")
+    # PyPI's torchvision is built against the CUDA torch and does not load beside the CPU one ('operator
+    # torchvision::nms does not exist'): next to a +cpu torch, take the +cpu torchvision from PyTorch's CPU index.
+    if [[ "$(installed_version torch)" == *+cpu && "$(installed_version torchvision)" != *+cpu ]]; then
+        say "installing torchvision==$TORCHVISION_VERSION+cpu (from $TORCH_CPU_INDEX)"
+        "${PIP[@]}" install --progress-bar off --no-deps --timeout 30 --retries 1 --index-url "$TORCH_CPU_INDEX" \
+            "torchvision==$TORCHVISION_VERSION+cpu" ||
+            say "warning: torchvision $TORCHVISION_VERSION+cpu could not be installed; PyPI's will not load" >&2
+    fi
+fi
+EXTRAS="dev,ocr${VLM:+,vlm}"
+say "installing bimfactor (editable) with the extras $EXTRAS"
+"${PIP[@]}" install --progress-bar off -e ".[$EXTRAS]" "${PINS[@]}"
 say "installing rapidocr-onnxruntime $RAPIDOCR_VERSION (door-plate OCR; its models ship in the wheel)"
 "${PIP[@]}" install --progress-bar off --no-deps "rapidocr-onnxruntime==$RAPIDOCR_VERSION"
 
-if "$VENV/bin/python" -m pip list --format=freeze 2>/dev/null | grep -qi '^nvidia-'; then
+# opencv-python and opencv-python-headless both install the cv2 package; when both are there the GUI build's files
+# win, and uninstalling it deletes the shared files: reinstall the headless wheel over them.
+GUI_CV="$(installed_version opencv-python)"
+if [ -n "$GUI_CV" ]; then
+    HEADLESS_CV="$(installed_version opencv-python-headless)"
+    HEADLESS_CV="${HEADLESS_CV:-$GUI_CV}"
+    say "replacing opencv-python $GUI_CV (the GUI build) by opencv-python-headless $HEADLESS_CV"
+    "${PIP[@]}" uninstall -y opencv-python
+    "${PIP[@]}" install --progress-bar off --force-reinstall --no-deps "opencv-python-headless==$HEADLESS_CV"
+fi
+
+if "$VENV/bin/python" -m pip list --format=freeze 2>/dev/null | grep -i '^nvidia-' | grep -qiv '^nvidia-ml-py=='; then
     say "warning: CUDA packages (nvidia-*) are installed in $VENV; a CPU-only torch was intended" >&2
+fi
+TORCH_NOW="$(installed_version torch)"
+if [ "${TORCH_NOW%%+*}" != "$TORCH_VERSION" ]; then
+    say "torch is $TORCH_NOW in $VENV, not $TORCH_VERSION: pip install 'torch==$TORCH_VERSION' (the CPU wheel)" >&2
+    exit 1
+fi
+"$VENV/bin/python" -c 'import cv2, open3d, bimfactor' || {
+    say "cv2, open3d or bimfactor does not import in $VENV" >&2
+    exit 1
+}
+if [ -n "$VLM" ]; then
+    "$VENV/bin/python" -c 'import torchvision' 2>/dev/null || {
+        say "torchvision $(installed_version torchvision) does not load beside torch $(installed_version torch):" \
+            "install the matching build, e.g. $VENV/bin/pip install --no-deps --index-url $TORCH_CPU_INDEX" \
+            "torchvision==$TORCHVISION_VERSION+cpu" >&2
+        exit 1
+    }
+    "$VENV/bin/python" -c 'import ultralytics, segment_anything, open_clip' || {
+        say "a library of the vlm extra does not import in $VENV" >&2
+        exit 1
+    }
+    say "vlm libraries installed; weight files: docs/perception.md"
 fi
 say "done: $("$VENV/bin/bimfactor" --version | head -n 1)"

@@ -17,13 +17,33 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from bimfactor.config import EmbedConfig
-from bimfactor.errors import DependencyError
+from bimfactor.errors import DependencyError, require_weights
 
 logger = logging.getLogger(__name__)
 
 MINILM_NAME = "all-MiniLM-L6-v2"
 MINILM_DIM = 384
 _ENCODE_BATCH = 64
+
+VLM_INSTALL_HINT = "bash tools/setup.sh --vlm (or pip install 'bimfactor[vlm]')"
+"""How the optional libraries of CLIP and the vlm perception backend (the `vlm` extra) are installed."""
+CLIP_SOURCES = {
+    "ViT-L-14": "open_clip_pytorch_model.bin from https://huggingface.co/laion/CLIP-ViT-L-14-DataComp.XL-s13B-b90K",
+    "ViT-B-32": "open_clip_pytorch_model.bin from https://huggingface.co/laion/CLIP-ViT-B-32-DataComp.XL-s13B-b90K",
+    "ViT-L-14-quickgelu": "OpenAI's ViT-L/14, open_clip_pytorch_model.bin from "
+    "https://huggingface.co/timm/vit_large_patch14_clip_224.openai",
+}
+"""open_clip checkpoints that load as a local file under the architecture name alone (plain GELU, CLIP's own image
+normalisation); OpenAI's weights need the `-quickgelu` architecture."""
+
+
+def clip_source(model_name: str) -> str:
+    """Where the open_clip checkpoint of the architecture `model_name` (`embed.clip_model`) can be downloaded."""
+    return CLIP_SOURCES.get(
+        model_name,
+        f"open_clip's pretrained {model_name} weights, as open_clip.list_pretrained_tags_by_model('{model_name}') "
+        "lists them, from https://huggingface.co",
+    )
 
 
 @runtime_checkable
@@ -142,11 +162,8 @@ class ClipTextEmbedder:
     """CLIP's text tower through open_clip, from a local checkpoint (no hub downloads)."""
 
     def __init__(self, model_name: str, weights_path: str | Path, device: str = "cpu") -> None:
-        if not str(weights_path).strip():
-            raise DependencyError("the CLIP text embedder needs a local checkpoint: set embed.clip_weights")
-        path = Path(weights_path).expanduser()
-        if not path.is_file():
-            raise DependencyError(f"CLIP weights file not found: {path}")
+        # The one line names the file (or the unset key) and where the checkpoint is downloaded.
+        path = require_weights(str(weights_path), "CLIP", "embed.clip_weights", clip_source(model_name))
         self.name = clip_name(model_name)
         key = ("clip", model_name, str(path.resolve()), device)
         self._model = _memoised(key, lambda: self._load(model_name, path, device))
@@ -158,7 +175,7 @@ class ClipTextEmbedder:
             import open_clip
             import torch
         except ImportError as exc:
-            raise DependencyError(f"CLIP needs {exc.name}: pip install 'bimfactor[vlm]'") from exc
+            raise DependencyError(f"CLIP needs the Python package '{exc.name}': {VLM_INSTALL_HINT}") from exc
         logger.info("loading open_clip %s from %s", model_name, path)
         model, _, _ = open_clip.create_model_and_transforms(model_name, pretrained=str(path), device=device)
         model.eval()

@@ -196,11 +196,13 @@ def read_rosbag(
     T_base_camera: np.ndarray | None = None,
     mount_source: str = "given by the caller",
     max_tilt_deg: float = MAX_TILT_DEG,
+    needs_odometry: bool = True,
 ) -> RosbagSequence:
     """Open a ROS 1 or ROS 2 bag as a `Sequence` of synchronised RGB-D frames with interpolated odometry.
 
     `intrinsics` replaces the CameraInfo (no undistortion then); `T_base_camera` (4, 4) replaces the tf mount
-    (`mount_source` says where it came from, for the report).
+    (`mount_source` says where it came from, for the report). Without `needs_odometry` a bag with no odometry is
+    read without it (`odometry()` is None: a camera-only recording, for RGB-D odometry).
     """
     AnyReader, reader_errors, default_typestore = _rosbags()
     path = Path(path)
@@ -212,7 +214,7 @@ def read_rosbag(
     kind = "ROS 1" if path.suffix == ".bag" else "ROS 2"
     try:
         with AnyReader([path], default_typestore=default_typestore) as reader:
-            return _read(reader, path, config, intrinsics, T_base_camera, mount_source, max_tilt_deg)
+            return _read(reader, path, config, intrinsics, T_base_camera, mount_source, max_tilt_deg, needs_odometry)
     except reader_errors as exc:
         said = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
         raise InputError(f"{path}: not a readable {kind} bag ({said})") from None
@@ -226,6 +228,7 @@ def _read(
     T_base_camera: np.ndarray | None,
     mount_source: str,
     max_tilt_deg: float,
+    needs_odometry: bool,
 ) -> RosbagSequence:
     """`read_rosbag` on an open AnyReader: the streams, the camera, tf and odometry, then the image headers."""
     topics = {topic: info.msgtype for topic, info in reader.topics.items()}
@@ -330,7 +333,8 @@ def _read(
         rectifier.depth_size_wh = depth_wh
 
     # 6. odometry samples: (M,) stamps and (M, 3) planar T_odom_base
-    odom_stamps, odom_planar, odom_from = _odometry_samples(path, config, odom_topic, odom_msgs, tree, max_tilt_deg)
+    odometry = _odometry_samples(path, config, odom_topic, odom_msgs, tree, max_tilt_deg, needs_odometry)
+    odom_stamps, odom_planar, odom_from = odometry if odometry is not None else (None, None, None)
 
     # 7. the image headers, then colour ↔ depth ↔ odometry by time
     refs: dict[str, list[_MessageRef]] = {rgb_topic: [], depth_topic: []}
@@ -392,7 +396,7 @@ class RosbagSequence(Sequence):
         *,
         rgb_refs: list[_MessageRef],
         depth_refs: list[_MessageRef],
-        odom_poses: np.ndarray,
+        odom_poses: np.ndarray | None,
         rectifier: _Rectifier | None = None,
         detections: list[dict[str, Any]] | None = None,
     ) -> None:
@@ -812,8 +816,10 @@ def _odometry_samples(
     odom_msgs: list[tuple[int, Any]],
     tree: TfTree,
     max_tilt_deg: float,
-) -> tuple[np.ndarray, np.ndarray, str]:
-    """(M,) stamps in ns, sorted and unique, (M, 3) planar T_odom_base, and where they came from."""
+    needed: bool = True,
+) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """(M,) stamps in ns, sorted and unique, (M, 3) planar T_odom_base, and where they came from; None for a bag
+    with no odometry when it is not `needed`."""
     base = frame_name(config.base_frame)
     if odom_topic is not None:
         if not odom_msgs:
@@ -840,6 +846,8 @@ def _odometry_samples(
         odom = frame_name(config.odom_frame)
         chain = tree.chain(odom, base)
         stamps = np.zeros(0, np.int64) if chain is None else tree.dynamic_stamps(chain)
+        if not len(stamps) and not needed:
+            return None
         if not len(stamps):
             raise InputError(
                 f"{path}: no {ODOMETRY_TYPE} topic and no moving {odom} → {base} transform on /tf (frames seen: "
@@ -883,17 +891,17 @@ def _associate(
     config: RosbagConfig,
     rgb_refs: list[_MessageRef],
     depth_refs: list[_MessageRef],
-    odom_stamps_ns: np.ndarray,
-    odom_planar: np.ndarray,
-) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, dict[str, float], dict[str, int]]:
-    """Colour ↔ depth (nearest, one-to-one, within max_sync_dt_s) and the odometry interpolated at each colour stamp.
+    odom_stamps_ns: np.ndarray | None,
+    odom_planar: np.ndarray | None,
+) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray | None, dict[str, float], dict[str, int]]:
+    """Colour ↔ depth (nearest, one-to-one, within max_sync_dt_s) and the odometry interpolated at each colour stamp
+    (None without odometry).
 
     Returns the kept (colour, depth) indices, (K, 3) odometry, the time offsets and the drops by reason."""
     # seconds from the first colour stamp: float64 keeps nanoseconds there, unlike seconds since 1970
     t0 = rgb_refs[0].stamp_ns
     rgb_t = np.array([(r.stamp_ns - t0) / 1e9 for r in rgb_refs])
     depth_t = np.array([(r.stamp_ns - t0) / 1e9 for r in depth_refs])
-    odom_t = (odom_stamps_ns - t0) / 1e9
     dropped: Counter[str] = Counter()
 
     i_rgb, i_depth = associate_nearest(rgb_t, depth_t, config.max_sync_dt_s, one_to_one=True)
@@ -907,6 +915,11 @@ def _associate(
             "image; the streams are not synchronised"
         )
     dropped[f"no depth image within {config.max_sync_dt_s:g} s"] += len(rgb_t) - len(i_rgb)
+    if odom_stamps_ns is None or odom_planar is None:
+        depth_dt = np.abs(depth_t[i_depth] - rgb_t[i_rgb])
+        sync = {"depth_dt_median_s": float(np.median(depth_dt)), "depth_dt_max_s": float(np.max(depth_dt))}
+        return (i_rgb, i_depth), None, sync, {reason: n for reason, n in dropped.items() if n}
+    odom_t = (odom_stamps_ns - t0) / 1e9
 
     odom = interpolate_planar(odom_t, odom_planar, rgb_t[i_rgb])
     outside = np.isnan(odom[:, 0])
@@ -1036,7 +1049,7 @@ def conversion_report(extras: dict[str, Any]) -> list[str]:
 
     lines = [
         f"{extras['bag_format']} bag; colour {named('rgb', 'rgb_topic')}, depth {named('depth', 'depth_topic')}, "
-        f"odometry {named('odometry', 'odom_topic')}",
+        "odometry " + (named("odometry", "odom_topic") if topics["odometry"] else "none in the bag"),
     ]
     x, y, z = mount["xyz_m"]
     roll, pitch, yaw = mount["rpy_deg"]
@@ -1052,10 +1065,15 @@ def conversion_report(extras: dict[str, Any]) -> list[str]:
     )
     lines.append(f"depth: {extras['depth']['registration']}")
     sync = extras["sync"]
+    odometry = (
+        f"; odometry interpolated, nearest sample median {sync['odom_dt_median_s'] * 1e3:.1f} ms, max "
+        f"{sync['odom_dt_max_s'] * 1e3:.1f} ms"
+        if "odom_dt_median_s" in sync
+        else ""
+    )
     lines.append(
         f"time offsets: depth |Δt| median {sync['depth_dt_median_s'] * 1e3:.1f} ms, max "
-        f"{sync['depth_dt_max_s'] * 1e3:.1f} ms; odometry interpolated, nearest sample median "
-        f"{sync['odom_dt_median_s'] * 1e3:.1f} ms, max {sync['odom_dt_max_s'] * 1e3:.1f} ms"
+        f"{sync['depth_dt_max_s'] * 1e3:.1f} ms{odometry}"
     )
     frames = extras["frames"]
     dropped = "; ".join(f"{n} {reason}" for reason, n in frames["dropped"].items())

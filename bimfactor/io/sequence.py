@@ -199,6 +199,23 @@ class Sequence:
             frame_extras=[f.extras for f in frames],
         )
 
+    def with_odometry(self, odom_poses: np.ndarray, extras: dict[str, Any] | None = None) -> Sequence:
+        """This sequence with (N, 3) odometry T_odom_base (e.g. computed from its frames) and `meta.extras` updated
+        by `extras`; ground truth and images as they were."""
+        from dataclasses import replace
+
+        meta = replace(self.meta, extras={**self.meta.extras, **(extras or {})})
+        return Sequence(
+            meta,
+            self._timestamps,
+            self._load_images,
+            indices=self._indices,
+            odom_poses=odom_poses,
+            gt_poses=self._gt,
+            gt_storeys=self._gt_storeys,
+            frame_extras=self._extras,
+        )
+
     def subset(self, rows: np.ndarray) -> Sequence:
         """The frames at increasing `rows` of this sequence (e.g. its keyframes), keeping their frame indices;
         images are still loaded on access."""
@@ -368,6 +385,9 @@ def intrinsics_problem(values: dict[str, Any]) -> str | None:
                 return f"intrinsics.{key} must be a positive finite number, got {value!r}"
         elif not finite:
             return f"intrinsics.{key} must be a finite number, got {value!r}"
+    w, h, cx, cy = (values[k] for k in ("width", "height", "cx", "cy"))
+    if not (0 <= cx <= w and 0 <= cy <= h):
+        return f"intrinsics: the principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image"
     return None
 
 

@@ -1,19 +1,22 @@
 """The `vlm` perception backend of the paper: YOLO-World detections, SAM masks, CLIP ViT-L crop embeddings.
 
 Weights are local files named in the config (this code never downloads): `perception.vlm.yolo_world_weights`,
-`perception.vlm.sam_weights` (+ `sam_model_type`), and CLIP's `embed.clip_model` / `embed.clip_weights`.
-Crop embeddings are compared with BIM text embeddings, so the text embedder must be CLIP's text tower of the
-same model; a config that mixes CLIP crops with MiniLM text is a ConfigError. Libraries are imported inside the
-constructors; a missing one is a DependencyError with the install hint, a missing weight file one naming it.
-Each class also has `from_model` taking an already built model, so tests can run randomly initialised ones.
+`perception.vlm.sam_weights` (+ `sam_model_type`), and CLIP's `embed.clip_model` / `embed.clip_weights`: one
+checkpoint for both CLIP towers, so it stays with the text encoder, which also reads it where no vlm backend runs
+(`bimfactor prior`, a detections file with CLIP embeddings). Crop embeddings are compared with BIM text embeddings,
+so the text embedder must be CLIP's text tower of the same model; a config that mixes CLIP crops with MiniLM text
+is a ConfigError. `check_vlm_ready` checks the files, that pairing and the libraries in milliseconds, before any
+heavy work; a missing weight file is a DependencyError naming the file, its config key and where to download it, a
+missing library one naming `bash tools/setup.sh --vlm`. Libraries are imported inside the constructors. Each
+class also has `from_model` taking an already built model, so tests can run randomly initialised ones.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from types import ModuleType
 from typing import Any
 
@@ -21,30 +24,44 @@ import numpy as np
 
 from bimfactor import errors
 from bimfactor.config import Config
-from bimfactor.embed.text import TextEmbedder
-from bimfactor.errors import ConfigError, DependencyError
+from bimfactor.embed.text import VLM_INSTALL_HINT, TextEmbedder, clip_source
+from bimfactor.errors import ConfigError, DependencyError, require_weights, weights_problem
 from bimfactor.perception.base import Detection, box_to_pixels, empty_masks, passes_thresholds
 from bimfactor.types import Frame
 
 log = logging.getLogger(__name__)
 
-INSTALL_HINT = "pip install 'bimfactor[vlm]'"
+INSTALL_HINT = VLM_INSTALL_HINT
+LIBRARIES = {"ultralytics": "YOLO-World", "segment_anything": "SAM", "open_clip": "CLIP"}
+"""The vlm extra's modules and what needs each."""
 CROP_MARGIN = 0.1  # CLIP sees the box grown by this share of its side: a little context helps zero-shot
 
+YOLO_WORLD_SOURCE = "yolov8s-worldv2.pt (or the m, l, x one) from https://github.com/ultralytics/assets/releases"
+SAM_SOURCES = {
+    "vit_b": "https://dl.fbaipublicfiles.com/segment_anything/sam_vit_b_01ec64.pth",
+    "vit_l": "https://dl.fbaipublicfiles.com/segment_anything/sam_vit_l_0b3195.pth",
+    "vit_h": "https://dl.fbaipublicfiles.com/segment_anything/sam_vit_h_4b8939.pth",
+}
+"""Segment Anything's checkpoints by `perception.vlm.sam_model_type` (github.com/facebookresearch/segment-anything)."""
 
-def require_weights(path: str, what: str, config_key: str) -> Path:
-    """The weight file `path` as a Path; DependencyError naming the key when unset, the path when missing."""
-    if not str(path).strip():
-        raise DependencyError(f"{what} needs a local weight file: set {config_key}")
-    resolved = Path(path).expanduser()
-    if not resolved.is_file():
-        raise DependencyError(f"{what} weights file not found: {resolved} (from {config_key})")
-    return resolved
+
+def sam_source(model_type: str) -> str:
+    """Where the Segment Anything checkpoint of the backbone `model_type` can be downloaded."""
+    return SAM_SOURCES.get(model_type, "https://github.com/facebookresearch/segment-anything#model-checkpoints")
 
 
 def import_optional(module: str, what: str) -> ModuleType:
-    """Import an optional library of the vlm backend, or raise DependencyError with the install hint."""
-    return errors.import_optional(module, what, INSTALL_HINT)
+    """Import an optional library of the vlm backend, or raise DependencyError with the install hint; also when the
+    library is there but does not load (a torchvision built for another torch: 'operator torchvision::nms does not
+    exist')."""
+    try:
+        return errors.import_optional(module, what, INSTALL_HINT)
+    except (RuntimeError, OSError) as exc:
+        reason = " ".join(str(exc).split())
+        raise DependencyError(
+            f"{what}: the Python package '{module}' is installed but does not load ({type(exc).__name__}: {reason}); "
+            f"torchvision must be the build for the installed torch: {INSTALL_HINT}"
+        ) from exc
 
 
 class YoloWorldDetector:
@@ -57,7 +74,7 @@ class YoloWorldDetector:
     def __init__(
         self, weights: str, vocabulary: Sequence[str], box_threshold: float, text_threshold: float, device: str = "cpu"
     ) -> None:
-        path = require_weights(weights, "YOLO-World", "perception.vlm.yolo_world_weights")
+        path = require_weights(weights, "YOLO-World", "perception.vlm.yolo_world_weights", YOLO_WORLD_SOURCE)
         ultralytics = import_optional("ultralytics", "YOLO-World")
         model = ultralytics.YOLOWorld(str(path))
         try:
@@ -106,7 +123,7 @@ class SamSegmenter:
     """Segment Anything, prompted with each detection's box; one mask per box."""
 
     def __init__(self, model_type: str, weights: str, device: str = "cpu") -> None:
-        path = require_weights(weights, f"SAM ({model_type})", "perception.vlm.sam_weights")
+        path = require_weights(weights, f"SAM ({model_type})", "perception.vlm.sam_weights", sam_source(model_type))
         segment_anything = import_optional("segment_anything", "SAM")
         sam = segment_anything.sam_model_registry[model_type](checkpoint=str(path))
         self._init(sam, device)
@@ -140,7 +157,7 @@ class ClipVisualEmbedder:
     """CLIP's image tower (open_clip) on box crops; unit rows in the space of CLIP's text tower."""
 
     def __init__(self, model_name: str, weights: str, device: str = "cpu") -> None:
-        path = require_weights(weights, f"CLIP {model_name}", "embed.clip_weights")
+        path = require_weights(weights, f"CLIP {model_name}", "embed.clip_weights", clip_source(model_name))
         open_clip = import_optional("open_clip", "CLIP")
         model, _, preprocess = open_clip.create_model_and_transforms(model_name, pretrained=str(path), device=device)
         self._init(model, preprocess, f"clip:{model_name}", device)
@@ -206,14 +223,41 @@ def check_clip_text(cfg: Config, text_embedder: TextEmbedder | None = None) -> N
         raise ConfigError(f"the vlm backend needs the text embedder {expected}, got {text_embedder.name}")
 
 
+def check_vlm_ready(cfg: Config, text_embedder: TextEmbedder | None = None) -> None:
+    """Everything the vlm backend needs that can be checked without loading a model, in milliseconds: its three
+    weight files (one DependencyError line naming each unusable file, its key and where to download it), CLIP text
+    for the BIM (ConfigError), then its libraries (DependencyError naming `bash tools/setup.sh --vlm`)."""
+    vlm, clip = cfg.perception.vlm, cfg.embed.clip_model
+    problems = [
+        weights_problem(vlm.yolo_world_weights, "YOLO-World", "perception.vlm.yolo_world_weights", YOLO_WORLD_SOURCE),
+        weights_problem(
+            vlm.sam_weights, f"SAM ({vlm.sam_model_type})", "perception.vlm.sam_weights", sam_source(vlm.sam_model_type)
+        ),
+        weights_problem(cfg.embed.clip_weights, f"CLIP {clip}", "embed.clip_weights", clip_source(clip)),
+    ]
+    found = [problem for problem in problems if problem is not None]
+    if found:
+        raise DependencyError("perception.backend=vlm: " + "; ".join(found))
+    check_clip_text(cfg, text_embedder)
+    missing = [module for module in LIBRARIES if not _installed(module)]
+    if missing:
+        names = ", ".join(f"'{module}' ({LIBRARIES[module]})" for module in missing)
+        raise DependencyError(f"perception.backend=vlm needs the Python packages {names}: {INSTALL_HINT}")
+
+
+def _installed(module: str) -> bool:
+    """Whether `module` can be found without importing it (a module set to None in sys.modules cannot)."""
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        return False
+
+
 def make_vlm_backends(cfg: Config, vocabulary: Sequence[str], text_embedder: TextEmbedder | None = None) -> VlmBackends:
     """YOLO-World + SAM + CLIP from the config's weight files, on `perception.device`."""
-    check_clip_text(cfg, text_embedder)
+    # Files, libraries and the text encoder are checked before any heavy import: found in milliseconds.
+    check_vlm_ready(cfg, text_embedder)
     p = cfg.perception
-    # Weight files are checked before any heavy import: a missing file is found in milliseconds.
-    require_weights(p.vlm.yolo_world_weights, "YOLO-World", "perception.vlm.yolo_world_weights")
-    require_weights(p.vlm.sam_weights, f"SAM ({p.vlm.sam_model_type})", "perception.vlm.sam_weights")
-    require_weights(cfg.embed.clip_weights, f"CLIP {cfg.embed.clip_model}", "embed.clip_weights")
     log.info("loading YOLO-World, SAM %s and CLIP %s on %s", p.vlm.sam_model_type, cfg.embed.clip_model, p.device)
     return VlmBackends(
         YoloWorldDetector(p.vlm.yolo_world_weights, vocabulary, p.box_threshold, p.text_threshold, p.device),

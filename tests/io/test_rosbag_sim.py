@@ -256,3 +256,23 @@ def test_a_bag_that_cannot_be_converted_is_one_line(
     assert_one_line_error(invoke("convert", "rosbag", bag, "-o", out), contains=message)
     assert not out.exists()
     assert [p.name for p in tmp_path.iterdir()] == ["bag"]  # no temporary folder left either
+
+
+def test_a_bag_without_odometry_gets_rgbd_odometry(tmp_path: Path, sim_run: SimRun) -> None:
+    """A handheld camera's bag: images, CameraInfo and the mount, no odometry on any topic or on /tf."""
+    bag = write_sim_bag(tmp_path / "bag", sim_run, odometry="none")
+    out = tmp_path / "seq"
+    result = invoke("convert", "rosbag", bag, "-o", out, "--all-frames")
+    assert result.exit_code == 0, result.output
+    assert "odometry none in the bag" in result.stdout and "odometry: RGB-D odometry over" in result.stdout
+    odom = read_sequence(out).odometry()
+    assert odom is not None and np.isfinite(odom).all()
+    # the converted odometry moves as the simulated robot did, to within the RGB-D odometry's drift
+    truth = _interp_planar((sim_run.colour_ns - T0_NS) / 1e9, (sim_run.odom_ns - T0_NS) / 1e9, sim_run.odom)
+    travelled = np.hypot(*np.diff(truth[:, :2], axis=0).T).sum()
+    moved = np.hypot(*np.diff(odom[:, :2], axis=0).T).sum()
+    assert moved == pytest.approx(travelled, rel=0.1), (moved, travelled)
+    turned = np.rad2deg(wrap_angle(truth[-1, 2] - truth[0, 2]))
+    assert np.rad2deg(wrap_angle(odom[-1, 2] - odom[0, 2])) == pytest.approx(turned, abs=3.0)
+    refused = invoke("convert", "rosbag", bag, "-o", tmp_path / "x", "--odometry", "none")
+    assert_one_line_error(refused, contains="no nav_msgs/msg/Odometry")

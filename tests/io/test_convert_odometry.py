@@ -1,0 +1,54 @@
+"""`convert` gives a camera-only recording odometry from its own frames (RGB-D odometry, `io.rgbd_odometry`): the
+real slambook-dining frames in TUM layout (a simulated bag without odometry: tests/io/test_rosbag_sim.py). The
+odometry's accuracy itself is tests/test_rgbd_odometry.py's."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bimfactor.io.sequence import read_sequence
+from bimfactor.types import wrap_angle
+from tests.cli import assert_one_line_error, invoke
+
+SLAMBOOK = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "slambook-dining"
+SLAMBOOK_K = "518.0,519.0,325.5,253.5"  # its README
+
+
+@pytest.fixture(scope="module")
+def slambook() -> Path:
+    if not SLAMBOOK.is_dir():
+        pytest.skip(f"real frames not available: {SLAMBOOK}")
+    return SLAMBOOK
+
+
+def test_a_tum_folder_without_odometry_gets_rgbd_odometry_and_keeps_its_ground_truth(
+    slambook: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "dining"
+    result = invoke("convert", "tum", slambook, "-o", out, "--all-frames", "--intrinsics", SLAMBOOK_K)
+    assert result.exit_code == 0, result.output
+    assert "odometry: RGB-D odometry over 5 frames" in result.stdout
+    seq = read_sequence(out)
+    K = seq.meta.intrinsics
+    assert (K.fx, K.fy, K.cx, K.cy) == (518.0, 519.0, 325.5, 253.5)
+    assert seq.meta.extras["odometry"]["pairs"] == 4
+    odom, gt = seq.odometry(), seq.ground_truth()
+    assert odom is not None and gt is not None and np.isfinite(gt).all()
+    # the first pair turns 25.5° over 0.41 m (README): the odometry's first step says so
+    step = np.hypot(*(odom[1, :2] - odom[0, :2]))
+    assert 0.25 < step < 0.6 and 15 < abs(np.rad2deg(wrap_angle(odom[1, 2] - odom[0, 2]))) < 35
+
+    none = tmp_path / "none"
+    result = invoke("convert", "tum", slambook, "-o", none, "--odometry", "none", "--intrinsics", SLAMBOOK_K)
+    assert result.exit_code == 0 and read_sequence(none).odometry() is None
+    for flag, value, says in (
+        ("--intrinsics", "518,519", "--intrinsics '518,519': expected FX,FY,CX,CY"),
+        ("--intrinsics", "518,519,900,253.5", "principal point"),
+        ("--odometry", "lidar", "--odometry lidar: expected auto, rgbd or none"),
+    ):
+        bad = invoke("convert", "tum", slambook, "-o", tmp_path / "bad", flag, value)
+        assert_one_line_error(bad, contains=says)
+        assert not (tmp_path / "bad").exists()
