@@ -829,7 +829,8 @@ def convert(
         typer.Option(
             "--camera-mount",
             metavar="X,Y,Z,ROLL,PITCH,YAW",
-            help="rosbag: the camera mount, instead of the bag's tf: the camera's position in the base frame "
+            help="rosbag, tum: the camera mount (a bag's: instead of its tf; a TUM folder's: instead of a level "
+            "camera at the base's origin): the camera's position in the base frame "
             "(metres) and the roll, pitch, yaw (degrees, about the base's x, y, z axes in that order) of its body "
             "frame (x forward, y left, z up, as a ROS camera_link). 0,0,0 looks straight ahead and a positive pitch "
             "looks down; the images' optical frame (x right, y down, z forward) is fixed to the body frame.",
@@ -901,8 +902,10 @@ def convert(
 
         if kind not in ("tum", "rosbag", "sequence"):
             raise InputError(f"unknown recording kind '{kind}' (expected tum, rosbag or sequence)")
-        if kind != "rosbag" and (base_frame is not None or camera_mount is not None):
-            raise InputError(f"--base-frame and --camera-mount apply to rosbag recordings, not to {kind}")
+        if kind != "rosbag" and base_frame is not None:
+            raise InputError(f"--base-frame applies to rosbag recordings, not to {kind}")
+        if kind == "sequence" and camera_mount is not None:
+            raise InputError("--camera-mount applies to rosbag and tum recordings, not to a sequence")
         if odometry_source not in ("auto", "rgbd", "none"):
             raise InputError(f"--odometry {odometry_source}: expected auto, rgbd or none")
         if kind != "tum" and intrinsics_text is not None:
@@ -914,7 +917,9 @@ def convert(
         report: list[str] = []
         if kind == "tum":
             intrinsics = None if intrinsics_text is None else _tum_intrinsics(intrinsics_text, source)
-            sequence = read_tum_rgbd(source, max_sync_dt_s=cfg.io.tum_max_sync_dt_s, intrinsics=intrinsics)
+            sequence = read_tum_rgbd(
+                source, max_sync_dt_s=cfg.io.tum_max_sync_dt_s, intrinsics=intrinsics, T_base_camera=mount
+            )
         elif kind == "rosbag":
             sequence = read_rosbag(
                 source,
@@ -995,7 +1000,7 @@ def _store_detections(folder: Path, sequence: Any, found: Any, origin: str) -> s
 
 def _tum_intrinsics(text: str, folder: Path) -> Any:
     """`--intrinsics FX,FY,CX,CY` as the CameraIntrinsics of the folder's images (their size from its first image)."""
-    from bimfactor.io.tum_rgbd import tum_default_intrinsics
+    from bimfactor.io.tum_rgbd import tum_default_intrinsics, tum_image_size
     from bimfactor.types import CameraIntrinsics
 
     try:
@@ -1004,8 +1009,9 @@ def _tum_intrinsics(text: str, folder: Path) -> Any:
         values = []
     if len(values) != 4 or not all(math.isfinite(v) for v in values):
         raise InputError(f"--intrinsics '{text}': expected FX,FY,CX,CY (four numbers, pixels)")
-    size = tum_default_intrinsics(folder.name)
-    return CameraIntrinsics(size.width, size.height, *values)
+    default = tum_default_intrinsics(folder.name)
+    width, height = tum_image_size(folder) or (default.width, default.height)
+    return CameraIntrinsics(width, height, *values)
 
 
 def _with_rgbd_odometry(sequence: Any) -> tuple[Any, str]:

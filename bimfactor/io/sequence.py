@@ -204,6 +204,10 @@ class Sequence:
         by `extras`; ground truth and images as they were."""
         from dataclasses import replace
 
+        odom_poses = np.asarray(odom_poses, dtype=np.float64)
+        if odom_poses.shape != (len(self), 3) or not np.isfinite(odom_poses).all():
+            raise ValueError(f"odometry must be {len(self)} finite x, y, yaw rows, got shape {odom_poses.shape}")
+
         meta = replace(self.meta, extras={**self.meta.extras, **(extras or {})})
         return Sequence(
             meta,

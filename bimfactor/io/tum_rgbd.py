@@ -58,6 +58,19 @@ def tum_default_intrinsics(dataset_name: str) -> CameraIntrinsics:
     return CameraIntrinsics(*TUM_IMAGE_SIZE, fx, fy, cx, cy)
 
 
+def tum_image_size(folder: str | Path) -> tuple[int, int] | None:
+    """(width, height) of a TUM folder's first colour image, from its PNG header; None when it cannot be read."""
+    folder = Path(folder)
+    try:
+        _, files = _read_file_list(folder, "rgb.txt")
+        header = files[0].read_bytes()[:24] if len(files) else b""
+    except (OSError, InputError, FormatError):
+        return None
+    if len(header) < 24 or header[:8] != b"\x89PNG\r\n\x1a\n":
+        return None
+    return int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
+
+
 def read_tum_rgbd(
     folder: str | Path,
     *,
