@@ -233,13 +233,26 @@ def _cli_errors(debug: bool) -> Iterator[None]:
 _HANDLER_MARK = "_bimfactor_cli"
 
 
+class _CurrentStderrHandler(logging.StreamHandler):
+    """Writes to whatever `sys.stderr` is at emit time, so a caller that swaps stderr (a test runner, a notebook)
+    and closes its buffer afterwards does not leave a handler writing to a closed file."""
+
+    @property
+    def stream(self):  # type: ignore[override]
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
 def _setup_logging(verbose: bool) -> None:
     """Log to the current stderr: bimfactor at INFO with -v, everything else at WARNING."""
     root = logging.getLogger()
     for handler in list(root.handlers):
         if getattr(handler, _HANDLER_MARK, False):
             root.removeHandler(handler)
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _CurrentStderrHandler()
     setattr(handler, _HANDLER_MARK, True)
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
     root.addHandler(handler)
@@ -1018,8 +1031,10 @@ def _with_rgbd_odometry(sequence: Any) -> tuple[Any, str]:
     """The sequence with odometry from its own colour and depth frames (`io.rgbd_odometry`), and the report's line."""
     import numpy as np
 
-    from bimfactor.io.rgbd_odometry import rgbd_odometry
+    from bimfactor.io.rgbd_odometry import FRAME_INTERVAL_S, MEASURED_ALPHA, odometry_frames, rgbd_odometry
 
+    recorded = len(sequence)
+    sequence = sequence.subset(odometry_frames(sequence.timestamps()))
     if len(sequence) < 2:
         raise InputError("RGB-D odometry needs two frames or more")
     result = rgbd_odometry(sequence)
@@ -1031,11 +1046,17 @@ def _with_rgbd_odometry(sequence: Any) -> tuple[Any, str]:
             "pairs": len(result.pairs),
             "pairs_without_pnp": fell_back,
             "fitness_median": float(np.median(result.fitness)) if len(result.pairs) else None,
+            "frames_used": len(sequence),
+            "frames_recorded": recorded,
+            "measured_alpha": list(MEASURED_ALPHA),
         }
     }
+    alpha = ",".join(f"{a:g}" for a in MEASURED_ALPHA)
+    used = "" if len(sequence) == recorded else f" (of {recorded}: one every {FRAME_INTERVAL_S:g} s)"
     line = (
-        f"odometry: RGB-D odometry over {len(sequence)} frames, {travelled:.1f} m travelled; {fell_back} of "
-        f"{len(result.pairs)} pairs without a feature match (depth alone)"
+        f"odometry: RGB-D odometry over {len(sequence)} frames{used}, {travelled:.1f} m travelled; {fell_back} of "
+        f"{len(result.pairs)} pairs without a feature match (depth alone); its measured noise is "
+        f"--set odometry.alpha=[{alpha}] (docs/rgbd-odometry.md)"
     )
     return sequence.with_odometry(result.odom_poses, extras), line
 

@@ -1,81 +1,92 @@
 """RGB-D odometry: planar odometry for a recording that has none, from its colour and depth frames alone.
 
-Each pair of consecutive frames gets a 6-DoF relative camera pose in two steps:
+Each pair of consecutive frames gets a 6-DoF relative camera pose T_prev_curr:
 
-1. Initial guess: ORB features of both images are matched (OpenCV's brute-force Hamming matcher, cross-checked), the
-   previous frame's keypoints are lifted with its depth, and `cv2.solvePnPRansac` finds the pose that projects them
-   onto the current frame's keypoints.
-2. Dense refinement: Open3D point-to-plane ICP of the current frame's depth cloud onto the previous one's, coarse to
-   fine over voxelised clouds. ICP starts from each of the PnP pose (when PnP found one), the previous pair's motion
-   (a camera keeps moving as it moved) and no motion; the start whose coarse ICP covers the most points wins.
+1. Feature guess: ORB keypoints of both images are matched (OpenCV brute-force Hamming, cross-checked), the previous
+   frame's keypoints are lifted with its depth, and `cv2.solvePnPRansac` finds the pose that projects them onto the
+   current frame's keypoints. Fewer than `PNP_MIN_INLIERS` inliers (low texture) and the pair *falls back*.
+2. Starts: the PnP pose; on a fall-back, the previous pair's motion (a robot keeps moving as it moved; none for the
+   first pair), that motion turned by `START_TURNS_DEG` about the base's vertical axis, and no motion. The first is
+   the *prior*.
+3. Depth alignment: Open3D point-to-plane ICP (Tukey loss, voxelised clouds, coarse to fine) from each start in turn,
+   until one overlaps `GOOD_OVERLAP` of the cloud; the best overlap wins (a later start needs `START_MARGIN` more),
+   judged after step 5, since along an unmeasured direction a smaller motion overlaps more without being right.
+4. Dense refinement: Open3D's RGB-D odometry (legacy API, hybrid photometric + depth term) from the ICP pose.
+5. Degeneracy: depth cannot measure motion along a direction no surface faces (a corridor, a single wall, all that
+   the simulator's empty rooms often show). Along a horizontal direction whose share of surface normals is below
+   `FLAT_SHARE`, the prior's translation is kept (for a wheeled base, `nonholonomic`, its sideways part follows the
+   measured turn's arc); where the clouds overlap less than `MIN_OVERLAP`, the prior is the pair's pose. ICP or
+   dense steps that jump further than their limits (a solver running along such a direction) are dropped.
 
-A pair whose PnP failed (too few matches or inliers, common in low-texture scenes) "falls back": its pose rests on
-the depth geometry and the start it was given, and the result says so.
-
+Poses are rounded to `POSE_DECIMALS` after each Open3D step, so that a run repeats bit for bit.
 The camera poses are chained (T_cam0_camk) and carried through the camera mount into the robot base:
-T_odom_base(k) = T_base_camera · T_cam0_camk · T_base_camera⁻¹, projected onto the floor plane (x, y, yaw). The
-odometry frame is the base at the first frame. Measured accuracy and the noise model: docs/rgbd-odometry.md.
+T_odom_base(k) = T_base_camera · T_cam0_camk · T_base_camera⁻¹, projected onto the floor plane (x, y, yaw), so the
+odometry frame is the base at the first frame. `odometry_noise` measures the per-step error against ground truth as
+α1..α4 of the odometry motion model. Measured accuracy, speed and the recommended α: docs/rgbd-odometry.md.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence as SequenceOf
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 import open3d as o3d
+from scipy.optimize import nnls
 
+from bimfactor.errors import InputError
 from bimfactor.io.sequence import Sequence
 from bimfactor.io.tum import MAX_TILT_DEG, planar_from_matrices
+from bimfactor.odometry import odometry_increments
 from bimfactor.progress import progress
-from bimfactor.types import CameraIntrinsics
+from bimfactor.types import CameraIntrinsics, se2_between, se2_compose, wrap_angle
 
 log = logging.getLogger(__name__)
 
-ORB_FEATURES = 3000  # keypoints per image
-ORB_FAST_THRESHOLD = 12  # OpenCV's default 20 finds few corners on the simulator's flat-shaded walls
+ORB_FEATURES = 3000  # keypoints per image: 1000 gave too few PnP inliers on slambook's 25° turn
+ORB_FAST_THRESHOLD = 12  # OpenCV's default 20 finds few corners in low-contrast images
 PNP_REPROJECTION_PX = 3.0  # RANSAC inlier threshold
-PNP_MIN_INLIERS = 20  # fewer PnP inliers than this: no initial guess from features
+PNP_MIN_INLIERS = 20  # fewer: no feature guess (12 let wrong guesses through on simulated walls)
 PNP_ITERATIONS = 300
-MAX_DEPTH_M = 8.0  # depth beyond this is too noisy to register (a Kinect's σ grows with z²)
-ICP_VOXELS_M = (0.10, 0.05)  # coarse-to-fine voxel sizes of the dense step
+PNP_SEED = 0  # OpenCV's RANSAC draws from its global generator: seeded before each call, for repeatable runs
+MAX_DEPTH_M = 8.0  # farther depth is left out
+ICP_VOXELS_M = (0.10, 0.05)  # coarse-to-fine voxel sizes of the depth clouds
 ICP_CORRESPONDENCE_VOXELS = 2.5  # a correspondence lies within this many voxels
+ICP_TUKEY_VOXELS = 1.0  # Tukey loss scale, in voxels
 ICP_ITERATIONS = (30, 20)
-ICP_MAX_SOURCE_POINTS = (5000, 5000)  # the moving cloud is thinned (strided) to at most this many points per scale
-ICP_START_MARGIN = 0.05  # another start must cover this much more of the cloud than the preferred one to win
-NORMAL_NEIGHBOURS = 20
-MIN_CORRESPONDENCES = 50
-TUKEY_VOXELS = 1.0
-REMAP = True
-DEDUPE = True
-YAW_OF_IDENTITY = False
-SELECT_LEVELS = 2
-ALWAYS_OTHERS = False
-ICP_MAX_CORRECTION_M = 0.75
-ICP_MAX_CORRECTION_DEG = 25.0
-DENSE_MAX_CORRECTION_M = 0.3
-DENSE_MAX_CORRECTION_DEG = 10.0
-MIN_FITNESS = 0.3
-DENSE = True
-IDENTITY_TOO = True
-HYBRID_DEPTH_DIFF = 0.07
-YAW_BASES = ("identity",)
-HYBRID_ITER = (20, 10, 5)
-DEGENERATE_EIGENVALUE = 0.02
-FLAT_EIGENVALUE = 0.06
-YAW_STARTS_DEG = (-30.0, -15.0, 15.0, 30.0)
+ICP_MAX_SOURCE_POINTS = (1500, 3000)  # the moving cloud is thinned (strided) to this many points per scale
+NORMAL_NEIGHBOURS = 20  # points in each normal's plane fit (12 tilted wall normals and the flatness test)
+MIN_CORRESPONDENCES = 50  # an ICP with fewer keeps its start
+START_TURNS_DEG = (-30.0, -15.0, 15.0, 30.0)  # fall-back starts: the previous motion turned by these
+START_MARGIN = 0.05  # a later start must overlap this much more of the cloud than the best so far
+GOOD_OVERLAP = 0.9  # a start whose ICP overlaps this much of the cloud ends the search
+ICP_MAX_JUMP = (0.75, 25.0)  # metres, degrees: an ICP moving its start further diverged (the start is kept)
+DENSE_MAX_JUMP = (0.3, 10.0)  # metres, degrees: the same for the dense step and the fine ICP scale
+DENSE_ITERATIONS = (20, 10, 5)  # per image-pyramid level, coarse to fine
+DENSE_DEPTH_DIFF_M = 0.07  # depth differences above this are no correspondence in the dense step
+POSE_DECIMALS = 9  # poses are rounded: Open3D's parallel sums differ in the last bits from run to run
+MIN_OVERLAP = 0.3  # share of the current cloud within 2.5 fine voxels of the previous one; below: the prior is kept
+FLAT_SHARE = 0.06  # a horizontal direction with less of the surface normals' weight is unmeasured
+SAME_POSE = (0.02, 1.0)  # metres, degrees: two ICP results this close are one
+FRAME_INTERVAL_S = 0.2  # frames closer in time than this to the last one used are skipped (see `odometry_frames`)
+# The odometry motion model's α1..α4 measured for this odometry at keyframe spacing on the paper floor's six drives
+# (docs/rgbd-odometry.md, "Noise model"); convert reports it for `--set odometry.alpha=…`.
+MEASURED_ALPHA = (0.1, 0.002, 0.05, 0.05)
 
 
 @dataclass(frozen=True)
 class PairOdometry:
     """The relative pose of one pair of consecutive frames and how it was found.
 
-    `T_prev_curr` (4, 4) maps the current camera's coordinates into the previous camera's. `start` is the dense step's
-    initial guess: "pnp", "previous" (the previous pair's motion) or "identity". `fitness` is the share of the current
-    frame's cloud within the finest correspondence distance of the previous one after ICP, `inlier_rmse_m` their RMS
-    point-to-point distance.
+    `T_prev_curr` (4, 4) maps the current camera's coordinates into the previous camera's. `start` is where the
+    winning depth alignment started: "pnp", "previous" (the previous pair's motion, maybe turned) or "identity".
+    `fitness` is the share of the current frame's cloud within 12.5 cm of the previous frame's after alignment (its
+    overlap), `inlier_rmse_m` those points' RMS distance. `measured_directions` counts the horizontal directions (0–2)
+    the depth measured; the prior's translation is kept along the others.
     """
 
     T_prev_curr: np.ndarray
@@ -84,11 +95,11 @@ class PairOdometry:
     start: str
     fitness: float
     inlier_rmse_m: float
-    constrained_dofs: int = 6
+    measured_directions: int
 
     @property
     def fell_back(self) -> bool:
-        """True when PnP gave no initial guess (the pose rests on the depth geometry alone)."""
+        """True when PnP gave no guess (too few features or inliers): the pose rests on depth and the motion prior."""
         return self.start != "pnp"
 
 
@@ -116,66 +127,89 @@ class RgbdOdometryResult:
 
     @property
     def fitness(self) -> np.ndarray:
-        """(N − 1,) ICP fitness of each pair."""
+        """(N − 1,) each pair's overlap after alignment (`PairOdometry.fitness`)."""
         return np.array([p.fitness for p in self.pairs], np.float64)
 
 
-@dataclass
-class _PreparedFrame:
-    """What a frame contributes to both of its pairs, computed once: ORB features and the voxelised clouds."""
+class _Alignment(NamedTuple):
+    """An Open3D registration result as plain values: (4, 4) pose, overlap share, RMS distance, (K, 2) index pairs
+    (current cloud, previous cloud)."""
 
-    keypoints_px: np.ndarray  # (K, 2)
+    T: np.ndarray
+    fitness: float
+    inlier_rmse_m: float
+    correspondences: np.ndarray
+
+
+@dataclass
+class PreparedFrame:
+    """What a frame contributes to both of its pairs, computed once (`RgbdOdometry.prepare`)."""
+
+    keypoints_px: np.ndarray  # (K, 2) ORB keypoints
     descriptors: np.ndarray | None  # (K, 32) uint8
-    keypoints_camera: np.ndarray  # (K, 3), NaN where the keypoint has no depth
-    clouds: list[o3d.geometry.PointCloud]  # one per ICP_VOXELS_M, with normals
-    rgbd: o3d.t.geometry.RGBDImage
+    keypoints_camera: np.ndarray  # (K, 3) camera-frame points, NaN where the keypoint has no depth
+    clouds: list[o3d.geometry.PointCloud]  # one per ICP_VOXELS_M, with normals towards the camera
+    rgbd: o3d.geometry.RGBDImage  # intensity and depth (metres, 0: none) for the dense step
 
 
 class RgbdOdometry:
-    """Frame-to-frame RGB-D odometry of one camera: feed frames in order with `add`, read the poses back."""
+    """Frame-to-frame RGB-D odometry of one camera: `prepare` each frame once, then `relative_pose` of pairs."""
 
     def __init__(
-        self, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, *, max_depth_m: float = MAX_DEPTH_M
+        self,
+        intrinsics: CameraIntrinsics,
+        T_base_camera: np.ndarray,
+        *,
+        max_depth_m: float = MAX_DEPTH_M,
+        nonholonomic: bool = True,
     ) -> None:
         self.intrinsics = intrinsics
+        self.nonholonomic = nonholonomic
         self.T_base_camera = np.asarray(T_base_camera, np.float64)
         self.max_depth_m = max_depth_m
-        self._K = o3d.core.Tensor(intrinsics.K)
+        self._pinhole = o3d.camera.PinholeCameraIntrinsic(
+            intrinsics.width, intrinsics.height, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
+        )
+        self._dense_option = o3d.pipelines.odometry.OdometryOption(
+            o3d.utility.IntVector(list(DENSE_ITERATIONS)), DENSE_DEPTH_DIFF_M, 0.0, max_depth_m
+        )
         self._orb = cv2.ORB_create(nfeatures=ORB_FEATURES, fastThreshold=ORB_FAST_THRESHOLD)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
 
-    def prepare(self, rgb: np.ndarray, depth_m: np.ndarray) -> _PreparedFrame:
+    def prepare(self, rgb: np.ndarray, depth_m: np.ndarray) -> PreparedFrame:
         """Features and clouds of one frame: (H, W, 3) uint8 RGB, (H, W) depth in metres (NaN or 0: no return)."""
         k = self.intrinsics
         depth = np.asarray(depth_m, np.float64)
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(depth) & (depth > 0) & (depth <= self.max_depth_m)
-        gray = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
-        keypoints, descriptors = self._orb.detectAndCompute(gray, None)
+        keypoints, descriptors = self._orb.detectAndCompute(
+            cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), None
+        )
         px = np.array([kp.pt for kp in keypoints], np.float64).reshape(-1, 2)
         u = np.clip(np.rint(px[:, 0]).astype(np.int64), 0, k.width - 1)
         v = np.clip(np.rint(px[:, 1]).astype(np.int64), 0, k.height - 1)
-        z = np.where(valid[v, u], depth[v, u], np.nan)
-        keypoints_camera = np.column_stack([(px[:, 0] - k.cx) / k.fx * z, (px[:, 1] - k.cy) / k.fy * z, z])
+        keypoints_camera = _backproject(px[:, 0], px[:, 1], np.where(valid[v, u], depth[v, u], np.nan), k)
 
         rows, cols = np.nonzero(valid)
-        z = depth[rows, cols]
-        points = np.column_stack([(cols - k.cx) / k.fx * z, (rows - k.cy) / k.fy * z, z])
-        full = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        full = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(_backproject(cols, rows, depth[rows, cols], k)))
         clouds = []
         for voxel in ICP_VOXELS_M:
             cloud = full.voxel_down_sample(voxel)
-            cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
-            cloud.orient_normals_towards_camera_location(np.zeros(3))
+            if len(cloud.points) >= MIN_CORRESPONDENCES:  # else the frame has no depth to align (see _icp)
+                cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
+                cloud.orient_normals_towards_camera_location(np.zeros(3))
             clouds.append(cloud)
-        image = o3d.t.geometry.RGBDImage(
-            o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(rgb))),
-            o3d.t.geometry.Image(o3d.core.Tensor(np.where(valid, depth, 0.0).astype(np.float32))),
+        rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.ascontiguousarray(rgb, np.uint8)),
+            o3d.geometry.Image(np.where(valid, depth, 0.0).astype(np.float32)),
+            depth_scale=1.0,
+            depth_trunc=self.max_depth_m,
+            convert_rgb_to_intensity=True,
         )
-        return _PreparedFrame(px, descriptors, keypoints_camera, clouds, image)
+        return PreparedFrame(px, descriptors, keypoints_camera, clouds, rgbd)
 
-    def pnp(self, prev: _PreparedFrame, curr: _PreparedFrame) -> tuple[np.ndarray | None, int, int]:
-        """ORB matches → PnP RANSAC: (T_prev_curr or None, matches, inliers)."""
+    def pnp(self, prev: PreparedFrame, curr: PreparedFrame) -> tuple[np.ndarray | None, int, int]:
+        """ORB matches → PnP RANSAC: (T_prev_curr or None when it failed, match count, inlier count)."""
         if prev.descriptors is None or curr.descriptors is None:
             return None, 0, 0
         matches = self._matcher.match(prev.descriptors, curr.descriptors)
@@ -185,7 +219,7 @@ class RgbdOdometry:
         i_prev, i_curr = i_prev[has_depth], i_curr[has_depth]
         if len(i_prev) < PNP_MIN_INLIERS:
             return None, len(matches), 0
-        cv2.setRNGSeed(0)
+        cv2.setRNGSeed(PNP_SEED)
         ok, rvec, tvec, inliers = cv2.solvePnPRansac(
             prev.keypoints_camera[i_prev],
             curr.keypoints_px[i_curr],
@@ -205,183 +239,150 @@ class RgbdOdometry:
         return np.linalg.inv(T_curr_prev), len(matches), n_inliers
 
     def relative_pose(
-        self, prev: _PreparedFrame, curr: _PreparedFrame, previous_motion: np.ndarray | None = None
+        self, prev: PreparedFrame, curr: PreparedFrame, previous_motion: np.ndarray | None = None
     ) -> PairOdometry:
-        """T_prev_curr of two prepared frames; `previous_motion` (4, 4) is the previous pair's, when there is one."""
+        """T_prev_curr of two prepared frames (steps 1–5 of the module docstring); `previous_motion` (4, 4) is the
+        previous pair's T_prev_curr, None for the first pair."""
         T_pnp, n_matches, n_inliers = self.pnp(prev, curr)
-        if T_pnp is not None and not ALWAYS_OTHERS:
-            starts = [("pnp", T_pnp)]
-        elif T_pnp is not None:
-            starts = (
-                [("pnp", T_pnp)]
-                + ([("previous", previous_motion)] if previous_motion is not None else [])
-                + [("identity", np.eye(4))]
-            )
-        else:
-            if YAW_OF_IDENTITY:
-                starts = ([("previous", previous_motion)] if previous_motion is not None else []) + [
-                    ("identity", np.eye(4))
-                ]
-                for d in YAW_STARTS_DEG:
-                    turn = np.linalg.inv(self.T_base_camera) @ _yaw_matrix(math.radians(d)) @ self.T_base_camera
-                    starts.append(("turn", turn))
-            else:
-                base_name, base = (
-                    ("previous", previous_motion) if previous_motion is not None else ("identity", np.eye(4))
-                )
-                starts = [(base_name, base)]
-                for d in YAW_STARTS_DEG:
-                    turn = np.linalg.inv(self.T_base_camera) @ _yaw_matrix(math.radians(d)) @ self.T_base_camera
-                    starts.append((base_name, turn @ base))
-                if base_name != "identity" and IDENTITY_TOO:
-                    starts.append(("identity", np.eye(4)))
-        best = None
-        converged: list[np.ndarray] = []
-        for name, T0 in starts:
-            result = self._icp(prev, curr, T0, 0)
-            T = np.asarray(result.transformation)
-            if DEDUPE and any(_close(T, other) for other in converged):
-                continue
-            converged.append(T)
-            for scale in range(1, SELECT_LEVELS):
-                result = self._icp(prev, curr, T, scale)
-                T = np.asarray(result.transformation)
-            fitness = result.fitness
-            if not _within(T, T0, ICP_MAX_CORRECTION_M, ICP_MAX_CORRECTION_DEG):
-                T, fitness = T0, 0.0
-            if best is None or fitness > best[3] + ICP_START_MARGIN:
-                best = (name, T0, T, fitness)
-        name, T0, T, icp_fitness = best
-        for scale in range(SELECT_LEVELS, len(ICP_VOXELS_M)):
-            result = self._icp(prev, curr, T, scale)
-            if _within(np.asarray(result.transformation), T, DENSE_MAX_CORRECTION_M, DENSE_MAX_CORRECTION_DEG):
-                T = np.asarray(result.transformation)
-        fitness, rmse = icp_fitness, 0.0
-        if DENSE:
-            T_dense, fitness, rmse = self._dense(prev, curr, T)
-            if _within(T_dense, T, DENSE_MAX_CORRECTION_M, DENSE_MAX_CORRECTION_DEG):
-                T = T_dense
-        n_constrained = 6
+        starts = [("pnp", T_pnp)] if T_pnp is not None else self._fallback_starts(previous_motion)
+
+        # Depth alignment from each start until one overlaps well; the first best (by a margin) wins. Candidates are
+        # compared with the prior's translation along the directions depth cannot measure (step 5): there a smaller
+        # motion overlaps more without being any more right.
+        prior_name, prior = starts[0]
+        best: tuple[str, np.ndarray, float] | None = None
+        seen: list[np.ndarray] = []
+        for name, T_start in starts:
+            T = self._icp(prev, curr, T_start, 0).T
+            if any(_pose_distance(T, other) < 1.0 for other in seen):
+                continue  # converged where an earlier start did
+            seen.append(T)
+            fine = self._icp(prev, curr, T, 1)
+            T = fine.T if _pose_distance(fine.T, T_start, ICP_MAX_JUMP) <= 1.0 else T_start
+            overlap = self._evaluate(prev, curr, self._keep_prior_where_flat(prev, curr, prior, T)[0]).fitness
+            if best is None or overlap > best[2] + START_MARGIN:
+                best = (name, T, overlap)
+            if best[2] >= GOOD_OVERLAP:
+                break
+        assert best is not None
+        name, T, _ = best
+
+        # Photometric + depth refinement, then what depth could not measure is taken from the prior.
+        T_dense = self._dense(prev, curr, T)
+        if _pose_distance(T_dense, T, DENSE_MAX_JUMP) <= 1.0:
+            T = T_dense
+        T, measured = self._keep_prior_where_flat(prev, curr, prior, T)
         check = self._evaluate(prev, curr, T)
-        if check.fitness < MIN_FITNESS:
-            return PairOdometry(np.asarray(T0).copy(), n_matches, n_inliers, name, check.fitness, rmse, 0)
-        if REMAP:
-            T, n_constrained = self._keep_prior_where_flat(prev, T0, T, check)
-        return PairOdometry(T, n_matches, n_inliers, name, check.fitness, check.inlier_rmse, n_constrained)
-
-    def _keep_prior_where_flat(self, prev, T_prior, T, check):
-        """Planar remap: along a horizontal base direction that no surface faces, keep the prior's translation."""
-        corr = np.asarray(check.correspondence_set)
-        Tbc = self.T_base_camera
-        inv = np.linalg.inv(Tbc)
-        if len(corr) < MIN_CORRESPONDENCES:
-            return np.asarray(T_prior).copy(), 0
-        scale = len(ICP_VOXELS_M) - 1
-        n = np.asarray(prev.clouds[scale].normals)[corr[:, 1]] @ Tbc[:3, :3].T
-        H = n[:, :2].T @ n[:, :2] / len(n)
-        eigenvalues, V = np.linalg.eigh(H)
-        weak = V[:, eigenvalues < FLAT_EIGENVALUE]
-        if weak.shape[1] == 0:
-            return T, 2
-        Tb = Tbc @ T @ inv
-        Tb0 = Tbc @ T_prior @ inv
-        Tb[:2, 3] += weak @ (weak.T @ (Tb0[:2, 3] - Tb[:2, 3]))
-        if weak.shape[1] == 2:
-            Tb[:3, :3] = Tb0[:3, :3]
-        return inv @ Tb @ Tbc, 2 - weak.shape[1]
-
-    def _evaluate(self, prev, curr, T):
-        reg = o3d.pipelines.registration
-        scale = len(ICP_VOXELS_M) - 1
-        source = curr.clouds[scale]
-        cap = ICP_MAX_SOURCE_POINTS[scale]
-        if len(source.points) > cap:
-            source = source.uniform_down_sample(math.ceil(len(source.points) / cap))
-        return reg.evaluate_registration(source, prev.clouds[scale], ICP_CORRESPONDENCE_VOXELS * ICP_VOXELS_M[scale], T)
-
-    def _dense(self, prev, curr, init):
-        todo = o3d.t.pipelines.odometry
-        criteria = [todo.OdometryConvergenceCriteria(m) for m in HYBRID_ITER]
-        try:
-            r = todo.rgbd_odometry_multi_scale(
-                curr.rgbd,
-                prev.rgbd,
-                self._K,
-                o3d.core.Tensor(np.asarray(init, np.float64)),
-                1.0,
-                self.max_depth_m,
-                criteria,
-                todo.Method.Hybrid,
-                todo.OdometryLossParams(HYBRID_DEPTH_DIFF, 0.05, 0.1),
+        if check.fitness < MIN_OVERLAP:  # nothing measured: the prior itself
+            return PairOdometry(
+                np.array(prior), n_matches, n_inliers, prior_name, check.fitness, check.inlier_rmse_m, 0
             )
-        except RuntimeError:
-            return np.asarray(init), 0.0, 0.0
-        return r.transformation.numpy(), float(r.fitness), float(r.inlier_rmse)
+        return PairOdometry(T, n_matches, n_inliers, name, check.fitness, check.inlier_rmse_m, measured)
 
-    def _keep_start_where_degenerate(self, prev, curr, T_start, T_icp, result) -> tuple[np.ndarray, int]:
-        corr = np.asarray(result.correspondence_set)
-        if len(corr) < MIN_CORRESPONDENCES:
-            return np.asarray(T_start).copy(), 0
-        scale = len(ICP_VOXELS_M) - 1
-        source = curr.clouds[scale]
-        if len(source.points) > ICP_MAX_SOURCE_POINTS:
-            source = source.uniform_down_sample(math.ceil(len(source.points) / ICP_MAX_SOURCE_POINTS))
-        p = np.asarray(source.points)[corr[:, 0]] @ T_icp[:3, :3].T + T_icp[:3, 3]
-        n = np.asarray(prev.clouds[scale].normals)[corr[:, 1]]
-        length = float(np.sqrt(np.mean(np.sum(p**2, axis=1))))
-        J = np.hstack([np.cross(p, n) / length, n])
-        H = J.T @ J / len(J)
-        eigenvalues, V = np.linalg.eigh(H)
-        constrained = V[:, eigenvalues >= DEGENERATE_EIGENVALUE]
-        delta = T_icp @ np.linalg.inv(T_start)
-        rotvec = cv2.Rodrigues(delta[:3, :3])[0].ravel()
-        y = np.concatenate([rotvec * length, delta[:3, 3]])
-        y = constrained @ (constrained.T @ y)
-        T = np.eye(4)
-        T[:3, :3] = cv2.Rodrigues(y[:3] / length)[0]
-        T[:3, 3] = y[3:]
-        return T @ T_start, constrained.shape[1]
+    def _fallback_starts(self, previous_motion: np.ndarray | None) -> list[tuple[str, np.ndarray]]:
+        """The previous motion (or none), it turned by each of START_TURNS_DEG about the base's z, and no motion."""
+        name, base = ("previous", previous_motion) if previous_motion is not None else ("identity", np.eye(4))
+        starts = [(name, np.asarray(base, np.float64))]
+        T_camera_base = np.linalg.inv(self.T_base_camera)
+        for turn_deg in START_TURNS_DEG:
+            turn = T_camera_base @ _yaw_matrix(math.radians(turn_deg)) @ self.T_base_camera
+            starts.append((name, turn @ starts[0][1]))
+        if name != "identity":
+            starts.append(("identity", np.eye(4)))
+        return starts
 
-    def _hybrid(self, prev, curr, init):
-        k = self.intrinsics
-        pin = o3d.camera.PinholeCameraIntrinsic(k.width, k.height, k.fx, k.fy, k.cx, k.cy)
-        opt = o3d.pipelines.odometry.OdometryOption()
-        opt.depth_max = self.max_depth_m
-        opt.depth_diff_max = HYBRID_DEPTH_DIFF
-        opt.iteration_number_per_pyramid_level = o3d.utility.IntVector(list(HYBRID_ITER))
-        ok, T, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
-            curr.rgbd, prev.rgbd, pin, init, o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(), opt
-        )
-        return np.asarray(T) if ok else init
-
-    def _icp(self, prev: _PreparedFrame, curr: _PreparedFrame, init: np.ndarray, scale: int):
-        reg = o3d.pipelines.registration
-        source = curr.clouds[scale]
+    def _source(self, curr: PreparedFrame, scale: int) -> o3d.geometry.PointCloud:
+        cloud = curr.clouds[scale]
         cap = ICP_MAX_SOURCE_POINTS[scale]
-        if len(source.points) > cap:
-            source = source.uniform_down_sample(math.ceil(len(source.points) / cap))
+        return cloud.uniform_down_sample(math.ceil(len(cloud.points) / cap)) if len(cloud.points) > cap else cloud
+
+    def _icp(self, prev: PreparedFrame, curr: PreparedFrame, init: np.ndarray, scale: int) -> _Alignment:
+        """Point-to-plane ICP of the current cloud onto the previous one at one scale; with too few correspondences
+        (no overlap, no depth) the pose stays at `init`."""
+        reg = o3d.pipelines.registration
+        voxel = ICP_VOXELS_M[scale]
+        init = np.asarray(init, np.float64)
+        source, target = self._source(curr, scale), prev.clouds[scale]
+        if len(source.points) < MIN_CORRESPONDENCES or len(target.points) < MIN_CORRESPONDENCES:
+            return _Alignment(init, 0.0, 0.0, np.zeros((0, 2), np.int64))
         result = reg.registration_icp(
             source,
-            prev.clouds[scale],
-            ICP_CORRESPONDENCE_VOXELS * ICP_VOXELS_M[scale],
-            np.asarray(init, np.float64),
-            reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=TUKEY_VOXELS * ICP_VOXELS_M[scale])),
+            target,
+            ICP_CORRESPONDENCE_VOXELS * voxel,
+            init,
+            reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=ICP_TUKEY_VOXELS * voxel)),
             reg.ICPConvergenceCriteria(max_iteration=ICP_ITERATIONS[scale]),
         )
-        if len(result.correspondence_set) < MIN_CORRESPONDENCES:
-            result.transformation = np.asarray(init, np.float64)
-        return result
+        correspondences = np.asarray(result.correspondence_set, np.int64).reshape(-1, 2)
+        T = np.round(result.transformation, POSE_DECIMALS) if len(correspondences) >= MIN_CORRESPONDENCES else init
+        return _Alignment(T, float(result.fitness), float(result.inlier_rmse), correspondences)
+
+    def _evaluate(self, prev: PreparedFrame, curr: PreparedFrame, T: np.ndarray) -> _Alignment:
+        """Overlap and correspondences of the fine clouds at pose T (no alignment)."""
+        scale = len(ICP_VOXELS_M) - 1
+        source, target = self._source(curr, scale), prev.clouds[scale]
+        if len(source.points) < MIN_CORRESPONDENCES or len(target.points) < MIN_CORRESPONDENCES:
+            return _Alignment(np.asarray(T), 0.0, 0.0, np.zeros((0, 2), np.int64))
+        result = o3d.pipelines.registration.evaluate_registration(
+            source, target, ICP_CORRESPONDENCE_VOXELS * ICP_VOXELS_M[scale], T
+        )
+        correspondences = np.asarray(result.correspondence_set, np.int64).reshape(-1, 2)
+        return _Alignment(np.asarray(T), float(result.fitness), float(result.inlier_rmse), correspondences)
+
+    def _dense(self, prev: PreparedFrame, curr: PreparedFrame, init: np.ndarray) -> np.ndarray:
+        """Open3D's RGB-D odometry (hybrid photometric + depth term, image pyramid) from `init`; `init` itself when it
+        does not converge."""
+        odometry = o3d.pipelines.odometry
+        ok, T, _ = odometry.compute_rgbd_odometry(
+            curr.rgbd,
+            prev.rgbd,
+            self._pinhole,
+            np.asarray(init, np.float64),
+            odometry.RGBDOdometryJacobianFromHybridTerm(),
+            self._dense_option,
+        )
+        return np.round(T, POSE_DECIMALS) if ok else np.asarray(init)
+
+    def _keep_prior_where_flat(
+        self, prev: PreparedFrame, curr: PreparedFrame, T_prior: np.ndarray, T: np.ndarray
+    ) -> tuple[np.ndarray, int]:
+        """T with its base-frame translation replaced by the prior's along the horizontal directions that too few
+        surface normals of the overlap face (their share of the normals' horizontal scatter below FLAT_SHARE), and the
+        count of the others (0–2). With none measured the prior's rotation is kept too. A wheeled base's prior moves
+        sideways only as its arc does (`nonholonomic`)."""
+        correspondences = self._evaluate(prev, curr, T).correspondences
+        if len(correspondences) < MIN_CORRESPONDENCES:
+            return np.array(T_prior), 0
+        normals_base = np.asarray(prev.clouds[-1].normals)[correspondences[:, 1]] @ self.T_base_camera[:3, :3].T
+        horizontal = normals_base[:, :2]
+        share, directions = np.linalg.eigh(horizontal.T @ horizontal / len(horizontal))
+        flat = directions[:, share < FLAT_SHARE]
+        if flat.shape[1] == 0:
+            return np.asarray(T), 2
+        T_camera_base = np.linalg.inv(self.T_base_camera)
+        T_base = self.T_base_camera @ T @ T_camera_base
+        T_base_prior = self.T_base_camera @ T_prior @ T_camera_base
+        if flat.shape[1] == 2:
+            T_base[:3, :3] = T_base_prior[:3, :3]
+        prior_xy = T_base_prior[:2, 3].copy()
+        if self.nonholonomic:  # a wheeled base moves along an arc: sideways by forward · tan(Δyaw / 2)
+            prior_xy[1] = prior_xy[0] * math.tan(math.atan2(T_base[1, 0], T_base[0, 0]) / 2)
+        T_base[:2, 3] += flat @ (flat.T @ (prior_xy - T_base[:2, 3]))
+        return T_camera_base @ T_base @ self.T_base_camera, 2 - flat.shape[1]
 
 
-def _within(a: np.ndarray, b: np.ndarray, metres: float, degrees: float) -> bool:
+def _backproject(u: np.ndarray, v: np.ndarray, z: np.ndarray, k: CameraIntrinsics) -> np.ndarray:
+    """(N, 3) camera-frame points of pixels (u, v) at depth z (the pinhole model; NaN depth gives NaN points)."""
+    z = np.asarray(z, np.float64)
+    return np.column_stack([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z])
+
+
+def _pose_distance(a: np.ndarray, b: np.ndarray, scale: tuple[float, float] = SAME_POSE) -> float:
+    """How far apart two (4, 4) poses are in units of `scale` (metres, degrees): the larger of the translation and
+    rotation ratios, so ≤ 1 means within both limits."""
     D = np.linalg.inv(a) @ b
-    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))
-    return bool(np.linalg.norm(D[:3, 3]) <= metres and angle <= math.radians(degrees))
-
-
-def _close(a: np.ndarray, b: np.ndarray) -> bool:
-    D = np.linalg.inv(a) @ b
-    return np.linalg.norm(D[:3, 3]) < 0.02 and np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)) < 0.02
+    angle_deg = math.degrees(math.acos(float(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))))
+    return max(float(np.linalg.norm(D[:3, 3])) / scale[0], angle_deg / scale[1])
 
 
 def _yaw_matrix(yaw: float) -> np.ndarray:
@@ -390,7 +391,10 @@ def _yaw_matrix(yaw: float) -> np.ndarray:
     return T
 
 
-def chain_relative_poses(T_prev_curr: list[np.ndarray] | np.ndarray) -> np.ndarray:
+# ------------------------------------------------------------------------------------------ sequences
+
+
+def chain_relative_poses(T_prev_curr: SequenceOf[np.ndarray] | np.ndarray) -> np.ndarray:
     """(N, 4, 4) T_cam0_camk from N − 1 relative poses T_cam(k−1)_camk (frame 0 is the identity)."""
     poses = [np.eye(4)]
     for T in T_prev_curr:
@@ -411,36 +415,134 @@ def planar_odometry(
     return planar_from_matrices(T_odom_base, what="RGB-D odometry", max_tilt_deg=max_tilt_deg)
 
 
-def rgbd_odometry(
-    sequence: Sequence, *, max_depth_m: float = MAX_DEPTH_M, show_progress: bool = True
-) -> RgbdOdometryResult:
-    """RGB-D odometry of every frame of `sequence`, with its intrinsics and camera mount (see the module docstring).
+def odometry_frames(timestamps: np.ndarray, min_interval_s: float = FRAME_INTERVAL_S) -> np.ndarray:
+    """Indices of the frames the odometry runs on: the first, then each frame at least `min_interval_s` after the last
+    one taken. A 30 Hz recording is processed at 5 Hz: pairs 0.2 s apart move a few tens of centimetres at walking
+    speed, well within what a pair can take (0.7 m, 30°), and fewer pairs drift less and cost a sixth of the time."""
+    timestamps = np.asarray(timestamps, np.float64)
+    keep, last = [], -math.inf
+    for i, t in enumerate(timestamps):
+        if t - last >= min_interval_s - 1e-3:  # stamps near 1.7e9 s are good to 1e-7 s only
+            keep.append(i)
+            last = t
+    return np.asarray(keep, np.int64)
 
-    Frames should lie about a keyframe apart (0.5 m or 15°) or closer; pairs up to about 0.7 m and 25° apart work.
+
+def rgbd_odometry(
+    sequence: Sequence, *, max_depth_m: float = MAX_DEPTH_M, nonholonomic: bool = True, show_progress: bool = True
+) -> RgbdOdometryResult:
+    """RGB-D odometry of every frame of `sequence`, with its intrinsics and camera mount (module docstring).
+
+    Made for keyframes (0.5 m or 15° apart, pairs up to about 0.7 m and 30° apart work); closer frames work too.
+    `nonholonomic=False` for a handheld camera (its base may step sideways). Give the sequence its odometry with
+    `sequence.with_odometry(result.odom_poses)`.
     """
-    odometry = RgbdOdometry(sequence.meta.intrinsics, sequence.meta.T_base_camera, max_depth_m=max_depth_m)
+    odometry = RgbdOdometry(
+        sequence.meta.intrinsics, sequence.meta.T_base_camera, max_depth_m=max_depth_m, nonholonomic=nonholonomic
+    )
     pairs: list[PairOdometry] = []
     prev = None
-    frames = range(len(sequence))
-    for i in progress(frames, desc="RGB-D odometry", unit="frame") if show_progress else frames:
+    rows = range(len(sequence))
+    for i in progress(rows, desc="RGB-D odometry", unit="frame") if show_progress else rows:
         frame = sequence[i]
         curr = odometry.prepare(frame.rgb, frame.depth_m)
         if prev is not None:
-            pair = odometry.relative_pose(prev, curr, pairs[-1].T_prev_curr if pairs else None)
-            pairs.append(pair)
-            if pair.fell_back:
-                log.debug(
-                    "%s frame %d: PnP failed (%d inliers), ICP from %s", sequence, i, pair.pnp_inliers, pair.start
-                )
+            pairs.append(odometry.relative_pose(prev, curr, pairs[-1].T_prev_curr if pairs else None))
         prev = curr
     T_cam0_cam = chain_relative_poses([p.T_prev_curr for p in pairs])
-    poses = planar_odometry(T_cam0_cam, sequence.meta.T_base_camera)
-    n_fell_back = sum(p.fell_back for p in pairs)
-    if n_fell_back:
-        log.info(
-            "%s: %d of %d pairs without a PnP guess (ICP from the previous motion or none)",
-            sequence,
-            n_fell_back,
-            len(pairs),
-        )
-    return RgbdOdometryResult(poses, T_cam0_cam, pairs)
+    result = RgbdOdometryResult(planar_odometry(T_cam0_cam, sequence.meta.T_base_camera), T_cam0_cam, pairs)
+    log.info(
+        "%s: RGB-D odometry of %d frames; %d of %d pairs without a PnP guess, %d with low overlap",
+        sequence.meta.name,
+        len(sequence),
+        int(result.fell_back.sum()),
+        len(pairs),
+        int((result.fitness < MIN_OVERLAP).sum()),
+    )
+    return result
+
+
+# ------------------------------------------------------------------------------------------ noise model
+
+
+@dataclass(frozen=True)
+class OdometryNoise:
+    """Per-step error of planar odometry against ground truth, and the odometry motion model's α that it implies.
+
+    `trans_err_ratio`: RMS error of the step length over its true length (steps ≥ `MIN_STEP_M`); `yaw_err_deg`: RMS
+    heading error per step; `yaw_err_deg_per_m`: RMS heading error per metre over straight steps (turn < 5°);
+    `yaw_err_per_turn`: RMS heading error over the turn's size (turns ≥ 5°). `alpha` (4,) is α1..α4 (Thrun et al.,
+    Table 5.6) fitted to the squared errors by non-negative least squares; `drift_pct` the final position error as a
+    share of the path length, per sequence.
+    """
+
+    steps: int
+    trans_err_ratio: float
+    yaw_err_deg: float
+    yaw_err_deg_per_m: float
+    yaw_err_per_turn: float
+    alpha: np.ndarray
+    drift_pct: list[float]
+
+
+MIN_STEP_M = 0.1  # shorter steps are left out of the per-length ratios
+STRAIGHT_TURN_RAD = math.radians(5.0)
+
+
+def odometry_noise(odometry: SequenceOf[np.ndarray], ground_truth: SequenceOf[np.ndarray]) -> OdometryNoise:
+    """Compare (N, 3) odometry poses with (N, 3) ground-truth poses (x, y, yaw), one pair of arrays per sequence.
+
+    Per step, the increments (δrot1, δtrans, δrot2) of both (`bimfactor.odometry.odometry_increments`) are compared:
+    heading error e_yaw = Δ(δrot1 + δrot2), length error e_trans = Δδtrans. The model's variances, with the true
+    increments, are var(e_yaw) = α1 (δrot1² + δrot2²) + 2 α2 δtrans² and var(e_trans) = α3 δtrans² + α4 (δrot1² +
+    δrot2²); α comes from a non-negative least-squares fit of the squared errors to these (so failures count fully).
+    """
+    rows, drift = [], []
+    for est, gt in zip(odometry, ground_truth, strict=True):
+        est, gt = np.asarray(est, np.float64), np.asarray(gt, np.float64)
+        inc_est, inc_gt = odometry_increments(est), odometry_increments(gt)
+        e_yaw = wrap_angle(np.diff(est[:, 2]) - np.diff(gt[:, 2]))
+        rows.append(np.column_stack([inc_gt, e_yaw, inc_est[:, 1] - inc_gt[:, 1]]))
+        path = float(np.hypot(*np.diff(gt[:, :2], axis=0).T).sum())
+        aligned = _align_start(est, gt[0])
+        drift.append(100.0 * float(np.hypot(*(aligned[-1, :2] - gt[-1, :2]))) / max(path, 1e-9))
+    rot1, trans, rot2, e_yaw, e_trans = np.concatenate(rows).T
+    turn_sq = rot1**2 + rot2**2
+    a12, _ = nnls(np.column_stack([turn_sq, 2 * trans**2]), e_yaw**2)
+    a34, _ = nnls(np.column_stack([trans**2, turn_sq]), e_trans**2)
+    moving = np.abs(trans) >= MIN_STEP_M
+    turn = np.abs(wrap_angle(rot1 + rot2))
+    straight = moving & (turn < STRAIGHT_TURN_RAD)
+    turning = turn >= STRAIGHT_TURN_RAD
+    return OdometryNoise(
+        steps=len(trans),
+        trans_err_ratio=_rms(e_trans[moving] / np.abs(trans[moving])),
+        yaw_err_deg=math.degrees(_rms(e_yaw)),
+        yaw_err_deg_per_m=math.degrees(_rms(e_yaw[straight] / np.abs(trans[straight]))),
+        yaw_err_per_turn=_rms(e_yaw[turning] / turn[turning]),
+        alpha=np.array([a12[0], a12[1], a34[0], a34[1]]),
+        drift_pct=drift,
+    )
+
+
+def benchmark_rgbd_odometry(
+    sequences: SequenceOf[Sequence], *, max_depth_m: float = MAX_DEPTH_M, show_progress: bool = False
+) -> tuple[OdometryNoise, list[RgbdOdometryResult]]:
+    """RGB-D odometry of each sequence (with ground truth on every frame, e.g. simulated) and its `odometry_noise`."""
+    results, truths = [], []
+    for sequence in sequences:
+        gt = sequence.ground_truth()
+        if gt is None or np.isnan(gt).any():
+            raise InputError(f"{sequence.meta.name}: the benchmark needs ground truth on every frame")
+        results.append(rgbd_odometry(sequence, max_depth_m=max_depth_m, show_progress=show_progress))
+        truths.append(gt)
+    return odometry_noise([r.odom_poses for r in results], truths), results
+
+
+def _align_start(odometry: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """(N, 3) odometry poses moved rigidly so that the first lies on `start` (3,)."""
+    return se2_compose(start, se2_between(odometry[0], odometry))
+
+
+def _rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(values)))) if len(values) else float("nan")
