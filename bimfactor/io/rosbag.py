@@ -7,6 +7,9 @@ What is read (the topic keys of `RosbagConfig`, io.rosbag; a key left "" is foun
   message has a colour encoding (several: those named color/colour/rgb);
 - depth: sensor_msgs/Image in 16UC1 / mono16 millimetres (0 = no return) or 32FC1 metres (NaN, ±inf, ≤ 0 = no
   return); found by encoding 16UC1 / 32FC1 (several: those named depth, then aligned);
+- either as sensor_msgs/CompressedImage, as image_transport writes it: `compressed` (JPEG or PNG, decoded by OpenCV)
+  and `compressedDepth` (its 12-byte header, then a 16-bit PNG of millimetres or of 32FC1's quantised inverse depth;
+  the RVL codec is refused). A decoded message reads as the Image it was (`decoded_image`), so the rest is the same;
 - CameraInfo of the colour camera (the colour topic's sibling `camera_info`, else the one with its frame_id): K gives
   the intrinsics, a plumb_bob or rational_polynomial distortion is undistorted with OpenCV (colour bilinear, depth at
   the nearest pixel), another model with non-zero coefficients is refused. A topic whose name says "rect" is
@@ -65,6 +68,7 @@ log = logging.getLogger(__name__)
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
+IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
@@ -591,7 +595,10 @@ class _FirstMessages:
     def __call__(self, topic: str) -> Any:
         if topic not in self._first:
             message = next(iter(self._reader.messages(connections=self._connections[topic])), None)
-            self._first[topic] = None if message is None else self._reader.deserialize(message[2], message[0].msgtype)
+            msg = None if message is None else self._reader.deserialize(message[2], message[0].msgtype)
+            if msg is not None and message[0].msgtype == COMPRESSED_IMAGE_TYPE:
+                msg = decoded_image(msg, f"{topic}, its first message")
+            self._first[topic] = msg
         return self._first[topic]
 
 
@@ -609,8 +616,8 @@ def _image_topic(
     if named:
         if named not in topics:
             raise InputError(f"{path}: topic {named} (io.rosbag.{key}) is not in the bag; it has: {_listing(topics)}")
-        if topics[named] != IMAGE_TYPE:
-            raise InputError(f"{path}: topic {named} carries {topics[named]}, expected {IMAGE_TYPE}")
+        if topics[named] not in IMAGE_TYPES:
+            raise InputError(f"{path}: topic {named} carries {topics[named]}, expected {' or '.join(IMAGE_TYPES)}")
         msg = first(named)
         if msg is None:
             raise InputError(f"{path}: no messages on {named}")
@@ -619,7 +626,7 @@ def _image_topic(
                 f"{path}: {role} encoding {msg.encoding!r} on {named} not supported ({', '.join(encodings)})"
             )
         return named
-    images = sorted(t for t, m in topics.items() if m == IMAGE_TYPE)
+    images = sorted(t for t, m in topics.items() if m in IMAGE_TYPES)
     if role == "colour":
         candidates = [t for t in images if first(t) is not None and first(t).encoding.lower() in RGB_ENCODINGS]
         preferences: tuple[tuple[str, ...], ...] = (("color", "colour", "rgb"),)
@@ -627,12 +634,15 @@ def _image_topic(
         encodings = FOUND_DEPTH_ENCODINGS
         candidates = [t for t in images if first(t) is not None and first(t).encoding in encodings]
         preferences = (("depth",), ("aligned",))
+    # a stream recorded both raw and through image_transport (…/image_raw and …/image_raw/compressed): the raw one
+    candidates = [
+        t for t in candidates if not (topics[t] == COMPRESSED_IMAGE_TYPE and t.rsplit("/", 1)[0] in candidates)
+    ]
     if not candidates:
         seen = ", ".join(f"{t} ({first(t).encoding if first(t) is not None else 'empty'})" for t in images) or "none"
-        compressed = sorted(t for t, m in topics.items() if m == COMPRESSED_IMAGE_TYPE)
-        unread = f"; compressed images are not read ({', '.join(compressed)}): record them raw" if compressed else ""
         raise InputError(
-            f"{path}: no {role} image topic (sensor_msgs/Image in {', '.join(encodings)}); Image topics: {seen}{unread}"
+            f"{path}: no {role} image topic (sensor_msgs/Image or CompressedImage in {', '.join(encodings)}); image "
+            f"topics: {seen}"
         )
     return _one_of(path, role, key, candidates, preferences, found)
 
@@ -977,8 +987,76 @@ def _stamp_or_log(msg: Any, log_ns: int) -> int:
 # ------------------------------------------------------------------------------------------ images
 
 
+@dataclass(frozen=True)
+class DecodedImage:
+    """A sensor_msgs/CompressedImage decoded: the fields of the sensor_msgs/Image it was."""
+
+    header: Any
+    height: int
+    width: int
+    encoding: str
+    is_bigendian: int
+    step: int
+    data: np.ndarray
+
+
+# compressedDepth's header (image_transport's ConfigHeader): int32 format, float32 depthQuantA, depthQuantB
+_COMPRESSED_DEPTH_HEADER = np.dtype([("format", "<i4"), ("quant_a", "<f4"), ("quant_b", "<f4")])
+
+
+def decoded_image(msg: Any, where: str) -> Any:
+    """A sensor_msgs/CompressedImage as the Image it was (`DecodedImage`); an Image as it is.
+
+    `compressed` (format e.g. "rgb8; jpeg compressed bgr8", or just "jpeg"): OpenCV decodes it unchanged, 8-bit
+    colour as bgr8 / bgra8, 16-bit single channel as 16UC1. `compressedDepth` ("16UC1; compressedDepth png" or
+    "32FC1; compressedDepth png"): a 12-byte header before a 16-bit PNG; 16UC1 is millimetres as they were, 32FC1
+    was quantised as inverse depth, depth = quant_a / (value − quant_b) with 0 no return.
+    """
+    if not hasattr(msg, "format"):
+        return msg
+    fmt = str(msg.format)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if "compresseddepth" in fmt.lower():
+        if "rvl" in fmt.lower():
+            raise InputError(f"{where}: depth compressed with RVL ({fmt!r}) is not read: record it raw or as png")
+        if data.size <= _COMPRESSED_DEPTH_HEADER.itemsize:
+            raise FormatError(f"{where}: compressedDepth message of {data.size} bytes has no image")
+        header = data[: _COMPRESSED_DEPTH_HEADER.itemsize].view(_COMPRESSED_DEPTH_HEADER)[0]
+        pixels = _imdecode(data[_COMPRESSED_DEPTH_HEADER.itemsize :], fmt, where)
+        if pixels.dtype != np.uint16 or pixels.ndim != 2:
+            raise FormatError(f"{where}: compressedDepth {fmt!r} did not decode to a 16-bit single-channel image")
+        if fmt.split(";")[0].strip() == "32FC1":
+            value = pixels.astype(np.float32)
+            with np.errstate(divide="ignore"):
+                depth = np.float32(header["quant_a"]) / (value - np.float32(header["quant_b"]))
+            depth[pixels == 0] = np.nan
+            return _as_image(msg.header, depth.astype(np.float32), "32FC1")
+        return _as_image(msg.header, pixels, "16UC1")
+    pixels = _imdecode(data, fmt, where)
+    if pixels.dtype == np.uint16 and pixels.ndim == 2:
+        return _as_image(msg.header, pixels, "16UC1")
+    if pixels.dtype == np.uint8 and pixels.ndim == 3:
+        return _as_image(msg.header, pixels, "bgr8" if pixels.shape[2] == 3 else "bgra8")
+    shape = "x".join(str(n) for n in pixels.shape)
+    return _as_image(msg.header, pixels, f"{pixels.dtype}, shape {shape}")
+
+
+def _imdecode(data: np.ndarray, fmt: str, where: str) -> np.ndarray:
+    pixels = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if pixels is None:
+        raise FormatError(f"{where}: a CompressedImage ({fmt!r}) that OpenCV cannot decode")
+    return pixels
+
+
+def _as_image(header: Any, pixels: np.ndarray, encoding: str) -> DecodedImage:
+    h, w = pixels.shape[:2]
+    rows = np.ascontiguousarray(pixels).reshape(h, -1).view(np.uint8)
+    return DecodedImage(header, h, w, encoding, 0 if np.little_endian else 1, rows.shape[1], rows.reshape(-1))
+
+
 def rgb_image(msg: Any, where: str) -> np.ndarray:
-    """sensor_msgs/Image in rgb8 / bgr8 / rgba8 / bgra8 → (H, W, 3) uint8 RGB."""
+    """sensor_msgs/Image (or a CompressedImage, `decoded_image`) in rgb8, bgr8, rgba8, bgra8 → (H, W, 3) uint8 RGB."""
+    msg = decoded_image(msg, where)
     encoding = msg.encoding.lower()
     if encoding not in RGB_ENCODINGS:
         raise InputError(f"{where}: colour encoding {msg.encoding!r} not supported ({', '.join(RGB_ENCODINGS)})")
@@ -991,7 +1069,9 @@ def rgb_image(msg: Any, where: str) -> np.ndarray:
 
 
 def depth_image(msg: Any, where: str) -> np.ndarray:
-    """sensor_msgs/Image in 16UC1 / mono16 (mm) or 32FC1 (m) → (H, W) float32 metres, NaN = no return."""
+    """sensor_msgs/Image (or a CompressedImage, `decoded_image`) in 16UC1 / mono16 (mm) or 32FC1 (m) → (H, W)
+    float32 metres, NaN = no return."""
+    msg = decoded_image(msg, where)
     encoding = msg.encoding
     if encoding in ("16UC1", "mono16"):
         return depth_from_mm(_pixels(msg, np.dtype(np.uint16), 1, where), DEPTH_SCALE_PER_M)

@@ -78,6 +78,22 @@ class TestBag:
         )
         self.add(topic, "sensor_msgs/msg/Image", msg, t_ns)
 
+    def compressed(self, topic: str, t_ns: int, pixels: np.ndarray, fmt: str, frame_id: str) -> None:
+        """A CompressedImage as image_transport writes it: `fmt` "rgb8; jpeg compressed bgr8" encodes an RGB image as
+        JPEG, "16UC1; compressedDepth png" a millimetre image as compressedDepth (its 12-byte header, then PNG)."""
+        import cv2
+
+        if "compressedDepth" in fmt:
+            ok, body = cv2.imencode(".png", pixels)
+            header = np.array([(0, 0.0, 0.0)], dtype=[("f", "<i4"), ("a", "<f4"), ("b", "<f4")]).view(np.uint8)
+            data = np.concatenate([header, body.ravel()])
+        else:
+            ok, body = cv2.imencode(".jpg", cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+            data = body.ravel()
+        assert ok
+        msg = self.T["sensor_msgs/msg/CompressedImage"](header=self.header(t_ns, frame_id), format=fmt, data=data)
+        self.add(topic, "sensor_msgs/msg/CompressedImage", msg, t_ns)
+
     def depth_mm(self, topic: str, t_ns: int, depth_m: np.ndarray, frame_id: str) -> None:
         """A 16UC1 depth image in millimetres (NaN → 0, no return)."""
         mm = np.nan_to_num(np.rint(np.asarray(depth_m, np.float64) * 1000.0), nan=0.0)

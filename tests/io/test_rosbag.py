@@ -476,3 +476,27 @@ def test_image_decoding_byte_order_and_errors() -> None:
     )
     with pytest.raises(FormatError, match="too short"):
         rgb_image(_message("rgb8", rgba[:1], bigendian=False, h=2, w=3), "bag")
+
+
+def _compressed(fmt: str, data: np.ndarray) -> SimpleNamespace:
+    return SimpleNamespace(header=None, format=fmt, data=np.asarray(data, np.uint8))
+
+
+def test_compressed_depth_of_32fc1_is_the_inverse_depth_quantisation_decoded() -> None:
+    """image_transport's compressedDepth stores 32FC1 as quant_a / depth + quant_b in a 16-bit PNG (0: no return)."""
+    quant_a, quant_b = 100.0 * 101.0, 1.0 - 100.0 * 101.0 / 10.0  # its defaults: quantisation 100, depth_max 10 m
+    depth = np.array([[0.5, 1.0, 2.0], [4.0, 8.0, np.nan]])
+    value = np.where(np.isnan(depth), 0, np.rint(quant_a / np.nan_to_num(depth, nan=1.0) + quant_b)).astype(np.uint16)
+    header = np.array([(0, quant_a, quant_b)], dtype=[("f", "<i4"), ("a", "<f4"), ("b", "<f4")]).view(np.uint8)
+    png = cv2.imencode(".png", value)[1].ravel()
+    out = depth_image(_compressed("32FC1; compressedDepth png", np.concatenate([header, png])), "bag")
+    assert np.isnan(out[1, 2]) and out.dtype == np.float32
+    np.testing.assert_allclose(out[:, :2], depth[:, :2], rtol=0.01)
+    np.testing.assert_allclose(out[0], depth[0], rtol=2e-4)
+    with pytest.raises(InputError, match="RVL"):
+        depth_image(_compressed("16UC1; compressedDepth rvl", np.zeros(40)), "bag")
+    with pytest.raises(FormatError, match="OpenCV cannot decode"):
+        rgb_image(_compressed("rgb8; jpeg compressed bgr8", np.arange(64)), "bag")
+    grey = cv2.imencode(".png", np.zeros((4, 4), np.uint8))[1].ravel()
+    with pytest.raises(InputError, match="colour encoding 'uint8, shape 4x4' not supported"):
+        rgb_image(_compressed("mono8; png compressed", grey), "bag")

@@ -93,6 +93,7 @@ def write_sim_bag(
     depth_after_ns: int = DEPTH_AFTER_NS,
     info_size: tuple[int, int] | None = None,
     frames: int = N_FRAMES,
+    images: str = "raw",
 ) -> Path:
     """The simulated run (its first `frames` colour frames) as a RealSense-like recording; the switches leave parts
     out or break them."""
@@ -106,7 +107,10 @@ def write_sim_bag(
             [("base_link", "camera_link", mount), ("camera_link", COLOUR_FRAME, rigid(R=R_LINK_OPTICAL))],
         )
     for t_ns, rgb, depth_m in list(zip(run.colour_ns.tolist(), run.rgb, run.depth_m, strict=True))[:frames]:
-        bag.image("/camera/color/image_raw", t_ns, rgb, "rgb8", COLOUR_FRAME)
+        if images in ("raw", "both"):
+            bag.image("/camera/color/image_raw", t_ns, rgb, "rgb8", COLOUR_FRAME)
+        if images in ("compressed", "both"):
+            bag.compressed("/camera/color/image_raw/compressed", t_ns, rgb, "rgb8; jpeg compressed bgr8", COLOUR_FRAME)
         if camera_info:
             bag.camera_info(
                 "/camera/color/camera_info",
@@ -115,8 +119,13 @@ def write_sim_bag(
                 info_size or (K.width, K.height),
                 (K.fx, K.fy, K.cx, K.cy),
             )
-        if depth:
+        if depth and images in ("raw", "both"):
             bag.depth_mm("/camera/aligned_depth_to_color/image_raw", t_ns + depth_after_ns, depth_m, COLOUR_FRAME)
+        if depth and images in ("compressed", "both"):
+            mm = np.clip(np.nan_to_num(np.rint(depth_m.astype(np.float64) * 1000.0), nan=0.0), 0, 65535)
+            mm = mm.astype(np.uint16)
+            topic, fmt = "/camera/aligned_depth_to_color/image_raw/compressedDepth", "16UC1; compressedDepth png"
+            bag.compressed(topic, t_ns + depth_after_ns, mm, fmt, COLOUR_FRAME)
     for t_ns, pose in zip(run.odom_ns.tolist(), run.odom, strict=True):
         if odometry == "topic":
             bag.odometry("/odom", t_ns, pose)
@@ -231,7 +240,8 @@ def test_camera_mount_flag_replaces_tf(tmp_path: Path, sim_run: SimRun) -> None:
         ),
         (
             {"depth": False},
-            "no depth image topic (sensor_msgs/Image in 16UC1, 32FC1); Image topics: /camera/color/image_raw (rgb8)",
+            "no depth image topic (sensor_msgs/Image or CompressedImage in 16UC1, 32FC1); image topics: "
+            "/camera/color/image_raw (rgb8)",
         ),
         (
             {"tf_static": False},
@@ -281,3 +291,25 @@ def test_a_bag_without_odometry_gets_rgbd_odometry(tmp_path: Path, sim_run: SimR
     assert np.rad2deg(wrap_angle(odom[-1, 2] - odom[0, 2])) == pytest.approx(turned, abs=3.0)
     refused = invoke("convert", "rosbag", bag, "-o", tmp_path / "x", "--odometry", "none")
     assert_one_line_error(refused, contains="no nav_msgs/msg/Odometry")
+
+
+def test_compressed_images_read_as_the_raw_ones(tmp_path: Path, sim_run: SimRun) -> None:
+    """image_transport's JPEG colour and compressedDepth PNG depth convert to the raw recording's frames (colour within
+    JPEG's error, depth exactly); a bag with both takes the raw topics."""
+    raw, packed, both = (
+        write_sim_bag(tmp_path / name, sim_run, frames=4, images=name) for name in ("raw", "compressed", "both")
+    )
+    outs = {}
+    for bag in (raw, packed, both):
+        outs[bag.name] = tmp_path / f"{bag.name}-seq"
+        result = invoke("convert", "rosbag", bag, "-o", outs[bag.name], "--all-frames")
+        assert result.exit_code == 0, result.output
+    a, b = read_sequence(outs["raw"]), read_sequence(outs["compressed"])
+    assert b.meta.extras["topics"]["rgb"] == "/camera/color/image_raw/compressed"
+    assert read_sequence(outs["both"]).meta.extras["topics"]["rgb"] == "/camera/color/image_raw"
+    np.testing.assert_array_equal(a.meta.T_base_camera, b.meta.T_base_camera)
+    assert len(a) == len(b) == 4
+    for fa, fb in zip(a, b, strict=True):
+        np.testing.assert_array_equal(np.isnan(fa.depth_m), np.isnan(fb.depth_m))
+        np.testing.assert_allclose(fa.depth_m, fb.depth_m, equal_nan=True)
+        assert np.abs(fa.rgb.astype(int) - fb.rgb.astype(int)).mean() < 3.0
