@@ -18,6 +18,7 @@ import numpy as np
 
 from bimfactor.bim.prior import BimPrior
 
+DOOR_PLATE_LABEL = "door plate"  # a plate's label; the simulator's instance record also has its "text" and face
 PROBE_M = 0.3  # how far beyond a door's faces the room on either side is looked up
 PLATE_REACH_M = 0.6  # how far beyond its door's edge the localizer lets a plate hang (pose-graph landmarks)
 

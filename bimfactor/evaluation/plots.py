@@ -29,18 +29,42 @@ def save_figure(fig: Figure, path: str | Path, dpi: int = 120, tight: bool = Tru
     return path
 
 
+FLOORPLAN_MAX_PX = 500  # a floor plan is drawn from at most this many pixels a side (a figure panel is ~500 px)
+
+
+def _block_max(codes: np.ndarray, extent: tuple, max_px: int) -> tuple[np.ndarray, tuple]:
+    """The (H, W) grid reduced by whole k × k blocks to at most `max_px` a side, each block its largest code, and the
+    extent of the padded grid. Codes rank what must stay visible (walls over furniture over rooms), so walls one
+    cell thick survive; drawing the full grid (3 M cells on a large floor) took 0.5 s a panel."""
+    k = int(np.ceil(max(codes.shape) / max_px))
+    if k <= 1:
+        return codes, extent
+    (H, W), (x0, x1, y0, y1) = codes.shape, extent
+    h, w = -(-H // k) * k, -(-W // k) * k
+    padded = np.zeros((h, w), codes.dtype)
+    padded[:H, :W] = codes
+    reduced = padded.reshape(h // k, k, w).max(axis=1).reshape(h // k, w // k, k).max(axis=2)
+    return reduced, (x0, x0 + (x1 - x0) * w / W, y0, y0 + (y1 - y0) * h / H)
+
+
 def draw_floorplan(ax: Axes, prior: BimPrior, storey_index: int, label_objects: bool = True) -> None:
     """Rooms coloured and named by type, walls black, furniture grey, doors, object labels."""
     layers = prior.storeys[storey_index]
     labels = layers.room_labels
-    rgb = np.ones((*labels.shape, 3))
     rooms = [r for r in prior.rooms if r.storey_index == storey_index]
     cmap = plt.get_cmap("tab20")
-    for k, room in enumerate(rooms):
-        rgb[labels == room.id] = 0.55 + 0.45 * np.asarray(cmap(k % 20)[:3])
-    rgb[layers.furniture] = (0.62, 0.62, 0.62)
-    rgb[layers.structure] = (0.1, 0.1, 0.1)
-    ax.imshow(rgb, origin="lower", extent=prior.grid.extent, interpolation="nearest")
+    # codes: 0 outside every room, 1…n the rooms, n + 1 furniture, n + 2 walls; a palette gives their colours
+    n = len(rooms)
+    room_code = np.zeros(int(max(labels.max(initial=-1), max((r.id for r in rooms), default=-1))) + 2, np.int32)
+    room_code[[r.id + 1 for r in rooms]] = np.arange(1, n + 1)
+    codes = room_code[np.clip(labels, -1, None) + 1]
+    codes[layers.furniture] = n + 1
+    codes[layers.structure] = n + 2
+    palette = np.ones((n + 3, 3))
+    palette[1 : n + 1] = 0.55 + 0.45 * np.asarray([cmap(k % 20)[:3] for k in range(n)]).reshape(-1, 3)
+    palette[n + 1], palette[n + 2] = (0.62, 0.62, 0.62), (0.1, 0.1, 0.1)
+    codes, extent = _block_max(codes, tuple(prior.grid.extent), FLOORPLAN_MAX_PX)
+    ax.imshow(palette[codes], origin="lower", extent=extent, interpolation="nearest")
     for room in rooms:
         name = room.category + (f"\n({room.space_name})" if room.space_name else "")
         ax.text(
@@ -156,7 +180,7 @@ def save_particle_snapshots(
     steps = sorted(snapshots)
     cols = min(3, len(steps))
     rows = int(np.ceil(len(steps) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(5.5 * cols, 5.5 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.5 * cols, 4.5 * rows), squeeze=False)
     for ax, step in zip(axes.ravel(), steps, strict=False):
         particles, weights = snapshots[step]
         draw_floorplan(ax, prior, storey_index, label_objects=False)

@@ -11,7 +11,6 @@ indices, so fusing two of them is a set union.
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 
 from bimfactor.config import PerceptionConfig
 from bimfactor.types import CameraIntrinsics, se2_to_matrix
@@ -75,6 +74,8 @@ def voxel_centres(keys: np.ndarray, voxel_size_m: float) -> np.ndarray:
 
 def largest_cluster(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarray:
     """(N,) bool: members of the largest DBSCAN cluster of (N, 3) points (all False when every point is noise)."""
+    import open3d as o3d  # 1.5 s to import: only when a detection needs clustering
+
     if len(points) == 0:
         return np.zeros(0, bool)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))

@@ -17,11 +17,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from bimfactor.bim.plates import look_alikes
+from bimfactor.bim.plates import DOOR_PLATE_LABEL, look_alikes
 from bimfactor.config import TextReadingConfig
 from bimfactor.perception.base import TextReading, box_to_pixels
 from bimfactor.perception.lifting import backproject, transform_points
-from bimfactor.sim.world import DOOR_PLATE_LABEL
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta, TextObservations
 
 ALPHABET = string.digits + string.ascii_uppercase  # what a misread character becomes

@@ -22,7 +22,7 @@ import open3d as o3d
 
 from bimfactor.bim.grid import GridSpec, band_polygons, rasterise_polygons
 from bimfactor.bim.ifc import IfcElement, IfcModel, Mesh
-from bimfactor.bim.plates import door_plates
+from bimfactor.bim.plates import DOOR_PLATE_LABEL, door_plates
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.rooms import OUTSIDE
 from bimfactor.config import AsBuiltConfig, DoorPlateSimConfig
@@ -48,7 +48,6 @@ FIXED_OBJECT_CLASSES = ("IfcDoor", "IfcWindow")
 
 # Synthetic instances carry no IFC class and no guid; their label says what they are.
 FLOOR_LABEL, CEILING_LABEL, CLUTTER_LABEL = "floor", "ceiling", "clutter"
-DOOR_PLATE_LABEL = "door plate"  # its instance record also has the plate's "text" and face (`PlateTexture`)
 NO_OBJECT = -1
 PLATE_PROBE_M = 0.6  # a plate's wall is looked for this far in front of the door's face (and as far behind)
 PLATE_THICKNESS_M = 0.01

@@ -9,7 +9,7 @@ import pytest
 
 from bimfactor.backend.factors import Landmarks
 from bimfactor.backend.posegraph import ModeGraph, observation_cost, semantic_associator
-from bimfactor.bim.plates import PLATE_REACH_M, door_plates, look_alikes
+from bimfactor.bim.plates import DOOR_PLATE_LABEL, PLATE_REACH_M, door_plates, look_alikes
 from bimfactor.config import updated
 from bimfactor.localization.filter import SemanticMCL
 from bimfactor.localization.measurements import FrameData
@@ -21,7 +21,7 @@ from bimfactor.perception.text import SimTextReader, locate_readings, read_proba
 from bimfactor.pipeline import visibility_of
 from bimfactor.sim.sensors import RgbdCamera
 from bimfactor.sim.simulate import build_world
-from bimfactor.sim.world import DOOR_PLATE_LABEL, SimWorld
+from bimfactor.sim.world import SimWorld
 from bimfactor.types import Frame, Observations, SequenceMeta, TextObservations, se2_compose, wrap_angle
 
 from .conftest import NOISE_OFF, Building, config_with
