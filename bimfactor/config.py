@@ -595,13 +595,16 @@ class RegistrationConfig(_Strict):
     scan_max_z_m: float = Field(description="Scan points above this height above the floor are dropped (ceiling).")
     submap_keyframes: int = Field(ge=1, description="Keyframes stitched into the local submap (1: the scan alone).")
     max_scan_points: int = Field(ge=10, description="Registrars thin the scan to at most this many points (strided).")
-    method: Literal["planar", "point_to_plane", "point_to_point", "robust", "gicp", "multiscale"] = Field(
-        description="Default registrar (see bimfactor.registration.icp.REGISTRARS)."
+    method: Literal["point_to_plane", "planar", "point_to_point", "robust", "gicp", "small_gicp", "kiss_icp"] = Field(
+        description="The fine registrar (bimfactor.registration.icp.REGISTRARS); small_gicp and kiss_icp need "
+        "pip install 'bimfactor[registrars]'."
     )
     max_correspondence_m: float = Field(gt=0.0, description="Largest point-to-surface distance of a correspondence.")
     final_correspondence_m: float = Field(gt=0.0, description="The planar registrar shrinks the distance to this.")
     max_iterations: int = Field(ge=1, description="ICP iterations per scale.")
-    multiscale_voxels_m: list[float] = Field(min_length=1, description="Coarse-to-fine scan voxel schedule.")
+    multiscale_voxels_m: list[float] = Field(
+        min_length=1, description="point_to_plane's coarse-to-fine scan voxel schedule."
+    )
     multiscale_correspondence_m: list[float] = Field(
         min_length=1, description="Max correspondence distance per scale (same length as the voxel schedule)."
     )

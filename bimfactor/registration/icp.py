@@ -102,7 +102,11 @@ class PlanarTerms:
 
 
 def planar_terms(
-    scan_base: np.ndarray, surface: SurfaceModel, pose: np.ndarray, z_m: float, max_dist_m: float
+    scan_base: np.ndarray,
+    surface: SurfaceModel,
+    pose: np.ndarray,
+    z_m: float,
+    max_dist_m: float,
 ) -> PlanarTerms:
     """Correspondences of the scan at `pose` with the nearest surface samples within `max_dist_m`, linearised."""
     x, y, yaw = pose
@@ -147,7 +151,12 @@ class PlanarEvaluation:
 
 
 def evaluate_planar(
-    scan_base: np.ndarray, surface: SurfaceModel, pose: np.ndarray, z_m: float, max_dist_m: float, sigma_m: float
+    scan_base: np.ndarray,
+    surface: SurfaceModel,
+    pose: np.ndarray,
+    z_m: float,
+    max_dist_m: float,
+    sigma_m: float,
 ) -> PlanarEvaluation:
     """Fitness (share of scan points matched within `max_dist_m`), point-to-plane RMSE, JᵀJ/σ² (3, 3), next GN step."""
     terms = planar_terms(scan_base, surface, pose, z_m, max_dist_m)
@@ -181,10 +190,16 @@ def registration_result(
     cfg: RegistrationConfig,
     iterations: int,
     t0: float,
+    start_xy: np.ndarray,
 ) -> RegistrationResult:
-    """A registrar's final (3,) pose with the shared diagnostics (`evaluate_planar`) and the time since `t0`."""
+    """A registrar's final (3,) pose with the shared diagnostics (`evaluate_planar` against the storey's `surface`
+    as seen from the start `start_xy`, back faces culled, as the registrars' crops are) and the time since `t0`."""
     pose = np.array([pose[0], pose[1], wrap_angle(pose[2])], dtype=np.float64)
-    ev = evaluate_planar(scan_base, surface, pose, z_m, cfg.final_correspondence_m, cfg.noise_sigma_m)
+    dist, sigma = cfg.final_correspondence_m, cfg.noise_sigma_m
+    # Nearest among the facing samples (a crop with its own KD-tree): a storey-wide tree with back faces rejected
+    # after the query lost the points near corners, whose nearest sample is the other face.
+    visible = surface.facing(start_xy, scan_reach(scan_base) + dist + cfg.crop_margin_m)
+    ev = evaluate_planar(scan_base, visible, pose, z_m, dist, sigma)
     converged = bool(
         ev.n_correspondences >= 3
         and np.hypot(ev.step[0], ev.step[1]) < CONVERGED_STEP_M
@@ -226,6 +241,7 @@ class PlanarIcp:
         t0 = time.perf_counter()
         z = surface.elevation_m if storey_elevation is None else storey_elevation
         pose = np.asarray(T_world_base_init, dtype=np.float64).copy()
+        start, storey = pose.copy(), surface
         scan = thin(np.asarray(scan_base, dtype=np.float64), self.cfg.max_scan_points)
         dist = max(self.cfg.max_correspondence_m, self.cfg.final_correspondence_m)
         surface = surface.facing(pose[:2], scan_reach(scan) + dist + self.cfg.crop_margin_m)
@@ -241,7 +257,8 @@ class PlanarIcp:
                 if dist <= self.cfg.final_correspondence_m:
                     break
                 dist = max(dist / 2, self.cfg.final_correspondence_m)
-        return registration_result(self.name, np.asarray(scan_base, float), surface, pose, z, self.cfg, iterations, t0)
+        full_scan = np.asarray(scan_base, float)
+        return registration_result(self.name, full_scan, storey, pose, z, self.cfg, iterations, t0, start[:2])
 
 
 # ------------------------------------------------------------------------------------ Open3D 6-DoF + projection
@@ -259,16 +276,28 @@ def thin(points: np.ndarray, max_points: int) -> np.ndarray:
     return points[np.linspace(0, len(points) - 1, max_points).astype(int)]
 
 
-def with_virtual_floor(points: np.ndarray, normals: np.ndarray | None, floor_z_m: float):
-    """Open3D cloud of the (N, 3) points plus their copy dropped to `floor_z_m` (normal +z): pins z, roll, pitch."""
-    floor = points.copy()
+# The 6-DoF registrars align with a random TARGET_SHARE of the storey's samples: their per-call KD-tree and
+# correspondence search scale with the target; the diagnostics and the gate keep every sample.
+TARGET_SHARE = 0.5
+# Every FLOOR_STRIDE-th point's copy is dropped to the floor: the floor only pins z, roll and pitch, and a tenth of
+# the points does that as well as all of them at a fraction of the correspondences.
+FLOOR_STRIDE = 10
+# Open3D's ICP stops a scale when fitness and RMSE change by less than this share (its default 1e-6 ran every fit
+# to max_iterations for sub-micrometre changes).
+ICP_RELATIVE_CHANGE = 1e-4
+
+
+def with_virtual_floor(points: np.ndarray, normals: np.ndarray | None, floor_z_m: float, covariances: bool = False):
+    """Open3D cloud of the (N, 3) points plus a copy of every `FLOOR_STRIDE`-th one dropped to `floor_z_m` (normal
+    +z): pins z, roll and pitch. `covariances` adds GICP's plane covariances from the normals."""
+    floor = points[::FLOOR_STRIDE].copy()
     floor[:, 2] = floor_z_m
     both = np.concatenate([points, floor])
     if normals is None:
         return to_point_cloud(both)
-    up = np.zeros_like(normals)
+    up = np.zeros_like(floor)
     up[:, 2] = 1.0
-    return to_point_cloud(both, np.concatenate([normals, up]))
+    return to_point_cloud(both, np.concatenate([normals, up]), planar_covariance=covariances)
 
 
 @dataclass(frozen=True)
@@ -307,14 +336,16 @@ class CentredRegistrar:
         full_scan = np.asarray(scan_base, dtype=np.float64)
         scan = thin(full_scan, self.cfg.max_scan_points)
         pose = np.asarray(T_world_base_init, dtype=np.float64).copy()
-        local = surface.facing(pose[:2], scan_reach(scan) + self.reach_m() + self.cfg.crop_margin_m)
+        start = pose[:2].copy()
+        target = surface.thinned(TARGET_SHARE)
+        local = target.facing(pose[:2], scan_reach(scan) + self.reach_m() + self.cfg.crop_margin_m)
         if len(scan) < MIN_POINTS or len(local) < MIN_POINTS:
-            return registration_result(self.name, full_scan, local, pose, z, self.cfg, 0, t0)
+            return registration_result(self.name, full_scan, surface, pose, z, self.cfg, 0, t0, start)
         center = np.array([pose[0], pose[1], 0.0])
         T, iterations = self.align(scan, local, center, se2_to_matrix(pose - center, z), z)
         # Projection onto SE(2): keep x, y and the heading; drop z, roll and pitch.
         pose = matrix_to_se2(T) + center
-        return registration_result(self.name, full_scan, local, pose, z, self.cfg, iterations, t0)
+        return registration_result(self.name, full_scan, surface, pose, z, self.cfg, iterations, t0, start)
 
     def align(
         self, scan: np.ndarray, local: SurfaceModel, center: np.ndarray, T_init: np.ndarray, z_m: float
@@ -332,7 +363,11 @@ class Open3dIcp(CentredRegistrar):
             raise ConfigError(f"unknown Open3D ICP kind '{kind}'")
         self.cfg = cfg
         self.kind = kind
-        self.scales = scales if scales is not None else [Scale(cfg.scan_voxel_m, cfg.max_correspondence_m)]
+        # By default the correspondence distance shrinks as the planar solver's does: a wide basin, then a tight fit.
+        self.scales = scales or [
+            Scale(cfg.scan_voxel_m, cfg.max_correspondence_m),
+            Scale(cfg.scan_voxel_m, cfg.final_correspondence_m),
+        ]
         self.name = name if name is not None else kind
 
     def reach_m(self) -> float:
@@ -361,9 +396,13 @@ class Open3dIcp(CentredRegistrar):
         import open3d as o3d
 
         reg = o3d.pipelines.registration
-        target = with_virtual_floor(local.points - center, local.normals, z_m)
+        target = with_virtual_floor(local.points - center, local.normals, z_m, covariances=self.kind == "gicp")
         estimation = self._estimation()
-        criteria = reg.ICPConvergenceCriteria(max_iteration=self.cfg.max_iterations)
+        criteria = reg.ICPConvergenceCriteria(
+            relative_fitness=ICP_RELATIVE_CHANGE,
+            relative_rmse=ICP_RELATIVE_CHANGE,
+            max_iteration=self.cfg.max_iterations,
+        )
         T = T_init
         for scale in self.scales:
             source_points = voxel_downsample(scan, scale.voxel_m) if scale.voxel_m > self.cfg.scan_voxel_m else scan
@@ -396,16 +435,15 @@ def _kiss_icp(cfg: RegistrationConfig) -> Registrar:
 
 REGISTRARS: dict[str, Callable[[RegistrationConfig], Registrar]] = {
     "planar": lambda cfg: PlanarIcp(cfg),
-    "point_to_plane": lambda cfg: Open3dIcp(cfg, "point_to_plane"),
-    "point_to_point": lambda cfg: Open3dIcp(cfg, "point_to_point"),
-    "robust": lambda cfg: Open3dIcp(cfg, "robust"),
-    "gicp": lambda cfg: Open3dIcp(cfg, "gicp"),
-    "multiscale": lambda cfg: Open3dIcp(
+    # Open3D point-to-plane, coarse to fine (the default): the widest basin and the fastest fit in compare-registrars
+    "point_to_plane": lambda cfg: Open3dIcp(
         cfg,
         "point_to_plane",
         [Scale(v, d) for v, d in zip(cfg.multiscale_voxels_m, cfg.multiscale_correspondence_m, strict=True)],
-        name="multiscale",
     ),
+    "point_to_point": lambda cfg: Open3dIcp(cfg, "point_to_point"),
+    "robust": lambda cfg: Open3dIcp(cfg, "robust"),
+    "gicp": lambda cfg: Open3dIcp(cfg, "gicp"),
     # Optional libraries (`pip install 'bimfactor[registrars]'`); see `available_registrars`.
     "small_gicp": _small_gicp,
     "kiss_icp": _kiss_icp,

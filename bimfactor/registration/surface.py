@@ -23,6 +23,8 @@ SLAB_CLASS = "IfcSlab"
 # Elements touching a storey band only at its boundary (the slab below, the walls of the storey underneath)
 # are not part of it.
 _BAND_EPS_M = 0.02
+# Crops read the samples cell by cell (`SurfaceModel.crop_indices`); a KD-tree's ball query took 3-6 ms a crop.
+CROP_CELL_M = 1.0
 
 
 @dataclass
@@ -41,7 +43,8 @@ class SurfaceModel:
     _cloud: object = field(default=None, init=False, repr=False)
     _kdtree: object = field(default=None, init=False, repr=False)
     _nn_tree: object = field(default=None, init=False, repr=False)
-    _xy_tree: object = field(default=None, init=False, repr=False)
+    _cells: tuple | None = field(default=None, init=False, repr=False)
+    _thinned: dict = field(default_factory=dict, init=False, repr=False)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -72,21 +75,36 @@ class SurfaceModel:
             self._nn_tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
         return self._nn_tree
 
-    @property
-    def xy_tree(self):
-        """A `scipy.spatial.cKDTree` over the samples' (x, y), built once: crops without a pass over every sample."""
-        if self._xy_tree is None:
-            from scipy.spatial import cKDTree
-
-            self._xy_tree = cKDTree(self.points[:, :2], balanced_tree=False, compact_nodes=False)
-        return self._xy_tree
+    def _cell_index(self) -> tuple:
+        """The samples sorted by their `CROP_CELL_M` cell in the xy-plane, built once: (order, sorted cell keys,
+        origin, cells per row). A row's cells are one run of the sorted keys, so a crop reads a slice per row."""
+        if self._cells is None:
+            xy = self.points[:, :2]
+            origin = xy.min(axis=0) if len(xy) else np.zeros(2)
+            cell = np.floor((xy - origin) / CROP_CELL_M).astype(np.int64)
+            per_row = int(cell[:, 0].max(initial=0)) + 1
+            keys = cell[:, 1] * per_row + cell[:, 0]
+            order = np.argsort(keys, kind="stable")
+            self._cells = (order, keys[order], origin, per_row)
+        return self._cells
 
     def crop_indices(self, center_xy: np.ndarray, radius_m: float) -> np.ndarray:
         """(K,) sorted indices of the samples within `radius_m` of `center_xy` (2,) in the xy-plane."""
         if len(self.points) == 0:
             return np.zeros(0, dtype=np.int64)
-        found = self.xy_tree.query_ball_point(np.asarray(center_xy, float)[:2], radius_m)
-        return np.sort(np.asarray(found, dtype=np.int64))
+        order, keys, origin, per_row = self._cell_index()
+        center = np.asarray(center_xy, float)[:2]
+        lo = np.floor((center - radius_m - origin) / CROP_CELL_M).astype(np.int64)
+        hi = np.floor((center + radius_m - origin) / CROP_CELL_M).astype(np.int64)
+        x0, x1 = max(int(lo[0]), 0), min(int(hi[0]), per_row - 1)
+        rows = np.arange(max(int(lo[1]), 0), min(int(hi[1]), int(keys[-1] // per_row)) + 1)
+        if x0 > x1 or not len(rows):
+            return np.zeros(0, dtype=np.int64)
+        starts = np.searchsorted(keys, rows * per_row + x0, side="left")
+        stops = np.searchsorted(keys, rows * per_row + x1, side="right")
+        found = np.concatenate([order[a:b] for a, b in zip(starts, stops, strict=True)])
+        d = self.points[found, :2] - center
+        return np.sort(found[np.einsum("ij,ij->i", d, d) <= radius_m * radius_m])
 
     def crop(self, center_xy: np.ndarray, radius_m: float) -> SurfaceModel:
         """The samples within `radius_m` of `center_xy` in the xy-plane, as a new (smaller) model."""
@@ -104,6 +122,12 @@ class SurfaceModel:
             self.element_index[keep],
         )
 
+    def faces(self, indices: np.ndarray, center_xy: np.ndarray) -> np.ndarray:
+        """(K,) bool: do the samples at `indices` face `center_xy` (2,)? Near-horizontal faces (|n_z| > 0.9) do."""
+        n, m = self.normals[indices], self.points[indices]
+        to_center = np.asarray(center_xy, float)[:2] - m[:, :2]
+        return (np.einsum("ij,ij->i", n[:, :2], to_center) > 0) | (np.abs(n[:, 2]) > 0.9)
+
     def facing(self, center_xy: np.ndarray, radius_m: float) -> SurfaceModel:
         """The samples within `radius_m` of `center_xy` (2,) whose normals face it (back faces culled).
 
@@ -111,11 +135,18 @@ class SurfaceModel:
         thickness away with a perfect fit. Near-horizontal faces (|n_z| > 0.9) are kept.
         """
         keep = self.crop_indices(center_xy, radius_m)
-        n, m = self.normals[keep], self.points[keep]
-        to_center = np.asarray(center_xy, float)[:2] - m[:, :2]
-        front = (np.einsum("ij,ij->i", n[:, :2], to_center) > 0) | (np.abs(n[:, 2]) > 0.9)
-        keep = keep[front]
-        return self.subset(keep)
+        return self.subset(keep[self.faces(keep, center_xy)])
+
+    def thinned(self, share: float) -> SurfaceModel:
+        """A `share` of the samples, drawn at random once per share (seeded, so runs repeat): a sparser target for the
+        Open3D registrars, whose per-call KD-tree and correspondence search scale with it. Random thinning keeps the
+        samples' even spread over each face, which thinning to one per grid cell did not (it lost success)."""
+        if share >= 1.0:
+            return self
+        if share not in self._thinned:
+            rng = np.random.default_rng(len(self.points))
+            self._thinned[share] = self.subset(np.sort(rng.permutation(len(self.points))[: int(share * len(self))]))
+        return self._thinned[share]
 
     def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
         """Plain arrays for `np.savez` (keys prefixed with `prefix`)."""

@@ -58,7 +58,7 @@ def test_bench_registration_times_the_registrar_and_the_stage(prior_and_sequence
                     *cli_config_args)  # fmt: skip
     assert result.exit_code == 0, result.output
     report = json.loads((out / "results.json").read_text())
-    assert report["benchmark"] == "registration" and report["method"] == "planar"
+    assert report["benchmark"] == "registration" and report["method"] == "point_to_plane"
     assert report["runs"] == report["keyframes"] == 2
     assert report["median_ms"] > 0 and report["fine_stage_median_ms"] > 0
     assert 0.0 <= report["fine_stage_accepted_rate"] <= 1.0

@@ -36,12 +36,12 @@ def _errors(pose: np.ndarray) -> tuple[float, float]:
 def test_default_registrar_recovers_a_planar_offset(room, test_config: Config) -> None:
     surface, scan = room
     registrar = make_registrar(test_config.registration)
-    assert registrar.name == test_config.registration.method == "planar"
+    assert registrar.name == test_config.registration.method == "point_to_plane"
     result = registrar.register(scan, surface, TRUE_POSE + OFFSET)
     trans_err, rot_err = _errors(result.pose)
     assert trans_err < 0.01 and rot_err < 0.2
     assert result.converged and result.fitness > 0.99 and result.inlier_rmse < 0.01
-    assert 0 < result.iterations <= test_config.registration.max_iterations
+    assert result.iterations == -1  # Open3D does not report them
     np.testing.assert_allclose(result.T[:3, 3], [*result.pose[:2], surface.elevation_m])
     # The room constrains every direction; the information is symmetric positive definite.
     np.testing.assert_allclose(result.information, result.information.T)
