@@ -356,7 +356,7 @@ class Localizer:
             else None
         )
         self.matcher = (matcher or scan_matcher(prior, cfg)) if self.backend else None
-        self.fine = FineRegistration.for_prior(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None
+        self.fine = self._fine_stage(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None
         # The frames before the current one that a submap stitches in (registration.submap_keyframes − 1).
         self._recent: deque[Frame] = deque(maxlen=cfg.registration.submap_keyframes - 1)
         # Odometry bookkeeping (`_odometry_step`): the last trusted frame's raw odometry pose and time, the previous
@@ -370,6 +370,17 @@ class Localizer:
         self._last_increment = np.zeros(3)
         self._believed_odom = np.zeros(3)
         self._odom_offset: np.ndarray | None = None
+
+    @staticmethod
+    def _fine_stage(prior: BimPrior, cfg: Config, prior_dir: str | Path | None) -> FineRegistration:
+        """The fine stage, whose surface models come from the prior's IFC file; a missing or changed file says how
+        to run without it."""
+        try:
+            return FineRegistration.for_prior(prior, cfg, prior_dir)
+        except InputError as exc:
+            raise InputError(
+                f"{exc} (the full variant registers scans against its walls; --variant smcl+graph runs without it)"
+            ) from exc
 
     def _start_belief(self, pose: np.ndarray | list[float] | None, storey: int) -> None:
         """The filter's particles: about a (3,) pose guess on a storey (AMCL's initial pose, `smcl.start.sigma_*`),

@@ -57,8 +57,9 @@ def geometry_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def config_overrides(geometry_cache_dir: Path) -> list[str]:
-    """`--set`-style overrides every test config should carry (the session's geometry cache)."""
-    return [f"bim.ifc.cache_dir={geometry_cache_dir}"]
+    """`--set`-style overrides every test config should carry: the session's geometry cache, and the filter alone
+    (the default runs every stage; tests of the graph and ICP stages name their variant)."""
+    return [f"bim.ifc.cache_dir={geometry_cache_dir}", "localization.variant=smcl"]
 
 
 @pytest.fixture(scope="session")

@@ -288,8 +288,13 @@ def test_python_dash_m_help() -> None:
 def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: list[str]) -> None:
     pytest.importorskip("bimfactor.bim.synth")
     out = tmp_path / "demo"
-    result = invoke("demo", "-o", out, *cli_config_args)
+    # the default variant: every stage, each one's account on its own line
+    result = invoke("demo", "-o", out, *cli_config_args, "--set", "localization.variant=full")
     assert result.exit_code == 0, result.output
+    stages = [line.strip().split(":")[0] for line in result.stdout.splitlines() if line.startswith("      ")]
+    assert stages == ["S-MCL (the paper's filter)", "+ per-mode GTSAM pose graphs", "+ Open3D ICP"]
+    assert "ICP accepted on " in result.stdout
+    assert json.loads((out / "localize" / "metrics.json").read_text())["icp"]["steps_registered"] > 0
     assert (out / "paper-floor.ifc").is_file()
     for name in PRIOR_FILES:
         assert (out / "prior" / name).is_file(), name
@@ -707,3 +712,17 @@ def test_compare_registrars_writes_summary_and_figure(
     assert row["registrar"] == "planar" and 0.0 <= row["success_rate"] <= 1.0
     assert (out / "basins.png").stat().st_size > 5_000
     assert_one_line_error(invoke("compare-registrars", demo_prior, "-o", out, "-m", "nope"), contains="nope")
+
+
+def test_the_full_variant_without_the_prior_s_ifc_says_how_to_run_without_it(
+    demo_prior: Path, short_sequence: Path, tmp_path: Path, cli_config_args: list[str]
+) -> None:
+    moved = tmp_path / "prior-copy"
+    shutil.copytree(demo_prior, moved)
+    meta = json.loads((moved / "prior.json").read_text())
+    meta["source_file"] = str(tmp_path / "gone.ifc")
+    (moved / "prior.json").write_text(json.dumps(meta))
+    out = tmp_path / "run"
+    result = invoke("localize", moved, short_sequence, "-o", out, *cli_config_args, "--variant", "full")
+    assert_one_line_error(result, contains="is missing")
+    assert "--variant smcl+graph runs without it" in result.stderr and not out.exists()
