@@ -9,6 +9,7 @@ code (2 for bad input or configuration); anything else is `error: internal: ...`
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -1644,6 +1645,99 @@ def bench_registration(
             prior, model = world or _paper_floor_world(output, cfg)
             result = benchmark_registration(prior, model, cfg, method, n_keyframes=keyframes, repeats=repeats)
             _echo_bench(output, "registration", result, cfg)
+
+
+@bench_app.command(
+    "speed", short_help="Every speed figure in one table: keyframes, registrars side by side, filter, startup, prior."
+)
+def bench_speed(
+    ifc: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--ifc",
+            metavar="PATH",
+            help="IFC building timed beside the paper floor (repeatable; default: duplex.ifc from ../shared).",
+        ),
+    ] = None,
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
+        "runs/bench-speed"
+    ),
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Every speed figure in one table, measured in one run on this machine (bimfactor.evaluation.speedtable):
+    the full variant per keyframe on the paper floor and each --ifc building (simulated trajectory 0); the fine
+    registrars side by side on its keyframes (median time, ratio to Open3D point-to-plane, success over
+    compare-registrars' sweep); the filter step at M = 1000 and 20000; and, each in a fresh process, bimfactor
+    --help, a 50-keyframe localize, the demo and the prior of AC11-Institute-Var-2 cold and with its geometry cached.
+    Writes OUT/results.json, OUT/speed.md and OUT/config.yaml. Takes several minutes.
+
+    \b
+    Examples:
+      bimfactor bench speed
+      bimfactor bench speed --ifc ../shared/data/ifc/AC20-FZK-Haus.ifc -o runs/bench-speed-fzk
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose)
+        from bimfactor.bim.prior import build_prior
+        from bimfactor.evaluation.bench import find_shared_ifc_dir, shared_ifc_dir
+        from bimfactor.evaluation.speedtable import (
+            PRIOR_BENCH_FILE,
+            filter_rows,
+            format_speed_table,
+            keyframe_times,
+            registrar_rows,
+            wall_clock_rows,
+        )
+        from bimfactor.io.atomic import output_dir, write_text_atomic
+        from bimfactor.io.sequence import write_sequence_files
+        from bimfactor.sim.simulate import load_world_inputs
+
+        files = list(ifc) if ifc else [shared_ifc_dir() / "duplex.ifc"]
+        for path in files:
+            if not path.is_file():
+                raise InputError(f"no such IFC file: {path}")
+        shared = find_shared_ifc_dir()
+        with _bench_dir(output, *files):
+            rows, summaries = [], {}
+            buildings = [("paper floor", None), *((path.name, path) for path in files)]
+            for k, (name, path) in enumerate(buildings, 1):
+                typer.echo(
+                    f"[{k}/{len(buildings) + 1}] {name}: the full variant per keyframe, the registrars", err=True
+                )
+                if path is None:
+                    prior, model = _paper_floor_world(output, cfg)
+                    prior_dir = output / "prior"
+                else:
+                    prior_dir = output / "priors" / path.stem
+                    build_prior(path, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
+                    prior, model = load_world_inputs(prior_dir, cfg)
+                times, frames, meta = keyframe_times(cfg, name, prior, model, cfg.seed)
+                if path is None:
+                    paper_prior = prior
+                    with output_dir(output / "sequence", "sequence", replace=True) as folder:
+                        write_sequence_files(folder, meta, frames, label=str(output / "sequence"))
+                registrars, summaries[name] = registrar_rows(cfg, name, prior, model, frames, meta, cfg.seed)
+                rows += times + registrars
+            typer.echo(
+                f"[{len(buildings) + 1}/{len(buildings) + 1}] the filter step, then commands in fresh processes",
+                err=True,
+            )
+            rows += filter_rows(cfg, paper_prior)
+            prior_file = shared / PRIOR_BENCH_FILE if shared is not None else None
+            rows += wall_clock_rows(output, output / "prior", output / "sequence", prior_file)
+            table = format_speed_table(rows)
+            write_text_atomic(output / "speed.md", table + "\n")
+            results = _write_bench(
+                output,
+                "speed",
+                {"rows": [dataclasses.asdict(r) | {"met": r.met} for r in rows], "registrars": summaries},
+                cfg,
+            )
+        typer.echo(table)
+        typer.echo(f"results: {results}, {output / 'speed.md'}")
 
 
 @bench_app.command("scanmatch", short_help="Scan matching against the BIM: accuracy, covariance honesty, time.")

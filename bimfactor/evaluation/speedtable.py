@@ -1,0 +1,179 @@
+"""`bimfactor bench speed`: every speed figure the project is held to, in one table from one run on this machine.
+
+Per building (the paper floor and the shared IFC files asked for): the `full` variant's time per keyframe on its
+simulated trajectory 0 (filter, perception, pose graphs and the fine stage, as `steps.csv` splits it), and the fine
+registrars side by side on that trajectory's keyframes: each one's median time, its ratio to Open3D point-to-plane
+(the default) on the same scans, and its success rate over `compare-registrars`' sweep of start errors. Then the
+filter step at M = 1000 and 20000 (`benchmark_step`), and wall clocks measured as a user meets them, each in a fresh
+process: `bimfactor --help`, a 50-keyframe `localize`, `bimfactor demo`, and the prior of AC11-Institute-Var-2 cold
+(empty geometry cache, the text encoder's load included) and with its geometry cached.
+
+Machines differ up to twice in speed, so the registrars are compared as ratios within the run; the absolute figures
+hold for the machine that printed them.
+"""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bimfactor.config import Config, updated
+
+log = logging.getLogger(__name__)
+
+DEFAULT_REGISTRAR = "point_to_plane"
+REGISTRAR_KEYFRAMES = 6  # keyframes of trajectory 0 the registrars are timed on
+PRIOR_BENCH_FILE = "AC11-Institute-Var-2-IFC.ifc"  # the 5-storey building the prior targets are stated for
+
+# Targets (issue 42), in the table's units; None: reported, no target.
+TARGETS: dict[str, float | None] = {
+    "full per keyframe, median": 30.0,
+    "full per keyframe, p90": 60.0,
+    "point_to_plane fit, median": 10.0,
+    "filter step, M = 1000": 3.0,
+    "filter step, M = 20000": 40.0,
+    "localize, 50 keyframes": 5.0,
+    "bimfactor --help": 1.0,
+    "bimfactor demo": 20.0,
+    "prior, cold": 10.0,
+    "prior, geometry cached": 3.0,
+}
+
+
+@dataclass
+class SpeedRow:
+    """One figure: what, where, its value and unit, and the target it is held to (None: none)."""
+
+    what: str
+    building: str
+    value: float
+    unit: str
+    target: float | None = None
+
+    @property
+    def met(self) -> bool | None:
+        return None if self.target is None else bool(self.value <= self.target)
+
+
+def keyframe_times(cfg: Config, building: str, prior, model, seed: int) -> tuple[list[SpeedRow], list, object]:
+    """The full variant over trajectory 0 of a building: rows of per-keyframe time, and the simulated sequence."""
+    from bimfactor.pipeline import localize_sequence
+    from bimfactor.sim.simulate import simulate_sequence
+
+    sim = simulate_sequence(prior, model, cfg, trajectory_index=0, seed=seed, progress=False)
+    full = updated(cfg, {"localization.variant": "full"})
+    run = localize_sequence(prior, sim.meta, sim.frames, full, seed, show_progress=False)
+    assert run.graph is not None and run.fine is not None
+    total = run.graph.step_ms + run.perception_ms
+    parts = {
+        "filter": run.filter.step_ms,
+        "perception": run.perception_ms,
+        "graphs + fine": run.graph.step_ms - run.filter.step_ms,
+        "fine stage": run.fine.time_ms,
+    }
+    rows = [
+        SpeedRow("full per keyframe, median", building, float(np.median(total)), "ms"),
+        SpeedRow("full per keyframe, p90", building, float(np.percentile(total, 90)), "ms"),
+    ]
+    rows += [SpeedRow(f"  of which {name}, median", building, float(np.median(v)), "ms") for name, v in parts.items()]
+    return rows, sim.frames, sim.meta
+
+
+def registrar_rows(cfg: Config, building: str, prior, model, frames, meta, seed: int) -> tuple[list[SpeedRow], list]:
+    """Every installed registrar on the same keyframes and starts (`compare_registrars`): median ms, ratio to the
+    default's, success rate."""
+    from bimfactor.evaluation.registrars import compare_registrars, initial_error_sweep, pick_keyframes, summarize
+    from bimfactor.registration.fine import surface_models_for
+    from bimfactor.registration.icp import available_registrars, make_registrar
+
+    surfaces = surface_models_for(prior, cfg)
+    rng = np.random.default_rng([seed, 0x5BEED])
+    keys = pick_keyframes(
+        [(frames, meta)], surfaces, cfg.registration, cfg.sensor, REGISTRAR_KEYFRAMES, REGISTRAR_KEYFRAMES, rng
+    )
+    if not keys:
+        log.warning("%s: no registrable keyframe on trajectory 0; registrars not timed", building)
+        return [], []
+    registrars = {name: make_registrar(cfg.registration, name) for name in available_registrars()}
+    records = compare_registrars(
+        prior, model, cfg, keys, registrars, initial_error_sweep(cfg.registration), seed, surfaces
+    )
+    summary = summarize(records)
+    base = next(s["median_time_ms"] for s in summary if s["registrar"] == DEFAULT_REGISTRAR)
+    rows = []
+    for s in summary:
+        name = s["registrar"]
+        what = f"{name} fit, median"
+        rows.append(SpeedRow(what, building, s["median_time_ms"], "ms", TARGETS.get(what)))
+        rows.append(SpeedRow(f"  {name} / point_to_plane time", building, s["median_time_ms"] / base, "×"))
+        rows.append(SpeedRow(f"  {name} success", building, 100.0 * s["success_rate"], "%"))
+    return rows, summary
+
+
+def filter_rows(cfg: Config, prior) -> list[SpeedRow]:
+    """The filter step at M = 1000 and 20000 with 12 observations (`benchmark_step`)."""
+    from bimfactor.evaluation.speed import benchmark_step
+
+    assert prior.visibility is not None
+    steps = benchmark_step(prior, prior.visibility, cfg.smcl, cfg.sensor.max_range_m, n_particles_list=(1000, 20000))
+    rows = []
+    for row in steps:
+        what = f"filter step, M = {row['n_particles']}"
+        rows.append(SpeedRow(what, "paper floor", float(row["median_ms"]), "ms", TARGETS.get(what)))
+    return rows
+
+
+def wall_clock(args: list[str], cwd: Path) -> float:
+    """Seconds one `bimfactor` command takes in a fresh process (it must succeed)."""
+    started = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "bimfactor", *args], cwd=cwd, capture_output=True, text=True)
+    seconds = time.perf_counter() - started
+    if done.returncode != 0:
+        raise RuntimeError(f"bimfactor {' '.join(args)} failed: {done.stderr.strip().splitlines()[-1:]}")
+    return seconds
+
+
+def wall_clock_rows(out_dir: Path, prior_dir: Path, sequence_dir: Path, shared_ifc: Path | None) -> list[SpeedRow]:
+    """The commands a user meets, timed in fresh processes."""
+    out_dir = Path(out_dir).resolve()
+    rows = [SpeedRow("bimfactor --help", "-", wall_clock(["--help"], out_dir), "s")]
+    localize = ["localize", str(prior_dir), str(sequence_dir), "-o", str(_fresh(out_dir / "localize-run"))]
+    rows.append(SpeedRow("localize, 50 keyframes", "paper floor", wall_clock(localize, out_dir), "s"))
+    demo = wall_clock(["demo", "-o", str(_fresh(out_dir / "demo"))], out_dir)
+    rows.append(SpeedRow("bimfactor demo", "paper floor", demo, "s"))
+    if shared_ifc is not None and shared_ifc.is_file():
+        cache = _fresh(out_dir / "geometry-cache")
+        sets = ["--set", f"bim.ifc.cache_dir={cache}"]
+        cold = wall_clock(["prior", str(shared_ifc), "-o", str(_fresh(out_dir / "prior-cold")), *sets], out_dir)
+        cached = wall_clock(["prior", str(shared_ifc), "-o", str(_fresh(out_dir / "prior-cached")), *sets], out_dir)
+        rows.append(SpeedRow("prior, cold", shared_ifc.name, cold, "s"))
+        rows.append(SpeedRow("prior, geometry cached", shared_ifc.name, cached, "s"))
+    for row in rows:
+        row.target = TARGETS.get(row.what)
+    return rows
+
+
+def _fresh(path: Path) -> Path:
+    """`path`, removed first when an earlier benchmark left it (only ever a folder under the benchmark's OUT)."""
+    import shutil
+
+    if path.exists():
+        shutil.rmtree(path)
+    return path
+
+
+def format_speed_table(rows: list[SpeedRow]) -> str:
+    """The rows as a Markdown table: what, building, value, target, met."""
+    lines = ["| what | building | value | target | met |", "|---|---|---|---|---|"]
+    for r in rows:
+        value = f"{r.value:.2f} {r.unit}" if r.unit in ("×", "s") else f"{r.value:.1f} {r.unit}"
+        target = "" if r.target is None else f"≤ {r.target:g} {r.unit}"
+        met = {None: "", True: "yes", False: "**no**"}[r.met]
+        lines.append(f"| {r.what} | {r.building} | {value} | {target} | {met} |")
+    return "\n".join(lines)
