@@ -177,7 +177,7 @@ def evaluate_pose(
     scan_base: np.ndarray, surface: SurfaceModel, pose: np.ndarray, cfg: RegistrationConfig
 ) -> PlanarEvaluation:
     """`evaluate_planar` of the (N, 3) scan at a (3,) pose against the storey surface as seen from there."""
-    visible = surface.facing(pose[:2], scan_reach(scan_base) + cfg.final_correspondence_m + cfg.crop_margin_m)
+    visible = surface.facing_near(scan_in_world(scan_base, pose), 1, pose[:2])
     return evaluate_planar(scan_base, visible, pose, surface.elevation_m, cfg.final_correspondence_m, cfg.noise_sigma_m)
 
 
@@ -197,8 +197,10 @@ def registration_result(
     pose = np.array([pose[0], pose[1], wrap_angle(pose[2])], dtype=np.float64)
     dist, sigma = cfg.final_correspondence_m, cfg.noise_sigma_m
     # Nearest among the facing samples (a crop with its own KD-tree): a storey-wide tree with back faces rejected
-    # after the query lost the points near corners, whose nearest sample is the other face.
-    visible = surface.facing(start_xy, scan_reach(scan_base) + dist + cfg.crop_margin_m)
+    # after the query lost the points near corners, whose nearest sample is the other face. The crop is the cells
+    # the scan at its final pose touches and their neighbours (a match lies within `dist` < one cell), not the disc
+    # of the scan's reach: a third of the samples or fewer, and the KD-tree built over them is the stage's largest.
+    visible = surface.facing_near(scan_in_world(scan_base, pose), 1, start_xy)
     ev = evaluate_planar(scan_base, visible, pose, z_m, dist, sigma)
     converged = bool(
         ev.n_correspondences >= 3
@@ -262,6 +264,13 @@ class PlanarIcp:
 
 
 # ------------------------------------------------------------------------------------ Open3D 6-DoF + projection
+
+
+def scan_in_world(scan_base: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """(N, 2) world x, y of the (N, 3) base-frame scan at the planar `pose` (3,)."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    x, y = scan_base[:, 0], scan_base[:, 1]
+    return np.column_stack([c * x - s * y + pose[0], s * x + c * y + pose[1]])
 
 
 def scan_reach(scan: np.ndarray) -> float:

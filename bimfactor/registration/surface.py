@@ -122,6 +122,35 @@ class SurfaceModel:
             self.element_index[keep],
         )
 
+    def near_indices(self, points_xy: np.ndarray, cells: int) -> np.ndarray:
+        """(K,) sorted indices of the samples in the `CROP_CELL_M` cells that hold any of the (N, 2) points, or lie
+        within `cells` cells of one: the surface a scan can reach, without the rest of the disc around it."""
+        if len(self.points) == 0 or len(points_xy) == 0:
+            return np.zeros(0, dtype=np.int64)
+        order, keys, origin, per_row = self._cell_index()
+        cell = np.unique(
+            np.floor((np.asarray(points_xy, float)[:, :2] - origin) / CROP_CELL_M).astype(np.int64), axis=0
+        )
+        offsets = np.arange(-cells, cells + 1)
+        grown = (cell[:, None, None, :] + np.stack(np.meshgrid(offsets, offsets, indexing="ij"), -1)[None]).reshape(
+            -1, 2
+        )
+        rows = int(keys[-1] // per_row) + 1
+        inside = (grown[:, 0] >= 0) & (grown[:, 0] < per_row) & (grown[:, 1] >= 0) & (grown[:, 1] < rows)
+        wanted = np.unique(grown[inside, 1] * per_row + grown[inside, 0])
+        starts = np.searchsorted(keys, wanted, side="left")
+        counts = np.searchsorted(keys, wanted, side="right") - starts
+        if not counts.sum():
+            return np.zeros(0, dtype=np.int64)
+        # the runs starts[i] … starts[i] + counts[i] of the sorted order, concatenated without a Python loop
+        run_offsets = np.repeat(starts - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+        return np.sort(order[np.arange(counts.sum()) + run_offsets])
+
+    def facing_near(self, points_xy: np.ndarray, cells: int, center_xy: np.ndarray) -> SurfaceModel:
+        """`near_indices`' samples that face `center_xy` (2,) (`faces`), as a new model."""
+        keep = self.near_indices(points_xy, cells)
+        return self.subset(keep[self.faces(keep, center_xy)])
+
     def faces(self, indices: np.ndarray, center_xy: np.ndarray) -> np.ndarray:
         """(K,) bool: do the samples at `indices` face `center_xy` (2,)? Near-horizontal faces (|n_z| > 0.9) do."""
         n, m = self.normals[indices], self.points[indices]

@@ -123,3 +123,29 @@ def test_crop_indices_are_the_samples_within_the_radius() -> None:
     assert len(surface.crop(center, 6.5)) == len(within) > 0
     empty = SurfaceModel(0, 0.0, 3.0, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int32))
     assert len(empty.crop_indices(center, 6.5)) == 0
+
+
+def test_crops_by_cell_equal_a_brute_force_search() -> None:
+    """The disc crop equals a KD-tree ball query; the crop near a scan holds exactly the samples in the cells the
+    scan touches or within `cells` of one."""
+    from scipy.spatial import cKDTree
+
+    from bimfactor.registration.surface import CROP_CELL_M
+
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-20.0, 30.0, (40_000, 3))
+    model = SurfaceModel(
+        0, 0.0, 3.0, points, np.tile([1.0, 0.0, 0.0], (len(points), 1)), np.zeros(len(points), np.int32)
+    )
+    tree = cKDTree(points[:, :2])
+    for center, radius in (((0.0, 0.0), 8.0), ((-25.0, -25.0), 9.0), ((29.5, 29.5), 0.7), ((80.0, 80.0), 3.0)):
+        want = np.sort(np.asarray(tree.query_ball_point(center, radius), dtype=np.int64))
+        np.testing.assert_array_equal(model.crop_indices(np.array(center), radius), want)
+    scan = rng.uniform(-25.0, 35.0, (60, 2))
+    origin = points[:, :2].min(axis=0)
+    sample_cells = np.floor((points[:, :2] - origin) / CROP_CELL_M).astype(int)
+    scan_cells = np.floor((scan - origin) / CROP_CELL_M).astype(int)
+    for cells in (0, 1, 3):
+        reach = np.abs(sample_cells[:, None, :] - scan_cells[None]).max(axis=2).min(axis=1) <= cells
+        np.testing.assert_array_equal(model.near_indices(scan, cells), np.flatnonzero(reach))
+    assert len(model.near_indices(np.array([[500.0, 500.0]]), 2)) == 0
