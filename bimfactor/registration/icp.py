@@ -228,10 +228,19 @@ class PlanarIcp:
     Gauss–Newton settles; `robust_k_m` (optional) adds Huber weights.
     """
 
-    def __init__(self, cfg: RegistrationConfig, name: str = "planar", robust_k_m: float | None = None):
+    def __init__(
+        self,
+        cfg: RegistrationConfig,
+        name: str = "planar",
+        robust_k_m: float | None = None,
+        near_cells: int | None = None,
+    ):
         self.cfg = cfg
         self.name = name
         self.robust_k_m = robust_k_m
+        # None: the facing disc of the scan's reach; a count: the cells the scan touches and that many around them
+        # (`SurfaceModel.facing_near`), for a start already within a cell of the answer (`Polished`).
+        self.near_cells = near_cells
 
     def register(
         self,
@@ -246,7 +255,10 @@ class PlanarIcp:
         start, storey = pose.copy(), surface
         scan = thin(np.asarray(scan_base, dtype=np.float64), self.cfg.max_scan_points)
         dist = max(self.cfg.max_correspondence_m, self.cfg.final_correspondence_m)
-        surface = surface.facing(pose[:2], scan_reach(scan) + dist + self.cfg.crop_margin_m)
+        if self.near_cells is None:
+            surface = surface.facing(pose[:2], scan_reach(scan) + dist + self.cfg.crop_margin_m)
+        else:
+            surface = surface.facing_near(scan_in_world(scan, pose), self.near_cells, pose[:2])
         iterations = 0
         while iterations < self.cfg.max_iterations:
             iterations += 1
@@ -427,6 +439,33 @@ class Open3dIcp(CentredRegistrar):
         return T, -1
 
 
+class Polished:
+    """A registrar whose result the planar solver polishes at `final_correspondence_m` (`PlanarIcp`): the 6-DoF fit
+    projected onto SE(2) is not the SE(2) optimum, and the polish is."""
+
+    def __init__(self, cfg: RegistrationConfig, coarse: Registrar) -> None:
+        self.cfg = cfg
+        self.name = coarse.name
+        self._coarse = coarse
+        self._polish = PlanarIcp(
+            cfg.model_copy(update={"max_correspondence_m": cfg.final_correspondence_m}), near_cells=1
+        )
+
+    def register(
+        self,
+        scan_base: np.ndarray,
+        surface: SurfaceModel,
+        T_world_base_init: np.ndarray,
+        storey_elevation: float | None = None,
+    ) -> RegistrationResult:
+        t0 = time.perf_counter()
+        coarse = self._coarse.register(scan_base, surface, T_world_base_init, storey_elevation)
+        result = self._polish.register(scan_base, surface, coarse.pose, storey_elevation)
+        result.method = self.name
+        result.time_ms = (time.perf_counter() - t0) * 1000
+        return result
+
+
 # ------------------------------------------------------------------------------------ registry
 
 
@@ -445,10 +484,13 @@ def _kiss_icp(cfg: RegistrationConfig) -> Registrar:
 REGISTRARS: dict[str, Callable[[RegistrationConfig], Registrar]] = {
     "planar": lambda cfg: PlanarIcp(cfg),
     # Open3D point-to-plane, coarse to fine (the default): the widest basin and the fastest fit in compare-registrars
-    "point_to_plane": lambda cfg: Open3dIcp(
+    "point_to_plane": lambda cfg: Polished(
         cfg,
-        "point_to_plane",
-        [Scale(v, d) for v, d in zip(cfg.multiscale_voxels_m, cfg.multiscale_correspondence_m, strict=True)],
+        Open3dIcp(
+            cfg,
+            "point_to_plane",
+            [Scale(v, d) for v, d in zip(cfg.multiscale_voxels_m, cfg.multiscale_correspondence_m, strict=True)],
+        ),
     ),
     "point_to_point": lambda cfg: Open3dIcp(cfg, "point_to_point"),
     "robust": lambda cfg: Open3dIcp(cfg, "robust"),

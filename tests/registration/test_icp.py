@@ -41,7 +41,7 @@ def test_default_registrar_recovers_a_planar_offset(room, test_config: Config) -
     trans_err, rot_err = _errors(result.pose)
     assert trans_err < 0.01 and rot_err < 0.2
     assert result.converged and result.fitness > 0.99 and result.inlier_rmse < 0.01
-    assert result.iterations == -1  # Open3D does not report them
+    assert 0 < result.iterations <= test_config.registration.max_iterations  # the planar polish's
     np.testing.assert_allclose(result.T[:3, 3], [*result.pose[:2], surface.elevation_m])
     # The room constrains every direction; the information is symmetric positive definite.
     np.testing.assert_allclose(result.information, result.information.T)
