@@ -443,7 +443,8 @@ def test_localize_writes_the_run(demo_prior: Path, tmp_path: Path, cli_config_ar
     for name in ("estimate.txt", "steps.csv", "metrics.json", "snapshots.npz", "config.yaml", "trajectory.png"):
         assert (run / name).is_file(), name
     metrics = json.loads((run / "metrics.json").read_text())
-    assert set(metrics) >= {"trans_err_m", "orient_err_deg", "room_acc", "step_ms_median", "steps_to_converge"}
+    assert set(metrics) >= {"trans_err_m", "orient_err_deg", "room_acc", "step_ms_median", "steps_to_converge", "icp"}
+    assert metrics["variant"] == "full"  # the default: every stage
     assert 0.0 <= metrics["room_acc"] <= 1.0
     assert len((run / "steps.csv").read_text().splitlines()) == 51
     assert "warning" not in result.stderr  # keyframes every 0.5 m or 15°, as the localizer expects
@@ -715,8 +716,11 @@ def test_compare_registrars_writes_summary_and_figure(
 
 
 def test_the_full_variant_without_the_prior_s_ifc_says_how_to_run_without_it(
-    demo_prior: Path, short_sequence: Path, tmp_path: Path, cli_config_args: list[str]
+    demo_prior: Path, short_sequence: Path, tmp_path: Path, cli_config_args: list[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from bimfactor.registration import fine
+
+    monkeypatch.setattr(fine, "_surface_cache", {})  # as in a fresh process: an earlier test's surfaces are not there
     moved = tmp_path / "prior-copy"
     shutil.copytree(demo_prior, moved)
     meta = json.loads((moved / "prior.json").read_text())
