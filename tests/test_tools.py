@@ -178,3 +178,15 @@ def test_render_results_writes_table_one_into_the_readme_and_the_full_tables_int
     assert re.search(r"\| Variant \| \[seed 0, default\]\(.*\) \| \[seed 0, paper\]\(.*\) \| \[seed 1, default\]", text)
     assert "| smcl+graph | 0.15 m / 1.5° / 95.0 % | – | 0.25 m / 2.5° / 95.0 % |" in text
     assert "bimfactor bench paper -c paper " in text
+
+
+def test_the_speed_page_is_the_committed_speed_results_rendered() -> None:
+    """docs/speed.md's table is docs/results/speed.json as `tools/render_speed.py` renders it, and it holds every
+    figure the issue names (a stale or hand-edited page fails until the tool is run)."""
+    render = _load("render_speed")
+    page = render.PAGE.read_text()
+    assert render.replace_block(page, render.render(), render.BEGIN, render.END) == page
+    names = {r["what"] for r in json.loads(render.RESULTS.read_text())["rows"]}
+    from bimfactor.evaluation.speedtable import TARGETS
+
+    assert set(TARGETS) <= names
