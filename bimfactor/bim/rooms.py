@@ -245,8 +245,15 @@ def assign_to_room(mask: np.ndarray, labels: np.ndarray, spec: GridSpec, max_rea
     if not mask.any():
         return NO_ROOM
     step = max(1, round(0.2 / spec.resolution_m))
+    rounds = int(max_reach_m / 0.2) + 1
+    # Work in the footprint's box grown by the farthest reach: the same answer as on the whole grid, whose
+    # dilations (3 M cells on a large floor, per object) took seconds per building.
+    pad = step * rounds
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    box = (slice(max(rows[0] - pad, 0), rows[-1] + pad + 1), slice(max(cols[0] - pad, 0), cols[-1] + pad + 1))
+    mask, labels = mask[box], labels[box]
     grown = mask
-    for _ in range(int(max_reach_m / 0.2) + 1):
+    for _ in range(rounds):
         vals = labels[grown]
         vals = vals[vals >= 0]
         if len(vals):

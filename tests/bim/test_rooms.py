@@ -126,3 +126,34 @@ def test_a_storey_without_doors_keeps_all_its_regions() -> None:
     assert kept == found
     one_room, kept = _door_connected_areas(two_rooms(door=False))
     assert len(one_room) == 1 and kept == one_room
+
+
+def test_assigning_a_footprint_in_its_box_equals_the_whole_grid() -> None:
+    """`assign_to_room` looks only within the footprint's box grown by its reach: the same room as dilating the
+    footprint over the whole grid, for footprints inside rooms, in walls, at the grid's edge and outside."""
+    from scipy import ndimage
+
+    from bimfactor.bim.grid import GridSpec
+    from bimfactor.bim.rooms import NO_ROOM, OUTSIDE, assign_to_room
+
+    def whole_grid(mask: np.ndarray, labels: np.ndarray, spec: GridSpec, max_reach_m: float = 0.6) -> int:
+        step = max(1, round(0.2 / spec.resolution_m))
+        grown = mask
+        for _ in range(int(max_reach_m / 0.2) + 1):
+            vals = labels[grown]
+            vals = vals[vals >= 0]
+            if len(vals):
+                return int(np.bincount(vals).argmax())
+            grown = ndimage.binary_dilation(grown, iterations=step)
+        return OUTSIDE if np.any(labels[grown] == OUTSIDE) else NO_ROOM
+
+    rng = np.random.default_rng(0)
+    spec = GridSpec(0.0, 0.0, 0.05, 120, 160)
+    labels = np.full((120, 160), NO_ROOM, np.int32)
+    labels[5:60, 5:80], labels[5:60, 84:155], labels[64:115, 5:155] = 0, 1, 2
+    labels[:, :3] = OUTSIDE
+    for _ in range(200):
+        mask = np.zeros_like(labels, bool)
+        r, c = rng.integers(0, 120), rng.integers(0, 160)
+        mask[r : r + rng.integers(1, 6), c : c + rng.integers(1, 6)] = True
+        assert assign_to_room(mask, labels, spec) == whole_grid(mask, labels, spec), (r, c)
