@@ -1,8 +1,8 @@
 """Render docs/results/speed.json (OUT/results.json of `bimfactor bench speed`) into the table of docs/speed.md.
 
-    .venv/bin/bimfactor bench speed -o runs/bench-speed && cp runs/bench-speed/results.json docs/results/speed.json
-    .venv/bin/python tools/render_speed.py            # rewrite the table between the speed markers
-    .venv/bin/python tools/render_speed.py --check    # exit 1 when it is out of date
+.venv/bin/bimfactor bench speed -o runs/bench-speed && cp runs/bench-speed/results.json docs/results/speed.json
+.venv/bin/python tools/render_speed.py            # rewrite the table between the speed markers
+.venv/bin/python tools/render_speed.py --check    # exit 1 when it is out of date
 """
 
 from __future__ import annotations
