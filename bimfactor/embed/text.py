@@ -135,16 +135,17 @@ class MiniLMTextEmbedder:
         tokenizer.enable_padding(pad_id=int(config.get("pad_token_id", 0)))
 
         def encode_batch(texts: list[str]) -> np.ndarray:
-            # Batches of texts of similar length (as sentence-transformers sorts them): little padding to compute.
-            tokens = [sum(e.attention_mask) for e in tokenizer.encode_batch(texts)]
-            order = np.argsort(tokens, kind="stable")
+            encoded = tokenizer.encode_batch(texts)  # padded on the right to the longest text
+            ids = np.array([e.ids for e in encoded], dtype=np.int64)
+            mask = np.array([e.attention_mask for e in encoded], dtype=np.float32)
+            lengths = mask.sum(axis=1).astype(np.int64)
+            # Batches of texts of similar length (as sentence-transformers sorts them), each cut to its longest.
+            order = np.argsort(lengths, kind="stable")
             out = np.empty((len(texts), int(config["hidden_size"])), np.float32)
             for start in range(0, len(texts), _ENCODE_BATCH):
                 rows = order[start : start + _ENCODE_BATCH]
-                encoded = tokenizer.encode_batch([texts[i] for i in rows])
-                ids = np.array([e.ids for e in encoded], dtype=np.int64)
-                mask = np.array([e.attention_mask for e in encoded], dtype=np.float32)
-                out[rows] = bert_mean_pooled(weights, config, ids, mask)
+                width = int(lengths[rows].max())
+                out[rows] = bert_mean_pooled(weights, config, ids[rows, :width], mask[rows, :width])
             return out
 
         return _LoadedModel(encode_batch, int(config["hidden_size"]))

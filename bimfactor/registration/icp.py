@@ -355,18 +355,24 @@ class CentredRegistrar:
         t0 = time.perf_counter()
         z = surface.elevation_m if storey_elevation is None else storey_elevation
         full_scan = np.asarray(scan_base, dtype=np.float64)
-        scan = thin(full_scan, self.cfg.max_scan_points)
-        pose = np.asarray(T_world_base_init, dtype=np.float64).copy()
-        start = pose[:2].copy()
+        start = np.asarray(T_world_base_init, dtype=np.float64)
+        pose, iterations = self.fit(full_scan, surface, start, z)
+        return registration_result(self.name, full_scan, surface, pose, z, self.cfg, iterations, t0, start[:2])
+
+    def fit(
+        self, scan_base: np.ndarray, surface: SurfaceModel, start: np.ndarray, z_m: float
+    ) -> tuple[np.ndarray, int]:
+        """The (3,) planar pose of the fit from the (3,) `start` and its iteration count, without the diagnostics
+        (`register` adds them; `Polished` has its polish add them instead)."""
+        scan = thin(scan_base, self.cfg.max_scan_points)
         target = surface.thinned(TARGET_SHARE)
-        local = target.facing(pose[:2], scan_reach(scan) + self.reach_m() + self.cfg.crop_margin_m)
+        local = target.facing(start[:2], scan_reach(scan) + self.reach_m() + self.cfg.crop_margin_m)
         if len(scan) < MIN_POINTS or len(local) < MIN_POINTS:
-            return registration_result(self.name, full_scan, surface, pose, z, self.cfg, 0, t0, start)
-        center = np.array([pose[0], pose[1], 0.0])
-        T, iterations = self.align(scan, local, center, se2_to_matrix(pose - center, z), z)
+            return start.copy(), 0
+        center = np.array([start[0], start[1], 0.0])
+        T, iterations = self.align(scan, local, center, se2_to_matrix(start - center, z_m), z_m)
         # Projection onto SE(2): keep x, y and the heading; drop z, roll and pitch.
-        pose = matrix_to_se2(T) + center
-        return registration_result(self.name, full_scan, surface, pose, z, self.cfg, iterations, t0, start)
+        return matrix_to_se2(T) + center, iterations
 
     def align(
         self, scan: np.ndarray, local: SurfaceModel, center: np.ndarray, T_init: np.ndarray, z_m: float
@@ -443,7 +449,7 @@ class Polished:
     """A registrar whose result the planar solver polishes at `final_correspondence_m` (`PlanarIcp`): the 6-DoF fit
     projected onto SE(2) is not the SE(2) optimum, and the polish is."""
 
-    def __init__(self, cfg: RegistrationConfig, coarse: Registrar) -> None:
+    def __init__(self, cfg: RegistrationConfig, coarse: CentredRegistrar) -> None:
         self.cfg = cfg
         self.name = coarse.name
         self._coarse = coarse
@@ -459,8 +465,10 @@ class Polished:
         storey_elevation: float | None = None,
     ) -> RegistrationResult:
         t0 = time.perf_counter()
-        coarse = self._coarse.register(scan_base, surface, T_world_base_init, storey_elevation)
-        result = self._polish.register(scan_base, surface, coarse.pose, storey_elevation)
+        z = surface.elevation_m if storey_elevation is None else storey_elevation
+        scan = np.asarray(scan_base, dtype=np.float64)
+        pose, _ = self._coarse.fit(scan, surface, np.asarray(T_world_base_init, dtype=np.float64), z)
+        result = self._polish.register(scan, surface, pose, storey_elevation)
         result.method = self.name
         result.time_ms = (time.perf_counter() - t0) * 1000
         return result
