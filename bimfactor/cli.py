@@ -1440,9 +1440,9 @@ def compare_registrars_cmd(
     (0-2 m, 0-30°) and run each registrar: success (< 5 cm and < 1°), final error, time, and the gate's
     acceptance and precision without the ambiguity probes, with them, and with a calibrated coarse covariance.
 
-    Writes OUT/summary.json, OUT/records.json, OUT/basins.png and OUT/config.yaml. Registrars: planar
-    (default: planar point-to-plane Gauss-Newton), point_to_plane, point_to_point, robust, gicp, multiscale,
-    and small_gicp, kiss_icp when installed (pip install 'bimfactor[registrars]').
+    Writes OUT/summary.json, OUT/records.json, OUT/basins.png and OUT/config.yaml. Registrars: point_to_plane
+    (the default: Open3D coarse to fine, polished over SE(2)), planar (point-to-plane Gauss-Newton over SE(2)),
+    point_to_point, robust, gicp, and small_gicp, kiss_icp when installed (pip install 'bimfactor[registrars]').
 
     \b
     Examples:

@@ -187,9 +187,9 @@ def compare_registrars(
                 result = registrar.register(key.scan_base, surface, init)
                 trans_err = float(np.hypot(*(result.pose[:2] - gt[:2])))
                 rot_err = float(abs(np.rad2deg(wrap_angle(result.pose[2] - gt[2]))))
-                decision = gate_with_probes(registrar, key.scan_base, surface, result, init, rc)
+                decision = gate_with_probes(key.scan_base, surface, result, init, rc)
                 coarse = calibrated_covariance(float(trans_m), float(rot_rad), rc)
-                decision_coarse = gate_with_probes(registrar, key.scan_base, surface, result, init, rc, coarse)
+                decision_coarse = gate_with_probes(key.scan_base, surface, result, init, rc, coarse)
                 records.append(
                     {
                         "building": building,

@@ -216,7 +216,7 @@ class FineRegistration:
             return rejected(f"scan has {len(scan_base)} points (< {MIN_SCAN_POINTS})")
         surface = self.surfaces[storey]
         result = self.registrar.register(scan_base, surface, start)
-        decision = gate_with_probes(self.registrar, scan_base, surface, result, start, self.cfg, covariance_world)
+        decision = gate_with_probes(scan_base, surface, result, start, self.cfg, covariance_world)
         information = factor_information(result.information, float(result.pose[2]), self.cfg)
         if not decision.accepted:
             log.debug("fine registration rejected: %s", "; ".join(decision.reasons))

@@ -22,9 +22,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bimfactor.config import RegistrationConfig
-from bimfactor.registration.icp import Registrar, RegistrationResult, thin
+from bimfactor.registration.icp import (
+    RegistrationResult,
+    evaluate_planar,
+    planar_multistart,
+    scan_in_world,
+    scan_reach,
+    thin,
+)
 from bimfactor.registration.surface import SurfaceModel
 from bimfactor.types import wrap_angle
+
+# Probes settle at 10 × the registrars' step tolerance (1 mm, 0.006°): they only tell places 10 cm apart.
+PROBE_TOLERANCE = 10.0
 
 
 @dataclass
@@ -155,22 +165,62 @@ def probe_starts(
     return out
 
 
-def is_alternative(probe: RegistrationResult, result: RegistrationResult, cfg: RegistrationConfig) -> bool:
-    """Whether a probe's registration ended at another place with a fit at least as good as `result`'s."""
-    delta = correction(probe.pose, result.pose)
-    elsewhere = (
+@dataclass(frozen=True)
+class Fit:
+    """A planar pose with its fit: fitness (share of scan points matched) and point-to-plane inlier RMSE."""
+
+    pose: np.ndarray
+    fitness: float
+    inlier_rmse: float
+
+
+def elsewhere(pose: np.ndarray, reference_pose: np.ndarray, cfg: RegistrationConfig) -> bool:
+    """Whether a (3,) pose is another place than `reference_pose`: farther than the ambiguity separation."""
+    delta = correction(pose, reference_pose)
+    return bool(
         np.hypot(delta[0], delta[1]) > cfg.ambiguity_separation_m
         or abs(np.rad2deg(delta[2])) > cfg.ambiguity_separation_deg
     )
+
+
+def is_alternative(probe: Fit | RegistrationResult, result: Fit | RegistrationResult, cfg: RegistrationConfig) -> bool:
+    """Whether a probe's registration ended at another place with a fit at least as good as `result`'s."""
     as_good = (
         probe.fitness >= result.fitness - cfg.ambiguity_fitness_margin
         and probe.inlier_rmse <= result.inlier_rmse * cfg.ambiguity_rmse_ratio
     )
-    return bool(elsewhere and as_good)
+    return elsewhere(probe.pose, result.pose, cfg) and as_good
+
+
+def probe_ends(
+    scan: np.ndarray, surface: SurfaceModel, result_pose: np.ndarray, starts: np.ndarray, cfg: RegistrationConfig
+) -> np.ndarray:
+    """(P, 3) poses where the planar solver ends from each (P, 3) start (`planar_multistart`). The starts around the
+    result share one crop of the storey facing it; each start farther out (the coarse pose's region) gets its own,
+    facing that start, as a registration from there would see the surface."""
+    center = np.asarray(result_pose, dtype=np.float64)
+    offsets = np.hypot(*(starts[:, :2] - center[:2]).T)
+    around = offsets <= cfg.ambiguity_probe_m + 1e-9
+    groups = [(center[:2], np.flatnonzero(around))] + [(starts[i, :2], np.array([i])) for i in np.flatnonzero(~around)]
+    reach = scan_reach(scan) + max(cfg.max_correspondence_m, cfg.final_correspondence_m) + cfg.crop_margin_m
+    ends = np.array(starts, dtype=np.float64)
+    for xy, members in groups:
+        if len(members):
+            spread = float(np.max(np.hypot(*(starts[members, :2] - xy).T)))
+            local = surface.facing(xy, reach + spread)
+            ends[members] = planar_multistart(scan, local, starts[members], surface.elevation_m, cfg, PROBE_TOLERANCE)
+    return ends
+
+
+def fit_at(scan: np.ndarray, surface: SurfaceModel, pose: np.ndarray, cfg: RegistrationConfig) -> Fit:
+    """The (N, 3) scan's fit at a (3,) pose, scored as registrations are (`evaluate_planar` at
+    `final_correspondence_m` against the storey seen from there)."""
+    visible = surface.facing_near(scan_in_world(scan, pose), 1, pose[:2])
+    ev = evaluate_planar(scan, visible, pose, surface.elevation_m, cfg.final_correspondence_m, cfg.noise_sigma_m)
+    return Fit(np.asarray(pose, dtype=np.float64), ev.fitness, ev.inlier_rmse)
 
 
 def gate_with_probes(
-    registrar: Registrar,
     scan_base: np.ndarray,
     surface: SurfaceModel,
     result: RegistrationResult,
@@ -180,23 +230,26 @@ def gate_with_probes(
 ) -> GateDecision:
     """`gate_registration`, then (when it accepts and `cfg.ambiguity_probes`) the ambiguity check by probes.
 
-    `registrar`, `scan_base` (N, 3) and `surface` are the ones that produced `result`. The registrar runs from
-    each of `probe_starts`; a probe that ends at another place with as good a fit (`is_alternative`) makes the
-    result ambiguous, unless the coarse pose's covariance (when given) rules that place out by the χ² test.
+    `scan_base` (N, 3) and `surface` are the ones that produced `result`. The planar solver runs from each of
+    `probe_starts` on `ambiguity_probe_points` of the scan (`probe_ends`; whichever registrar produced the result,
+    the basins are the surface's); a probe that ends at another place with as good a fit as the result's
+    (`fit_at`, `is_alternative`) makes the result ambiguous, unless the coarse pose's covariance (when given) rules
+    that place out by the χ² test.
     """
     decision = gate_registration(result, T_world_base_init, cfg, covariance_world)
     if not (decision.accepted and cfg.ambiguity_probes):
         return decision
     t0 = time.perf_counter()
-    alternatives = []
-    probe_scan = thin(np.asarray(scan_base, dtype=np.float64), cfg.ambiguity_probe_points)
-    for start in probe_starts(result, cfg, T_world_base_init, covariance_world):
-        probe = registrar.register(probe_scan, surface, start)
-        ruled_out = covariance_world is not None and not (
-            correction_chi2(probe.pose, T_world_base_init, covariance_world) <= cfg.consistency_chi2
-        )
-        if is_alternative(probe, result, cfg) and not ruled_out:
-            alternatives.append(probe)
+    scan = np.asarray(scan_base, dtype=np.float64)
+    starts = probe_starts(result, cfg, T_world_base_init, covariance_world)
+    ends = probe_ends(thin(scan, cfg.ambiguity_probe_points), surface, result.pose, starts, cfg)
+    # Only the ends elsewhere are scored (most probes come back to the result), on the whole scan as the result was:
+    # on a few hundred points, RMSEs of a few millimetres differ by chance more than the margin allows.
+    ends = [end for end in ends if elsewhere(end, result.pose, cfg)]
+    if covariance_world is not None:
+        ends = [e for e in ends if correction_chi2(e, T_world_base_init, covariance_world) <= cfg.consistency_chi2]
+    fits = (fit_at(scan, surface, end, cfg) for end in ends)
+    alternatives = [fit for fit in fits if is_alternative(fit, result, cfg)]
     decision.probes_ms = (time.perf_counter() - t0) * 1000
     decision.alternatives = len(alternatives)
     if alternatives:

@@ -39,7 +39,7 @@ import numpy as np
 from bimfactor.config import RegistrationConfig
 from bimfactor.errors import ConfigError
 from bimfactor.registration.scan import voxel_downsample
-from bimfactor.registration.surface import SurfaceModel, to_point_cloud
+from bimfactor.registration.surface import CROP_CELL_M, SurfaceModel, to_point_cloud
 from bimfactor.types import matrix_to_se2, se2_to_matrix, wrap_angle
 
 log = logging.getLogger(__name__)
@@ -191,16 +191,19 @@ def registration_result(
     iterations: int,
     t0: float,
     start_xy: np.ndarray,
+    visible: SurfaceModel | None = None,
 ) -> RegistrationResult:
     """A registrar's final (3,) pose with the shared diagnostics (`evaluate_planar` against the storey's `surface`
-    as seen from the start `start_xy`, back faces culled, as the registrars' crops are) and the time since `t0`."""
+    as seen from the start `start_xy`, back faces culled, as the registrars' crops are) and the time since `t0`.
+    `visible`: a crop of it that already holds every sample within reach of the scan at `pose` (`PlanarIcp`'s)."""
     pose = np.array([pose[0], pose[1], wrap_angle(pose[2])], dtype=np.float64)
     dist, sigma = cfg.final_correspondence_m, cfg.noise_sigma_m
     # Nearest among the facing samples (a crop with its own KD-tree): a storey-wide tree with back faces rejected
     # after the query lost the points near corners, whose nearest sample is the other face. The crop is the cells
     # the scan at its final pose touches and their neighbours (a match lies within `dist` < one cell), not the disc
     # of the scan's reach: a third of the samples or fewer, and the KD-tree built over them is the stage's largest.
-    visible = surface.facing_near(scan_in_world(scan_base, pose), 1, start_xy)
+    if visible is None:
+        visible = surface.facing_near(scan_in_world(scan_base, pose), 1, start_xy)
     ev = evaluate_planar(scan_base, visible, pose, z_m, dist, sigma)
     converged = bool(
         ev.n_correspondences >= 3
@@ -219,6 +222,66 @@ def registration_result(
         time_ms=(time.perf_counter() - t0) * 1000,
         converged=converged,
     )
+
+
+def planar_multistart(
+    scan_base: np.ndarray,
+    surface: SurfaceModel,
+    starts: np.ndarray,
+    z_m: float,
+    cfg: RegistrationConfig,
+    tolerance: float = 1.0,
+) -> np.ndarray:
+    """(P, 3) poses of the planar Gauss–Newton solver (`PlanarIcp`'s schedule: the correspondence distance halving from
+    `max_correspondence_m` to `final_correspondence_m` each time a start settles) run from each of the (P, 3)
+    `starts` at once against one `surface` (already cropped; one KD-tree, one query per iteration for every start).
+    A start settles when its step is below `tolerance` × `PlanarIcp`'s (a probe needs its end to a millimetre)."""
+    scan = np.asarray(scan_base, dtype=np.float64)
+    poses = np.array(starts, dtype=np.float64).reshape(-1, 3)
+    n_starts, n = len(poses), len(scan)
+    if n_starts == 0 or n < 3 or len(surface) < 3:
+        return poses
+    final = cfg.final_correspondence_m
+    dist = np.full(n_starts, max(cfg.max_correspondence_m, final))
+    active = np.ones(n_starts, dtype=bool)
+    for _ in range(cfg.max_iterations):
+        idx = np.flatnonzero(active)
+        if not len(idx):
+            break
+        p = poses[idx]
+        c, s = np.cos(p[:, 2])[:, None], np.sin(p[:, 2])[:, None]
+        qx = (c * scan[:, 0] - s * scan[:, 1] + p[:, 0:1]).ravel()
+        qy = (s * scan[:, 0] + c * scan[:, 1] + p[:, 1:2]).ravel()
+        qz = np.tile(scan[:, 2] + z_m, len(idx))
+        limit = np.repeat(dist[idx], n)
+        d, nearest = surface.nn_tree.query(np.column_stack([qx, qy, qz]), distance_upper_bound=float(limit.max()))
+        hit = np.flatnonzero(d <= limit)
+        owner, m = hit // n, nearest[hit]
+        normal, target = surface.normals[m], surface.points[m]
+        rx, ry = qx[hit] - p[owner, 0], qy[hit] - p[owner, 1]
+        r = normal[:, 0] * (qx[hit] - target[:, 0]) + normal[:, 1] * (qy[hit] - target[:, 1])
+        r += normal[:, 2] * (qz[hit] - target[:, 2])
+        J = np.column_stack([normal[:, 0], normal[:, 1], -normal[:, 0] * ry + normal[:, 1] * rx])
+        # per-start normal equations: the six entries of JᵀJ and the three of Jᵀr, summed by start
+        upper = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+        sums = [np.bincount(owner, J[:, i] * J[:, j], minlength=len(idx)) for i, j in upper]
+        H = np.empty((len(idx), 3, 3))
+        for (i, j), total in zip(upper, sums, strict=True):
+            H[:, i, j] = H[:, j, i] = total
+        g = np.stack([np.bincount(owner, J[:, i] * r, minlength=len(idx)) for i in range(3)], axis=1)
+        H += 1e-6 * np.maximum(np.trace(H, axis1=1, axis2=2), 1.0)[:, None, None] * np.eye(3)
+        few = np.bincount(owner, minlength=len(idx)) < 3
+        step = -np.linalg.solve(H, g[..., None])[..., 0]
+        step[few] = 0.0
+        poses[idx] += step
+        settled = (np.hypot(step[:, 0], step[:, 1]) < tolerance * _STEP_TOL_M) & (
+            np.abs(step[:, 2]) < tolerance * _STEP_TOL_RAD
+        )
+        done = few | (settled & (dist[idx] <= final))
+        dist[idx[settled]] = np.maximum(dist[idx[settled]] / 2, final)
+        active[idx[done]] = False
+    poses[:, 2] = wrap_angle(poses[:, 2])
+    return poses
 
 
 class PlanarIcp:
@@ -253,12 +316,14 @@ class PlanarIcp:
         z = surface.elevation_m if storey_elevation is None else storey_elevation
         pose = np.asarray(T_world_base_init, dtype=np.float64).copy()
         start, storey = pose.copy(), surface
-        scan = thin(np.asarray(scan_base, dtype=np.float64), self.cfg.max_scan_points)
+        full_scan = np.asarray(scan_base, float)
+        scan = thin(full_scan, self.cfg.max_scan_points)
         dist = max(self.cfg.max_correspondence_m, self.cfg.final_correspondence_m)
         if self.near_cells is None:
             surface = surface.facing(pose[:2], scan_reach(scan) + dist + self.cfg.crop_margin_m)
         else:
-            surface = surface.facing_near(scan_in_world(scan, pose), self.near_cells, pose[:2])
+            # the cells of the whole scan, so that the final diagnostics can read the same crop
+            surface = surface.facing_near(scan_in_world(full_scan, pose), self.near_cells, pose[:2])
         iterations = 0
         while iterations < self.cfg.max_iterations:
             iterations += 1
@@ -271,8 +336,12 @@ class PlanarIcp:
                 if dist <= self.cfg.final_correspondence_m:
                     break
                 dist = max(dist / 2, self.cfg.final_correspondence_m)
-        full_scan = np.asarray(scan_base, float)
-        return registration_result(self.name, full_scan, storey, pose, z, self.cfg, iterations, t0, start[:2])
+        # The crop still holds every sample within reach of the scan when the pose moved less than the cells it grew
+        # by, less the final correspondence distance.
+        moved = float(np.hypot(*(pose[:2] - start[:2]))) + scan_reach(full_scan) * abs(wrap_angle(pose[2] - start[2]))
+        reach = (self.near_cells or 0) * CROP_CELL_M - self.cfg.final_correspondence_m
+        visible = surface if self.near_cells and moved < reach else None
+        return registration_result(self.name, full_scan, storey, pose, z, self.cfg, iterations, t0, start[:2], visible)
 
 
 # ------------------------------------------------------------------------------------ Open3D 6-DoF + projection
@@ -306,6 +375,11 @@ FLOOR_STRIDE = 10
 # Open3D's ICP stops a scale when fitness and RMSE change by less than this share (its default 1e-6 ran every fit
 # to max_iterations for sub-micrometre changes).
 ICP_RELATIVE_CHANGE = 1e-4
+
+
+def target_stride(voxel_m: float, finest_voxel_m: float) -> int:
+    """Every how many target samples a scale of scan voxel `voxel_m` keeps: √(voxel_m / finest_voxel_m)."""
+    return max(int(np.sqrt(voxel_m / finest_voxel_m) + 1e-9), 1)
 
 
 def with_virtual_floor(points: np.ndarray, normals: np.ndarray | None, floor_z_m: float, covariances: bool = False):
@@ -423,7 +497,6 @@ class Open3dIcp(CentredRegistrar):
         import open3d as o3d
 
         reg = o3d.pipelines.registration
-        target = with_virtual_floor(local.points - center, local.normals, z_m, covariances=self.kind == "gicp")
         estimation = self._estimation()
         criteria = reg.ICPConvergenceCriteria(
             relative_fitness=ICP_RELATIVE_CHANGE,
@@ -432,8 +505,14 @@ class Open3dIcp(CentredRegistrar):
         )
         T = T_init
         for scale in self.scales:
-            source_points = voxel_downsample(scan, scale.voxel_m) if scale.voxel_m > self.cfg.scan_voxel_m else scan
+            coarse = scale.voxel_m > self.cfg.scan_voxel_m
+            source_points = voxel_downsample(scan, scale.voxel_m) if coarse else scan
             source = with_virtual_floor(source_points, None, 0.0)
+            # A coarser scale needs a target no denser than its scan: every k-th sample of the crop (a random share
+            # already), k the ratio of the voxel sizes, so the per-call KD-tree shrinks with the scale.
+            stride = target_stride(scale.voxel_m, self.cfg.scan_voxel_m)
+            points, normals = local.points[::stride] - center, local.normals[::stride]
+            target = with_virtual_floor(points, normals, z_m, covariances=self.kind == "gicp")
             distance = scale.max_correspondence_m
             if self.kind == "gicp":
                 source.estimate_covariances(o3d.geometry.KDTreeSearchParamKNN(20))

@@ -89,7 +89,7 @@ class SurfaceModel:
         return self._cells
 
     def crop_indices(self, center_xy: np.ndarray, radius_m: float) -> np.ndarray:
-        """(K,) sorted indices of the samples within `radius_m` of `center_xy` (2,) in the xy-plane."""
+        """(K,) indices (cell by cell) of the samples within `radius_m` of `center_xy` (2,) in the xy-plane."""
         if len(self.points) == 0:
             return np.zeros(0, dtype=np.int64)
         order, keys, origin, per_row = self._cell_index()
@@ -104,7 +104,7 @@ class SurfaceModel:
         stops = np.searchsorted(keys, rows * per_row + x1, side="right")
         found = np.concatenate([order[a:b] for a, b in zip(starts, stops, strict=True)])
         d = self.points[found, :2] - center
-        return np.sort(found[np.einsum("ij,ij->i", d, d) <= radius_m * radius_m])
+        return found[np.einsum("ij,ij->i", d, d) <= radius_m * radius_m]
 
     def crop(self, center_xy: np.ndarray, radius_m: float) -> SurfaceModel:
         """The samples within `radius_m` of `center_xy` in the xy-plane, as a new (smaller) model."""
@@ -123,8 +123,8 @@ class SurfaceModel:
         )
 
     def near_indices(self, points_xy: np.ndarray, cells: int) -> np.ndarray:
-        """(K,) sorted indices of the samples in the `CROP_CELL_M` cells that hold any of the (N, 2) points, or lie
-        within `cells` cells of one: the surface a scan can reach, without the rest of the disc around it."""
+        """(K,) indices (cell by cell) of the samples in the `CROP_CELL_M` cells that hold any of the (N, 2) points, or
+        lie within `cells` cells of one: the surface a scan can reach, without the rest of the disc around it."""
         if len(self.points) == 0 or len(points_xy) == 0:
             return np.zeros(0, dtype=np.int64)
         order, keys, origin, per_row = self._cell_index()
@@ -144,7 +144,7 @@ class SurfaceModel:
             return np.zeros(0, dtype=np.int64)
         # the runs starts[i] … starts[i] + counts[i] of the sorted order, concatenated without a Python loop
         run_offsets = np.repeat(starts - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
-        return np.sort(order[np.arange(counts.sum()) + run_offsets])
+        return order[np.arange(counts.sum()) + run_offsets]
 
     def facing_near(self, points_xy: np.ndarray, cells: int, center_xy: np.ndarray) -> SurfaceModel:
         """`near_indices`' samples that face `center_xy` (2,) (`faces`), as a new model."""

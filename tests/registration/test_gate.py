@@ -88,14 +88,14 @@ def test_wrong_bay_of_a_symmetric_corridor_is_rejected_as_ambiguous(test_config:
     # finds the true bay's fit, as good as the wrong one.
     coarse = np.diag([2.0**2, 0.3**2, np.deg2rad(5.0) ** 2])
     assert gate_registration(result, init, rc, coarse).accepted  # the correction itself is consistent with it
-    decision = gate_with_probes(registrar, scan, surface, result, init, rc, coarse)
+    decision = gate_with_probes(scan, surface, result, init, rc, coarse)
     assert not decision.accepted and decision.alternatives >= 1
     assert len(decision.reasons) == 1 and decision.reasons[0].startswith("ambiguous")
     # A start in the right bay whose coarse pose rules the neighbours out is accepted, probes and all.
     init = true_pose + np.array([0.4, 0.1, np.deg2rad(2.0)])
     result = registrar.register(scan, surface, init)
     assert np.hypot(*(result.pose[:2] - true_pose[:2])) < 0.01
-    decision = gate_with_probes(registrar, scan, surface, result, init, rc, np.diag([0.3**2, 0.3**2, 0.01]))
+    decision = gate_with_probes(scan, surface, result, init, rc, np.diag([0.3**2, 0.3**2, 0.01]))
     assert decision.accepted and decision.alternatives == 0 and decision.probes_ms > 0
 
 
@@ -108,10 +108,10 @@ def test_probes_around_the_result_catch_a_neighbouring_bay_without_covariance(te
     result = registrar.register(scan, surface, init)
     np.testing.assert_allclose(result.pose, true_pose + np.array([bay_m, 0.0, 0.0]), atol=0.01)
     assert gate_registration(result, init, rc).accepted
-    decision = gate_with_probes(registrar, scan, surface, result, init, rc)
+    decision = gate_with_probes(scan, surface, result, init, rc)
     assert not decision.accepted and decision.reasons[0].startswith("ambiguous")
     no_probes = rc.model_copy(update={"ambiguity_probes": False})
-    without = gate_with_probes(registrar, scan, surface, result, init, no_probes)
+    without = gate_with_probes(scan, surface, result, init, no_probes)
     assert without.accepted and without.alternatives == 0 and without.probes_ms == 0.0
 
 

@@ -79,3 +79,24 @@ def test_missing_optional_registrar_is_a_dependency_error(test_config: Config, m
     assert "small_gicp" not in available_registrars()
     with pytest.raises(DependencyError, match=r"pip install 'bimfactor\[registrars\]'"):
         make_registrar(test_config.registration, "small_gicp")
+
+
+def test_planar_multistart_ends_where_the_planar_solver_does_from_each_start(room, test_config: Config) -> None:
+    """Every start of the batched solve (the ambiguity probes' solver) ends where `PlanarIcp` ends from it alone, on
+    the same crop: the batch changes the cost, not the answer (a start with too few matches stays put)."""
+    from bimfactor.registration.icp import PlanarIcp, planar_multistart, scan_reach
+
+    surface, scan = room
+    rc = test_config.registration
+    local = surface.facing(TRUE_POSE[:2], scan_reach(scan) + rc.max_correspondence_m + rc.crop_margin_m + 1.0)
+    starts = TRUE_POSE + np.array(
+        [[0.25, -0.15, 0.07], [-0.3, 0.2, -0.05], [0.0, 0.0, 0.15], [0.1, 0.4, 0.0], [60.0, 60.0, 0.0]]
+    )
+    ends = planar_multistart(scan, local, starts, surface.elevation_m, rc)
+    np.testing.assert_allclose(ends[-1], starts[-1], atol=1e-12)  # far off the room: nothing matches, nothing moves
+    alone = PlanarIcp(rc, near_cells=None)
+    for start, end in zip(starts[:-1], ends[:-1], strict=True):
+        want = alone.register(scan, local, start).pose
+        np.testing.assert_allclose(end[:2], want[:2], atol=2e-3)
+        assert abs(wrap_angle(end[2] - want[2])) < np.deg2rad(0.05)
+    assert max(_errors(end)[0] for end in ends[:-1]) < 0.01  # and those starts all reach the truth
