@@ -28,7 +28,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -147,26 +149,16 @@ class VisibilityTable:
 
         cell_rows = np.full((len(prior.storeys), rows, cols), -1, np.int32)
         n_rows = 0
-        steps = [(s, o) for s in range(len(prior.storeys)) for o in np.flatnonzero(storey_of == s)]
-        bar = progress_bar(steps, desc="visibility", unit="object") if progress else steps
-        origins_of: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        pair_rows: list[np.ndarray] = []
-        pair_ids: list[np.ndarray] = []
-        for s, obj in bar:
-            if s not in origins_of:
-                flat, origins = _lattice_origins(prior, s, lattice)
-                rr, cc = np.unravel_index(flat, (rows, cols))
-                cell_rows[s, rr, cc] = n_rows + np.arange(len(flat), dtype=np.int32)
-                blocking = prior.storeys[s].structure.astype(bool, copy=True)  # edited per object, then restored
-                origins_of[s] = (n_rows + np.arange(len(flat), dtype=np.int64), origins, blocking)
-                n_rows += len(flat)
-            row_ids, origins, blocking = origins_of[s]
-            near = np.flatnonzero(np.hypot(*(origins - positions[obj]).T) <= reach)
-            if len(near) == 0:
-                continue
-            seen = _visible_from(blocking, prior.grid, origins[near], positions[obj], sizes[obj])
-            pair_rows.append(row_ids[near[seen]])
-            pair_ids.append(np.full(int(seen.sum()), obj, np.int32))
+        origins_of: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for s in np.unique(storey_of).tolist():  # storeys without objects keep no rows (-1), as lookups expect
+            flat, origins = _lattice_origins(prior, s, lattice)
+            rr, cc = np.unravel_index(flat, (rows, cols))
+            cell_rows[s, rr, cc] = n_rows + np.arange(len(flat), dtype=np.int32)
+            origins_of[s] = (n_rows + np.arange(len(flat), dtype=np.int64), origins)
+            n_rows += len(flat)
+        steps = [(s, int(o)) for s in range(len(prior.storeys)) for o in np.flatnonzero(storey_of == s)]
+        work = _Work([layers.structure for layers in prior.storeys], grid, origins_of, positions, sizes, reach)
+        pair_rows, pair_ids = _run_steps(work, steps, progress)
         all_rows = np.concatenate(pair_rows) if pair_rows else np.zeros(0, np.int64)
         all_ids = np.concatenate(pair_ids) if pair_ids else np.zeros(0, np.int32)
         order = np.lexsort((all_ids, all_rows))
@@ -182,6 +174,80 @@ class VisibilityTable:
             time.perf_counter() - started,
         )
         return table
+
+
+@dataclass
+class _Work:
+    """What every object's line-of-sight test reads: the storeys' structure, the fine grid, each storey's lattice rows
+    and ray origins, the objects' positions and sizes, and how far from an object its lattice cells are tested."""
+
+    structure: list[np.ndarray]
+    grid: GridSpec
+    origins_of: dict[int, tuple[np.ndarray, np.ndarray]]
+    positions: np.ndarray
+    sizes: np.ndarray
+    reach_m: float
+
+
+_WORK: _Work | None = None  # set before the worker processes fork; they read it copy-on-write
+_CHUNKS_PER_WORKER = 8  # objects differ in cost (a window in a corridor against a cupboard): small chunks balance
+_MIN_PARALLEL_OBJECTS = 64  # fewer objects than this: one process (a pool's start-up would cost more than it saves)
+
+
+def _pairs(work: _Work, steps: list[tuple[int, int]]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(lattice rows, object ids) of the visible pairs of each (storey, object) step, as arrays per object."""
+    blocking: dict[int, np.ndarray] = {}  # each storey's structure, edited per object and restored
+    pair_rows, pair_ids = [], []
+    for s, obj in steps:
+        row_ids, origins = work.origins_of[s]
+        near = np.flatnonzero(np.hypot(*(origins - work.positions[obj]).T) <= work.reach_m)
+        if len(near) == 0:
+            continue
+        if s not in blocking:
+            blocking[s] = work.structure[s].astype(bool, copy=True)
+        seen = _visible_from(blocking[s], work.grid, origins[near], work.positions[obj], work.sizes[obj])
+        pair_rows.append(row_ids[near[seen]])
+        pair_ids.append(np.full(int(seen.sum()), obj, np.int32))
+    return pair_rows, pair_ids
+
+
+def _forked_pairs(steps: list[tuple[int, int]]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    assert _WORK is not None, "the worker was not forked from a process that set the work"
+    return _pairs(_WORK, steps)
+
+
+def _run_steps(work: _Work, steps: list[tuple[int, int]], progress: bool) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """`_pairs` of every step, in chunks over forked worker processes (one per CPU) where the platform forks and the
+    building has enough objects, in this process otherwise. The table is the same either way (sorted at the end)."""
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    global _WORK
+    workers = min(os.cpu_count() or 1, max(len(steps) // _MIN_PARALLEL_OBJECTS, 1))
+    if workers == 1 or "fork" not in multiprocessing.get_all_start_methods():
+        chunks = [[step] for step in steps]
+        results = map(partial(_pairs, work), chunks)
+        return _gather(progress_bar(results, "visibility", len(chunks), "object") if progress else results)
+    size = max(len(steps) // (workers * _CHUNKS_PER_WORKER), 1)
+    chunks = [steps[i : i + size] for i in range(0, len(steps), size)]
+    _WORK = work
+    try:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+            results = pool.map(_forked_pairs, chunks)
+            return _gather(progress_bar(results, "visibility", len(chunks), "chunk") if progress else results)
+    finally:
+        _WORK = None
+
+
+def _gather(results: Iterable[tuple[list[np.ndarray], list[np.ndarray]]]) -> tuple[list, list]:
+    """The pairs of every chunk, in order, as one list of row arrays and one of id arrays."""
+    pair_rows: list[np.ndarray] = []
+    pair_ids: list[np.ndarray] = []
+    for rows, ids in results:
+        pair_rows += rows
+        pair_ids += ids
+    return pair_rows, pair_ids
 
 
 def _lattice_origins(prior: BimPrior, storey: int, lattice: GridSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -247,7 +313,7 @@ def _hosting_depth(structure: np.ndarray, grid: GridSpec, center: np.ndarray) ->
     pad = 40  # cells: 2 m at 5 cm, more than any wall's half thickness
     r0, c0 = max(rc[0] - pad, 0), max(rc[1] - pad, 0)
     window = structure[r0 : rc[0] + pad + 1, c0 : rc[1] + pad + 1]
-    depth = ndimage.distance_transform_edt(window)
+    depth = ndimage.distance_transform_edt(window)  # float64: a margin's cell boundary, exactly as built before
     return float(depth[rc[0] - r0, rc[1] - c0] * grid.resolution_m)
 
 
@@ -257,11 +323,17 @@ def _blocked(blocking: np.ndarray, grid: GridSpec, origins: np.ndarray, target: 
     All rays march together, `_SEGMENT_STEPS` samples at a time; a ray leaves the batch once blocked or finished.
     """
     step = _STEP_FRACTION * grid.resolution_m
+    # Origins and the target inside the grid keep every sample of the segment inside it (no clipping per sample).
+    top = np.array([grid.origin_x + grid.cols * grid.resolution_m, grid.origin_y + grid.rows * grid.resolution_m])
+    low = np.array([grid.origin_x, grid.origin_y])
+    target = np.clip(target, low, top - 1e-6)
+    origins = np.clip(origins, low, top - 1e-6)
     delta = target - origins
     length = np.hypot(delta[:, 0], delta[:, 1])
     direction = delta / np.maximum(length, 1e-9)[:, None]
-    start = origins - np.array([grid.origin_x, grid.origin_y])
+    start = origins - low
     inv_res = 1.0 / grid.resolution_m
+    flat_blocking = blocking.ravel()
     out = np.zeros(len(origins), bool)
     alive = np.arange(len(origins))
     first = 0
@@ -270,9 +342,9 @@ def _blocked(blocking: np.ndarray, grid: GridSpec, origins: np.ndarray, target: 
         tt = np.minimum(t[None, :], length[alive, None])  # short rays repeat their end point
         cols = ((start[alive, 0:1] + tt * direction[alive, 0:1]) * inv_res).astype(np.intp)
         rows = ((start[alive, 1:2] + tt * direction[alive, 1:2]) * inv_res).astype(np.intp)
-        np.clip(cols, 0, grid.cols - 1, out=cols)
-        np.clip(rows, 0, grid.rows - 1, out=rows)
-        hit = blocking[rows, cols].any(axis=1)
+        rows *= grid.cols
+        rows += cols
+        hit = flat_blocking[rows].any(axis=1)
         out[alive[hit]] = True
         alive = alive[~hit & (length[alive] > t[-1])]
         first += _SEGMENT_STEPS

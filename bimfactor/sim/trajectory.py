@@ -22,11 +22,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage, sparse
+from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from bimfactor.bim.grid import GridSpec, rasterise_polygons
+from bimfactor.bim.grid import GridSpec, distance_transform, rasterise_polygons
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.rooms import OUTSIDE
 from bimfactor.bim.visibility import VisibilityTable
@@ -170,7 +170,7 @@ def traversable_mask(
     layers, spec = prior.storeys[storey_index], prior.grid
     clearance = layers.clearance_m
     if extra_obstacles is not None and extra_obstacles.any():
-        extra = ndimage.distance_transform_edt(~extra_obstacles) * spec.resolution_m
+        extra = distance_transform(~extra_obstacles) * np.float32(spec.resolution_m)
         clearance = np.minimum(clearance, extra.astype(np.float32))
     free = (clearance >= robot_radius_m) & (layers.room_labels != OUTSIDE)
     doorways = np.zeros(spec.shape, np.uint8)

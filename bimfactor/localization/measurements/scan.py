@@ -16,8 +16,8 @@ tells places of the same shape apart.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
+from bimfactor.bim.grid import distance_transform
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import Config, ScanConfig, ScanTermConfig, SensorConfig
 from bimfactor.localization.measurements.base import FrameData, Term
@@ -98,8 +98,8 @@ def face_distances(prior: BimPrior) -> np.ndarray:
 
     def to_faces(solid: np.ndarray) -> np.ndarray:
         # Either side of a face the nearest cells are one cell from the other side's: half a cell puts the face at 0.
-        outside = ndimage.distance_transform_edt(~solid).astype(np.float32) * res
-        inside = ndimage.distance_transform_edt(solid).astype(np.float32) * res
+        outside = distance_transform(~solid) * res
+        inside = distance_transform(solid) * res
         return np.maximum(outside + inside - np.float32(0.5) * res, np.float32(0.0))
 
     return np.stack([np.minimum(to_faces(layers.structure), to_faces(layers.furniture)) for layers in prior.storeys])
