@@ -407,7 +407,7 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     object_edges = _proximity_edges(objects, bim.objects.proximity_edge_m)
     lap("edges")
     prior = BimPrior(
-        source_file=str(ifc_path),
+        source_file=str(Path(ifc_path).resolve()),  # found from any working directory
         source_sha256=model.sha256,
         schema=model.schema,
         embedding_model=getattr(embedder, "name", type(embedder).__name__),

@@ -145,7 +145,8 @@ def wall_clock(args: list[str], cwd: Path) -> float:
 
 def wall_clock_rows(out_dir: Path, prior_dir: Path, sequence_dir: Path, shared_ifc: Path | None) -> list[SpeedRow]:
     """The commands a user meets, timed in fresh processes."""
-    out_dir = Path(out_dir).resolve()
+    # The commands run in OUT: every path they get must not depend on this process's working directory.
+    out_dir, prior_dir, sequence_dir = (Path(p).resolve() for p in (out_dir, prior_dir, sequence_dir))
     rows = [SpeedRow("bimfactor --help", "-", wall_clock(["--help"], out_dir), "s")]
     localize = ["localize", str(prior_dir), str(sequence_dir), "-o", str(_fresh(out_dir / "localize-run"))]
     rows.append(SpeedRow("localize, 50 keyframes", "paper floor", wall_clock(localize, out_dir), "s"))

@@ -172,12 +172,17 @@ def load_world_inputs(prior_dir: str | Path, cfg: Config | None = None) -> tuple
 def source_model(prior: BimPrior, cfg: Config, prior_dir: str | Path | None = None) -> IfcModel:
     """The IFC model `prior` was built from: its `source_file`, checked by SHA-256 (a prior stores no meshes).
 
-    A relative `source_file` is looked up from the working directory, then beside the prior folder.
+    Priors store the absolute path; a relative one (an older prior) is looked up from the working directory, then
+    from the prior folder and its parent. Last, a file of that name in or beside the prior folder (a prior moved
+    together with its IFC); the hash decides whether it is the same file.
     """
     source = Path(prior.source_file)
     candidates = [source]
-    if not source.is_absolute() and prior_dir is not None:
-        candidates += [Path(prior_dir) / source, Path(prior_dir).parent / source]
+    if prior_dir is not None:
+        folder = Path(prior_dir)
+        if not source.is_absolute():
+            candidates += [folder / source, folder.parent / source]
+        candidates += [folder / source.name, folder.parent / source.name]
     path = next((p for p in candidates if p.is_file()), None)
     where = f"the prior {prior_dir}" if prior_dir is not None else "the prior"
     if path is None:

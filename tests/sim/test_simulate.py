@@ -100,6 +100,29 @@ def test_load_world_inputs_checks_the_ifc(paper_floor: Building, tmp_path: Path)
         load_world_inputs(prior_dir, paper_floor.cfg)
 
 
+def test_the_ifc_is_found_from_another_working_directory_and_beside_a_moved_prior(
+    paper_floor: Building, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A prior built from a relative IFC path stores it resolved, so another working directory finds it; a prior moved
+    together with its IFC (the stored path gone) finds the file of that name beside it."""
+    from bimfactor.bim.prior import build_prior
+
+    work = tmp_path / "work"
+    (work / "data").mkdir(parents=True)
+    shutil.copy(paper_floor.ifc_path, work / "data" / "building.ifc")
+    monkeypatch.chdir(work)
+    prior = build_prior(Path("data/building.ifc"), paper_floor.cfg)
+    assert Path(prior.source_file) == work / "data" / "building.ifc"
+    prior.save(work / "runs" / "prior")  # neither beside nor above the IFC's relative path
+    monkeypatch.chdir(tmp_path)
+    assert load_world_inputs(work / "runs" / "prior", paper_floor.cfg)[1].sha256 == prior.source_sha256
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    shutil.move(work / "runs" / "prior", moved / "prior")
+    shutil.move(work / "data" / "building.ifc", moved / "building.ifc")
+    assert load_world_inputs(moved / "prior", paper_floor.cfg)[1].sha256 == prior.source_sha256
+
+
 def test_benchmark_render_reports(paper_floor: Building, config_overrides: list[str]) -> None:
     cfg = config_with(config_overrides, *SMALL_CAMERA)
     report = benchmark_render(paper_floor.prior, paper_floor.model, cfg, n_frames=4)
