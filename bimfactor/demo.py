@@ -101,9 +101,10 @@ STAGES = (
 
 def _localize(ctx: DemoContext) -> str:
     """Localize the sequence with each stage up to the configured variant (all three by default), so the account
-    shows what each stage adds; the configured variant's run is written."""
+    shows what each stage adds; the configured variant's run is written. The filter runs the same in every variant (the
+    back end never feeds back into it), so S-MCL's line is the `smcl+graph` run's filter track, not a run of its own."""
     from bimfactor.config import updated
-    from bimfactor.evaluation.report import run_metrics, write_run
+    from bimfactor.evaluation.report import run_metrics, track_metrics, write_run
     from bimfactor.io.sequence import read_sequence
     from bimfactor.pipeline import localize_sequence
 
@@ -113,20 +114,24 @@ def _localize(ctx: DemoContext) -> str:
     names = [name for name, _ in STAGES]
     variant = ctx.cfg.localization.variant
     stages = STAGES[: names.index(variant) + 1] if variant in names else [(variant, variant)]
-    lines, run = [], None
+    lines, run, previous = [], None, None
     for name, label in stages:
+        if name == "smcl" and variant != "smcl":
+            continue  # the filter is the same in every variant: its line comes from the next run's filter track
         cfg = ctx.cfg if name == variant else updated(ctx.cfg, {"localization.variant": name})
         snapshots = sorted({0, n // 4, n // 2, n - 1}) if name == variant else ()
         run = localize_sequence(ctx.prior, sequence.meta, sequence, cfg, ctx.cfg.seed, snapshot_steps=snapshots)
+        if previous is None and name != "smcl":
+            filtered = track_metrics(run.filter, run.gt_poses, run.gt_rooms)
+            assert filtered is not None
+            lines.append(_stage_line(STAGES[0][1], filtered))
+        previous = run
         m = run_metrics(run)
         assert m is not None
         extra = ""
         if run.fine is not None:
             extra = f"; ICP accepted on {int(run.fine.accepted.sum())} of {int(run.fine.ran.sum())} keyframes"
-        lines.append(
-            f"{label}: translation {m.trans_err_m:.2f} ± {m.trans_err_std_m:.2f} m, orientation "
-            f"{m.orient_err_deg:.1f} ± {m.orient_err_std_deg:.1f}°, room accuracy {100 * m.room_acc:.0f} %{extra}"
-        )
+        lines.append(_stage_line(label, m, extra))
     run_dir = ctx.out_dir / "localize"
     assert run is not None
     ctx.figures.extend(
@@ -140,6 +145,14 @@ def _localize(ctx: DemoContext) -> str:
         )
     )
     return f"wrote {run_dir}/ (variant {variant}):\n" + "\n".join(f"      {line}" for line in lines)
+
+
+def _stage_line(label: str, m, extra: str = "") -> str:
+    """One stage's account: its label and the paper's metrics (`TrajectoryMetrics`) of its output."""
+    return (
+        f"{label}: translation {m.trans_err_m:.2f} ± {m.trans_err_std_m:.2f} m, orientation "
+        f"{m.orient_err_deg:.1f} ± {m.orient_err_std_deg:.1f}°, room accuracy {100 * m.room_acc:.0f} %{extra}"
+    )
 
 
 STEPS: tuple[DemoStep, ...] = (

@@ -78,25 +78,43 @@ def write_preview(sequence: Sequence, path_png: str | Path, max_frames: int = 12
         _draw_row(row, frame, depth_max, with_instances)
     fig.suptitle(f"{sequence.meta.name} ({sequence.meta.source}, {len(sequence)} frames)", fontsize=10)
     with missing_glyphs_quiet():
-        fig.tight_layout()
+        fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - 0.4 / (panel_h * len(rows))))  # 0.4 in above for the title
         with atomic_path(path_png) as tmp:
             fig.savefig(tmp, format="png", dpi=DPI)
     log.info("wrote preview %s (%d frames)", path_png, len(rows))
     return path_png
 
 
+def panel_image(image: np.ndarray, smooth: bool) -> np.ndarray:
+    """`image` reduced to the panel's pixel width (`PANEL_WIDTH_IN` × `DPI`) when wider: area-averaged when `smooth`
+    (colour), nearest otherwise (depth with its NaN holes, instance ids). matplotlib resampled the full frames itself
+    at several times the cost of the whole sheet."""
+    import cv2
+
+    width = int(PANEL_WIDTH_IN * DPI)
+    h, w = image.shape[:2]
+    if w <= width:
+        return image
+    size = (width, max(round(h * width / w), 1))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA if smooth else cv2.INTER_NEAREST)
+
+
 def _draw_row(axes: np.ndarray, frame: Frame, depth_max: float, with_instances: bool) -> None:
     stamp = f"#{frame.index}  t={frame.timestamp_s:.3f} s"
-    axes[0].imshow(frame.rgb)
+    axes[0].imshow(panel_image(np.ascontiguousarray(frame.rgb), smooth=True), interpolation="nearest")
     axes[0].set_title(f"{stamp}  rgb", fontsize=7)
     cmap = matplotlib.colormaps["turbo"].with_extremes(bad="black")
-    axes[1].imshow(
-        np.ma.masked_invalid(frame.depth_m), cmap=cmap, vmin=0.0, vmax=max(depth_max, 1e-3), interpolation="nearest"
-    )
+    depth = panel_image(np.asarray(frame.depth_m, dtype=np.float32), smooth=False)
+    axes[1].imshow(np.ma.masked_invalid(depth), cmap=cmap, vmin=0.0, vmax=max(depth_max, 1e-3), interpolation="nearest")
     axes[1].set_title(f"depth 0–{depth_max:.1f} m", fontsize=7)
     if with_instances:
         if frame.instance_ids is not None:
-            axes[2].imshow(instance_colours(frame.instance_ids), interpolation="nearest")
+            ids = panel_image(np.asarray(frame.instance_ids, dtype=np.int32), smooth=False)
+            axes[2].imshow(instance_colours(ids), interpolation="nearest")
         axes[2].set_title("instances", fontsize=7)
     for ax in axes:
+        # No ticks at all: matplotlib places every title above its axes' tick labels, hidden or not, and measuring
+        # those took most of the sheet's rendering.
+        ax.set_xticks([])
+        ax.set_yticks([])
         ax.set_axis_off()

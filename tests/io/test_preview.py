@@ -48,3 +48,21 @@ def test_write_preview(tmp_path: Path) -> None:
     write_sequence(tmp_path / "plain", make_meta(), frames)
     out = write_preview(read_sequence(tmp_path / "plain"), tmp_path / "plain.png")
     assert 600 <= cv2.imread(str(out)).shape[1] <= 680
+
+
+def test_panels_are_reduced_to_their_pixel_width_keeping_holes_and_ids() -> None:
+    from bimfactor.io.preview import DPI, PANEL_WIDTH_IN, panel_image
+
+    width = int(PANEL_WIDTH_IN * DPI)
+    depth = np.full((480, 640), 2.0, np.float32)
+    depth[:, :320] = np.nan  # the left half has no return
+    small = panel_image(depth, smooth=False)
+    assert small.shape == (240, width)
+    assert np.isnan(small[:, : width // 2 - 1]).all() and (small[:, width // 2 + 1 :] == 2.0).all()
+    ids = np.arange(640, dtype=np.int32)[None].repeat(480, axis=0) % 7
+    assert set(np.unique(panel_image(ids, smooth=False))) <= set(range(7))  # ids are picked, never blended
+    rgb = np.zeros((480, 640, 3), np.uint8)
+    rgb[:, 1::2] = 200
+    assert panel_image(rgb, smooth=True).shape == (240, width, 3) and (panel_image(rgb, smooth=True) == 100).all()
+    narrow = np.zeros((120, 160), np.float32)
+    assert panel_image(narrow, smooth=False) is narrow
