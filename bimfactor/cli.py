@@ -127,6 +127,23 @@ SetOption = Annotated[
         help="Override one config field (repeatable), e.g. --set bim.grid.resolution_m=0.1.",
     ),
 ]
+BenchVariantsOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--variant",
+        metavar="NAME",
+        help="smcl, smcl+graph, refine or full (repeatable; default: the config's evaluation.variants).",
+    ),
+]
+ScenarioOption = Annotated[
+    str | None,
+    typer.Option(
+        "--scenario",
+        metavar="NAME",
+        help="global (the paper: from the uniform belief), guess (from a pose guess off the truth) or kidnap "
+        "(carried to another route mid-run); default: the config's evaluation.scenario.",
+    ),
+]
 VerboseOption = Annotated[bool, typer.Option("--verbose", "-v", help="Log progress (INFO); default is WARNING.")]
 DebugOption = Annotated[
     bool,
@@ -1102,6 +1119,17 @@ def _start_overrides(text: str | None, storey: int | None) -> list[str]:
     return [f"smcl.start.pose={json.dumps(values[:3])}", *on, *known]
 
 
+def _protocol_config(
+    config: str | None, overrides: list[str] | None, variants: list[str] | None, scenario: str | None, verbose: bool
+) -> Config:
+    """The config of a protocol benchmark: `--variant` and `--scenario` applied over `--set`."""
+    scenario_set = [f"evaluation.scenario={scenario}"] if scenario else []
+    variant_list = list(variants) if variants else None
+    return _start(
+        config, [*(overrides or []), *scenario_set, *_variant_overrides("evaluation.variants", variant_list)], verbose
+    )
+
+
 def _bench_dir(output: Path, *inputs: Path | str | None) -> contextlib.AbstractContextManager[Path]:
     """A benchmark's output folder (`io.atomic.container_dir`): new, empty or an earlier benchmark's, never an input."""
     from bimfactor.io.atomic import container_dir
@@ -1469,23 +1497,8 @@ def bench_paper(
         Path | None, typer.Option("--ifc", metavar="PATH", help="Another building (default: the paper-floor preset).")
     ] = None,
     prior_dir: BenchPriorOption = None,
-    variants: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--variant",
-            metavar="NAME",
-            help="smcl, smcl+graph, refine or full (repeatable; default: the config's evaluation.variants).",
-        ),
-    ] = None,
-    scenario: Annotated[
-        str | None,
-        typer.Option(
-            "--scenario",
-            metavar="NAME",
-            help="global (the paper: from the uniform belief), guess (from a pose guess off the truth) or kidnap "
-            "(carried to another route mid-run); default: the config's evaluation.scenario.",
-        ),
-    ] = None,
+    variants: BenchVariantsOption = None,
+    scenario: ScenarioOption = None,
     workers: Annotated[int | None, typer.Option("--workers", min=1, help="Parallel processes (default: CPUs).")] = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
@@ -1515,13 +1528,7 @@ def bench_paper(
       bimfactor bench paper --ifc ../shared/data/ifc/AC11-Institute-Var-2-IFC.ifc --set evaluation.known_storey=true
     """
     with _cli_errors(debug):
-        variant_list = list(variants) if variants else None
-        scenario_set = [f"evaluation.scenario={scenario}"] if scenario else []
-        cfg = _start(
-            config,
-            [*(overrides or []), *scenario_set, *_variant_overrides("evaluation.variants", variant_list)],
-            verbose,
-        )
+        cfg = _protocol_config(config, overrides, variants, scenario, verbose)
         from bimfactor.bim.prior import build_prior
         from bimfactor.bim.synth import write_building
         from bimfactor.evaluation.paper import check_protocol, format_tables, run_paper_bench
@@ -1546,6 +1553,76 @@ def bench_paper(
         typer.echo(f"results: {output / 'results.json'}")
         if (output / "error_by_step.png").is_file():
             typer.echo(f"figure: {output / 'error_by_step.png'}")
+
+
+@bench_app.command(
+    "buildings", short_help="The paper's protocol over many buildings at once, on Ray: a table per building."
+)
+def bench_buildings(
+    buildings: Annotated[
+        list[Path] | None,
+        typer.Argument(
+            metavar="IFC",
+            help="IFC files (default: the paper-floor preset and every IFC under ../shared/data/ifc).",
+            show_default=False,
+        ),
+    ] = None,
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
+        "runs/bench-buildings"
+    ),
+    variants: BenchVariantsOption = None,
+    scenario: ScenarioOption = None,
+    runner: Annotated[
+        str, typer.Option("--runner", metavar="NAME", help="ray (a local Ray instance, or --address) or processes.")
+    ] = "ray",
+    address: Annotated[
+        str | None,
+        typer.Option(
+            "--address",
+            metavar="ADDR",
+            help="An existing Ray cluster (e.g. ray://head:10001); its nodes need bimfactor and see OUT at its path.",
+        ),
+    ] = None,
+    workers: Annotated[int | None, typer.Option("--workers", min=1, help="Parallel runs (default: CPUs).")] = None,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """The paper's protocol (six routes x three repeats, each scoring every variant) on every building, all runs on
+    one runner: Ray by default (a local instance; --address sends them to a cluster), or a local process pool (the
+    results are the same). Writes OUT/results.json (per building IFC file name, per variant: Table I's keys and
+    success_rate, wrong_convergence_rate, distance_to_convergence_m, top3_rate), OUT/report.md (a table per
+    building and the worst building and route), OUT/buildings.png, OUT/config.yaml and each prior under
+    OUT/priors/. Longer routes: --set evaluation.trajectory_length=150.
+
+    \b
+    Examples:
+      bimfactor bench buildings
+      bimfactor bench buildings ../shared/data/ifc/duplex.ifc --variant smcl+graph -o runs/bench-duplex
+      bimfactor bench buildings --set evaluation.trajectory_length=150 -o runs/bench-buildings-150
+      bimfactor bench buildings --address ray://head:10001 -o /shared/runs/bench-buildings
+    """
+    with _cli_errors(debug):
+        cfg = _protocol_config(config, overrides, variants, scenario, verbose)
+        from bimfactor.bim.ifc import read_schema
+        from bimfactor.evaluation.buildings import default_buildings, format_buildings_report, run_buildings_bench
+        from bimfactor.evaluation.paper import RUNNERS, check_protocol
+
+        check_protocol(cfg)
+        if runner not in RUNNERS:
+            raise ConfigError(f"unknown runner '{runner}' (known: {', '.join(RUNNERS)})")
+        chosen: list[str | Path] = list(buildings) if buildings else default_buildings()
+        for building in chosen:
+            if isinstance(building, Path):
+                if not building.is_file():
+                    raise InputError(f"no such IFC file: {building}")
+                read_schema(building)  # not IFC, or truncated: refused before any prior is built
+        with _bench_dir(output, *[b for b in chosen if isinstance(b, Path)]):
+            report = run_buildings_bench(chosen, cfg, output, runner, workers, address)
+        typer.echo(format_buildings_report(report), nl=False)
+        typer.echo(f"results: {output / 'results.json'}, report: {output / 'report.md'}")
+        typer.echo(f"figure: {output / 'buildings.png'}")
 
 
 @bench_app.command("graph", short_help="Online scene graph quality (precision, recall, segmentation) and speed.")

@@ -144,3 +144,72 @@ def trajectory_metrics(
         ellipse95_coverage=ellipse_coverage(estimates, covariances, ground_truth),
         step_ms_median=float(np.median(step_ms)),
     )
+
+
+WRONG_CONVERGENCE_M = 2.0
+"""The filter says it has converged while its estimate is farther off than this (or on another storey): the dangerous
+failure, a confident wrong answer (issue 43's `wrong_convergence_rate`)."""
+TOP_MODES = 3
+
+
+@dataclass(frozen=True)
+class RouteOutcome:
+    """How a whole route went, from its first frame: `success` at its last step (within 1 m and 15° of the truth on
+    the true storey), `distance_to_convergence_m` the ground-truth distance travelled until the estimate was correct
+    and stayed so to the end (NaN: never), `wrong_convergence` whether the filter ever said converged while more than
+    `WRONG_CONVERGENCE_M` off or on another storey, `top3_share` the share of steps at which one of the
+    `TOP_MODES` most probable modes was correct (NaN: the variant has no modes)."""
+
+    success: bool
+    distance_to_convergence_m: float
+    wrong_convergence: bool
+    top3_share: float
+
+
+def _correct(poses: np.ndarray, storeys: np.ndarray, gt_poses: np.ndarray, gt_storeys: np.ndarray) -> np.ndarray:
+    """(T,) bool: within 1 m and 15° of the truth and on the true storey."""
+    return (
+        (translation_errors_m(poses, gt_poses) < CONVERGED_TRANS_M)
+        & (orientation_errors_deg(poses, gt_poses) < CONVERGED_ORIENT_DEG)
+        & (np.asarray(storeys) == np.asarray(gt_storeys))
+    )
+
+
+def route_outcome(
+    poses: np.ndarray,
+    storeys: np.ndarray,
+    gt_poses: np.ndarray,
+    gt_storeys: np.ndarray,
+    converged: np.ndarray,
+    modes: list[list] | None = None,
+) -> RouteOutcome:
+    """`RouteOutcome` of (T, 3) estimates on (T,) storeys against the truth, with the filter's (T,) converged flag and,
+    for the graph variants, each step's modes (objects with `pose`, `storey` and `probability`)."""
+    gt_poses, gt_storeys = np.asarray(gt_poses, float), np.asarray(gt_storeys)
+    ok = _correct(poses, storeys, gt_poses, gt_storeys)
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(gt_poses[:, :2], axis=0).T))])
+    distance = float("nan")
+    if len(ok) and ok[-1]:
+        bad = np.flatnonzero(~ok)
+        distance = float(travelled[bad[-1] + 1]) if len(bad) else 0.0
+    far = (translation_errors_m(poses, gt_poses) > WRONG_CONVERGENCE_M) | (np.asarray(storeys) != gt_storeys)
+    top3 = float("nan")
+    if modes is not None and len(modes) == len(ok):
+        hits = []
+        for step, step_modes in enumerate(modes):
+            best = sorted(step_modes, key=lambda m: -m.probability)[:TOP_MODES]
+            hits.append(
+                any(
+                    _correct(
+                        m.pose[None], np.array([m.storey]), gt_poses[step : step + 1], gt_storeys[step : step + 1]
+                    )[0]
+                    for m in best
+                )
+            )
+        top3 = float(np.mean(hits)) if hits else float("nan")
+    return RouteOutcome(
+        success=bool(len(ok) and ok[-1]),
+        distance_to_convergence_m=distance,
+        wrong_convergence=bool(np.any(np.asarray(converged, bool) & far)),
+        top3_share=top3,
+    )

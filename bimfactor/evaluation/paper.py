@@ -46,7 +46,12 @@ import numpy as np
 
 from bimfactor.config import Config, updated
 from bimfactor.errors import ConfigError
-from bimfactor.evaluation.metrics import orientation_errors_deg, run_bootstrap_ci, translation_errors_m
+from bimfactor.evaluation.metrics import (
+    RouteOutcome,
+    orientation_errors_deg,
+    run_bootstrap_ci,
+    translation_errors_m,
+)
 from bimfactor.io.atomic import write_text_atomic
 from bimfactor.progress import progress
 from bimfactor.types import wrap_angle
@@ -103,6 +108,7 @@ class RunResult:
     storey_hit: np.ndarray | None = None  # (T,) the estimate on the true storey
     challenges: int = 0  # steps at which the belief took a challenger's particles
     from_start: StepErrors | None = None  # scored from the filter's convergence: the first T steps, for comparison
+    outcome: RouteOutcome | None = None  # the whole route from its first frame (`route_outcome`)
 
 
 def forward_variants(variants: list[str]) -> list[str]:
@@ -204,7 +210,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
     """Simulate trajectory k (config seed), localize it with seed (config seed, repeat), score every variant (also
     up to the building's `twins`, when it has any); in a worker process, or in this one with one worker."""
     from bimfactor.config import Config
-    from bimfactor.evaluation.metrics import errors_up_to_twin, inside_ellipse, steps_to_converge
+    from bimfactor.evaluation.metrics import errors_up_to_twin, inside_ellipse, route_outcome, steps_to_converge
     from bimfactor.evaluation.report import track_metrics
     from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, scan_matcher
     from bimfactor.refine import refine_run
@@ -241,7 +247,8 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
         else scoring_window(run.converged, ev.trajectory_length, ev.score_from, ev.warmup_steps)
     )
     gt_poses, gt_rooms = run.gt_poses[scored], run.gt_rooms[scored]
-    gt_storeys = np.asarray([f.gt_storey or 0 for f in frames])[scored]
+    all_storeys = np.asarray([f.gt_storey or 0 for f in frames])
+    gt_storeys = all_storeys[scored]
     first = slice(0, ev.trajectory_length)  # the uniform cloud's steps included
     results = []
     for variant in variants:
@@ -286,6 +293,14 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
                 from_start=StepErrors.of(tracks[variant].window(first), run.gt_poses[first], run.gt_rooms[first])
                 if ev.scores_from_convergence
                 else None,
+                outcome=route_outcome(
+                    tracks[variant].poses,
+                    tracks[variant].storeys,
+                    run.gt_poses,
+                    all_storeys,
+                    run.converged,
+                    forward[variant].modes if variant in forward and forward[variant].graph is not None else None,
+                ),
             )
         )
     return results
@@ -341,8 +356,27 @@ def _pooled(runs: list[RunResult]) -> dict:
         "ellipse_coverage": float(np.concatenate([r.inside_ellipse95 for r in runs]).mean()),
         **icp,
         **twin,
+        **_outcomes(runs),
         **_from_start(runs),
         **_by_step(runs),
+    }
+
+
+def _outcomes(runs: list[RunResult]) -> dict:
+    """The routes' outcomes over runs (`RouteOutcome`): success and wrong-convergence rates, the median distance to
+    correct convergence over the runs that got there (with how many did), and the top-3 rate over every step (None
+    for a variant without modes)."""
+    outcomes = [r.outcome for r in runs if r.outcome is not None]
+    if not outcomes:
+        return {}
+    distances = [o.distance_to_convergence_m for o in outcomes if np.isfinite(o.distance_to_convergence_m)]
+    top3 = [o.top3_share for o in outcomes if np.isfinite(o.top3_share)]
+    return {
+        "success_rate": float(np.mean([o.success for o in outcomes])),
+        "wrong_convergence_rate": float(np.mean([o.wrong_convergence for o in outcomes])),
+        "distance_to_convergence_m": float(np.median(distances)) if distances else None,
+        "correctly_converged_runs": len(distances),
+        "top3_rate": float(np.mean(top3)) if top3 else None,
     }
 
 
@@ -415,7 +449,79 @@ def check_protocol(cfg: Config) -> None:
         )
 
 
-def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, workers: int | None = None) -> dict:
+RUNNERS = ("processes", "ray")
+"""Where the protocol's runs go: a local process pool (one worker per CPU; one worker runs in this process), or Ray
+(a local Ray instance, or the cluster at an address)."""
+
+Job = tuple[str, str, int, int, dict]
+"""One run of the protocol: `_run_one`'s arguments (prior folder, config as JSON, trajectory, repeat, twins)."""
+
+
+def paper_jobs(prior_dir: str | Path, cfg: Config, twins: dict[int, Motion]) -> list[Job]:
+    """The protocol's runs on one prior: every trajectory × repeat."""
+    ev, cfg_json = cfg.evaluation, cfg.model_dump_json()
+    return [(str(prior_dir), cfg_json, k, r, twins) for k in range(ev.num_trajectories) for r in range(ev.repeats)]
+
+
+def run_jobs(
+    jobs: list[Job], desc: str, runner: str = "processes", workers: int | None = None, address: str | None = None
+) -> list[list[RunResult]]:
+    """Each job's `_run_one` results, in the jobs' order, whichever runner ran them (they do not depend on it)."""
+    if runner not in RUNNERS:
+        raise ConfigError(f"unknown runner '{runner}' (known: {', '.join(RUNNERS)})")
+    if runner == "ray":
+        return _ray_jobs(jobs, desc, workers, address)
+    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    if workers == 1:  # in this process: no worker start-up (imports, the sentence encoder) to pay for
+        return [_run_one(*job) for job in progress(jobs, desc=desc, unit="run")]
+    # spawn, not fork: the parent already runs torch / Open3D threads, and a forked child can deadlock on them
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = [pool.submit(_run_one, *job) for job in jobs]
+        return [future.result() for future in progress(futures, desc=desc, unit="run")]
+
+
+def _ray_jobs(jobs: list[Job], desc: str, workers: int | None, address: str | None) -> list[list[RunResult]]:
+    """`run_jobs` on Ray: a local instance with `workers` CPUs (default: all), or the cluster at `address`, whose
+    nodes must have bimfactor installed and see the prior folders at the same paths (a shared file system)."""
+    from bimfactor.errors import DependencyError
+
+    try:
+        import ray
+    except ImportError as exc:
+        raise DependencyError("the Ray runner needs Ray: pip install ray (or --runner processes)") from exc
+    started_here = not ray.is_initialized()
+    if started_here:
+        ray.init(
+            address=address,
+            num_cpus=None if address else workers,
+            include_dashboard=False,
+            log_to_driver=False,
+            logging_level=logging.ERROR,
+        )
+    try:
+        remote = ray.remote(num_cpus=1)(_run_one)
+        refs = [remote.remote(*job) for job in jobs]
+        order = {ref: i for i, ref in enumerate(refs)}
+        results: list[list[RunResult]] = [[] for _ in jobs]
+        pending = list(refs)
+        bar = progress(range(len(refs)), desc=desc, unit="run")
+        for _ in bar:
+            done, pending = ray.wait(pending, num_returns=1)
+            results[order[done[0]]] = ray.get(done[0])
+        return results
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def run_paper_bench(
+    prior_dir: str | Path,
+    cfg: Config,
+    out_dir: str | Path,
+    workers: int | None = None,
+    runner: str = "processes",
+    address: str | None = None,
+) -> dict:
     """Run the protocol on a prior's building; writes OUT/results.json, OUT/config.yaml and OUT/error_by_step.png;
     returns the report."""
     check_protocol(cfg)
@@ -423,23 +529,24 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
     from bimfactor.bim.symmetry import twin_motions
     from bimfactor.evaluation.plots import save_error_by_step_plot  # matplotlib: not in the workers' start-up
 
-    ev = cfg.evaluation
-    jobs = [(k, r) for k in range(ev.num_trajectories) for r in range(ev.repeats)]
-    workers = workers or min(len(jobs), os.cpu_count() or 1)
-    cfg_json = cfg.model_dump_json()
     prior = BimPrior.load(prior_dir)
     twins = twin_motions(prior)  # once here, not in every run
-    results: list[RunResult] = []
-    desc = f"bench paper ({', '.join(ev.variants)})"
-    if workers == 1:  # in this process: no worker start-up (imports, the sentence encoder) to pay for
-        for k, r in progress(jobs, desc=desc, unit="run"):
-            results.extend(_run_one(str(prior_dir), cfg_json, k, r, twins))
-    else:
-        # spawn, not fork: the parent already runs torch / Open3D threads, and a forked child can deadlock on them
-        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(_run_one, str(prior_dir), cfg_json, k, r, twins) for k, r in jobs]
-            for future in progress(futures, desc=desc, unit="run"):
-                results.extend(future.result())
+    desc = f"bench paper ({', '.join(cfg.evaluation.variants)})"
+    results = [r for runs in run_jobs(paper_jobs(prior_dir, cfg, twins), desc, runner, workers, address) for r in runs]
+    report = paper_report(prior_dir, prior, cfg, twins, results)
+    out = Path(out_dir)
+    write_text_atomic(out / "config.yaml", cfg.dump_yaml())
+    write_text_atomic(out / "results.json", json.dumps(report, indent=2))
+    save_error_by_step_plot(report, out / "error_by_step.png")
+    return report
+
+
+def paper_report(
+    prior_dir: str | Path, prior: BimPrior, cfg: Config, twins: dict[int, Motion], results: list[RunResult]
+) -> dict:
+    """The protocol's report of one building from its runs' results: per variant the average over every run (with
+    bootstrap intervals) and each trajectory's."""
+    ev = cfg.evaluation
     report: dict = {
         "benchmark": "paper",
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -469,10 +576,6 @@ def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, wor
             "average": {**_pooled(runs), **_confidence_intervals(runs)},
             "per_trajectory": {k: _pooled([r for r in runs if r.trajectory == k]) for k in range(ev.num_trajectories)},
         }
-    out = Path(out_dir)
-    write_text_atomic(out / "config.yaml", cfg.dump_yaml())
-    write_text_atomic(out / "results.json", json.dumps(report, indent=2))
-    save_error_by_step_plot(report, out / "error_by_step.png")
     return report
 
 

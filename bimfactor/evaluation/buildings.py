@@ -1,0 +1,197 @@
+"""`bimfactor bench buildings`: the paper's protocol over many buildings at once, its runs on Ray or a process pool.
+
+Each building's prior is built once (OUT/priors/<IFC stem>/; the paper-floor preset is written first as
+OUT/paper-floor.ifc); then every run of every building (trajectory × repeat, each scoring every variant) goes to one
+runner, so a cluster works through all buildings together. Per building and variant the report keeps Table I's keys
+(`trans_err_m`, `orient_err_deg`, `room_acc`, `storey_acc`, …) and the routes' outcomes from their first frame
+(`evaluation.metrics.route_outcome`): `success_rate` (within 1 m and 15° on the true storey at the route's end),
+`wrong_convergence_rate` (the filter said converged while more than 2 m off or on another storey), the median
+`distance_to_convergence_m` and `top3_rate` (the truth among the three most probable modes; graph variants). The
+results are keyed by the building's IFC file name, so a building's name finds its block.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from bimfactor.config import Config
+from bimfactor.io.atomic import write_text_atomic
+
+log = logging.getLogger(__name__)
+
+PAPER_FLOOR = "paper-floor"
+"""The synthetic preset that stands for the paper's floor in the default set (written as OUT/paper-floor.ifc)."""
+
+
+def default_buildings() -> list[str | Path]:
+    """The paper floor and every IFC file of the shared data folder (when it is there)."""
+    from bimfactor.evaluation.bench import find_shared_ifc_dir
+
+    shared = find_shared_ifc_dir()
+    return [PAPER_FLOOR, *(sorted(shared.glob("*.ifc")) if shared is not None else [])]
+
+
+def building_name(building: str | Path) -> str:
+    """The key of a building in results.json: its IFC file name ("paper-floor.ifc" for the preset)."""
+    return f"{PAPER_FLOOR}.ifc" if str(building) == PAPER_FLOOR else Path(building).name
+
+
+def build_priors(buildings: list[str | Path], cfg: Config, out_dir: Path) -> dict[str, Path]:
+    """Each building's prior in OUT/priors/<stem>/ (the preset written to OUT first), by building name."""
+    from bimfactor.bim.prior import build_prior
+    from bimfactor.bim.synth import write_building
+    from bimfactor.progress import progress
+
+    priors = {}
+    for building in progress(buildings, desc="priors", unit="building"):
+        ifc = Path(building)
+        if str(building) == PAPER_FLOOR:
+            ifc = out_dir / f"{PAPER_FLOOR}.ifc"
+            write_building(PAPER_FLOOR, cfg.seed, ifc)
+        prior_dir = out_dir / "priors" / ifc.stem
+        build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
+        priors[building_name(building)] = prior_dir
+    return priors
+
+
+def run_buildings_bench(
+    buildings: list[str | Path],
+    cfg: Config,
+    out_dir: str | Path,
+    runner: str = "ray",
+    workers: int | None = None,
+    address: str | None = None,
+) -> dict:
+    """The protocol on every building, its runs on one runner (`evaluation.paper.RUNNERS`); writes OUT/results.json,
+    OUT/report.md, OUT/buildings.png and OUT/config.yaml, and returns the report."""
+    from bimfactor.bim.prior import BimPrior
+    from bimfactor.bim.symmetry import twin_motions
+    from bimfactor.evaluation.paper import check_protocol, paper_jobs, paper_report, run_jobs
+
+    check_protocol(cfg)
+    out = Path(out_dir)
+    priors = build_priors(buildings, cfg, out)
+    loaded = {name: BimPrior.load(prior_dir) for name, prior_dir in priors.items()}
+    twins = {name: twin_motions(prior) for name, prior in loaded.items()}
+    jobs, owners = [], []
+    for name, prior_dir in priors.items():
+        for job in paper_jobs(prior_dir, cfg, twins[name]):
+            jobs.append(job)
+            owners.append(name)
+    desc = f"bench buildings ({len(priors)} buildings, {', '.join(cfg.evaluation.variants)})"
+    results = run_jobs(jobs, desc, runner, workers, address)
+    report: dict = {
+        "benchmark": "buildings",
+        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "runner": runner if address is None else f"{runner} at {address}",
+        "variants": list(cfg.evaluation.variants),
+        "buildings": {},
+    }
+    for name in priors:
+        runs = [r for runs, owner in zip(results, owners, strict=True) if owner == name for r in runs]
+        block = paper_report(priors[name], loaded[name], cfg, twins[name], runs)
+        block["route_success"] = {
+            variant: {
+                f"{r.trajectory}/{r.repeat}": bool(r.outcome.success)
+                for r in runs
+                if r.variant == variant and r.outcome is not None
+            }
+            for variant in cfg.evaluation.variants
+        }
+        report["buildings"][name] = block
+    report["worst"] = worst_building(report)
+    write_text_atomic(out / "config.yaml", cfg.dump_yaml())
+    write_text_atomic(out / "results.json", json.dumps(report, indent=2))
+    write_text_atomic(out / "report.md", format_buildings_report(report))
+    save_buildings_figure(report, out / "buildings.png")
+    return report
+
+
+def worst_building(report: dict) -> dict | None:
+    """The building and route with the largest mean translation error of the last variant (the one the others build
+    up to), over its scored steps."""
+    variant = report["variants"][-1]
+    worst = None
+    for name, block in report["buildings"].items():
+        for trajectory, cells in block[variant]["per_trajectory"].items():
+            if worst is None or cells["trans_err_m"] > worst["trans_err_m"]:
+                worst = {"building": name, "route": int(trajectory), "variant": variant, **_cells(cells)}
+    return worst
+
+
+def _cells(cells: dict) -> dict:
+    return {k: cells.get(k) for k in ("trans_err_m", "orient_err_deg", "room_acc", "success_rate")}
+
+
+ROW_KEYS = (
+    ("trans_err_m", "translation [m]", "{:.2f}"),
+    ("orient_err_deg", "orientation [°]", "{:.1f}"),
+    ("room_acc", "room", "{:.0%}"),
+    ("storey_acc", "storey", "{:.0%}"),
+    ("success_rate", "success", "{:.0%}"),
+    ("wrong_convergence_rate", "wrong conv.", "{:.0%}"),
+    ("distance_to_convergence_m", "dist. to conv. [m]", "{:.1f}"),
+    ("top3_rate", "top 3", "{:.0%}"),
+)
+
+
+def _fmt(value: float | None, pattern: str) -> str:
+    return "–" if value is None or (isinstance(value, float) and not np.isfinite(value)) else pattern.format(value)
+
+
+def format_buildings_report(report: dict) -> str:
+    """report.md: one table per building (a row per variant), then the worst building and route."""
+    lines = [
+        "# bench buildings",
+        "",
+        f"Runs on {report['runner']}, created {report['created_utc']}. Scored as `bench paper` scores (Table I's "
+        "cells over the scored steps); success, wrong convergence, distance to correct convergence and top 3 over "
+        "each whole route from its first frame.",
+    ]
+    header = "| variant | " + " | ".join(title for _, title, _ in ROW_KEYS) + " | runs |"
+    rule = "|---" * (len(ROW_KEYS) + 2) + "|"
+    for name, block in report["buildings"].items():
+        lines += ["", f"## {name} ({block['storeys']} storeys)", "", header, rule]
+        for variant in report["variants"]:
+            avg = block[variant]["average"]
+            cells = [_fmt(avg.get(key), pattern) for key, _, pattern in ROW_KEYS]
+            lines.append(f"| {variant} | " + " | ".join(cells) + f" | {avg['runs']} |")
+    worst = report.get("worst")
+    if worst is not None:
+        lines += [
+            "",
+            f"Worst: {worst['building']}, route {worst['route']} ({worst['variant']}): "
+            f"{_fmt(worst['trans_err_m'], '{:.2f}')} m, {_fmt(worst['orient_err_deg'], '{:.1f}')}°, "
+            f"room {_fmt(worst['room_acc'], '{:.0%}')}, success {_fmt(worst['success_rate'], '{:.0%}')}.",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def save_buildings_figure(report: dict, path: Path) -> Path:
+    """Per building, each variant's success rate and mean translation error, side by side."""
+    import matplotlib.pyplot as plt
+
+    from bimfactor.evaluation.plots import save_figure
+
+    names = list(report["buildings"])
+    variants = report["variants"]
+    fig, (ax_s, ax_t) = plt.subplots(1, 2, figsize=(12, 0.6 * len(names) + 2.0))
+    height = 0.8 / max(len(variants), 1)
+    y = np.arange(len(names))
+    for i, variant in enumerate(variants):
+        avg = [report["buildings"][n][variant]["average"] for n in names]
+        ax_s.barh(y + i * height, [a.get("success_rate") or 0.0 for a in avg], height, label=variant)
+        ax_t.barh(y + i * height, [a["trans_err_m"] for a in avg], height, label=variant)
+    for ax, title in ((ax_s, "success rate at the route's end"), (ax_t, "mean translation error [m]")):
+        ax.set_yticks(y + 0.4 - height / 2, names)
+        ax.set_title(title)
+        ax.invert_yaxis()
+    ax_t.set_xscale("symlog", linthresh=0.1)
+    ax_s.set_xlim(0, 1)
+    ax_s.legend(loc="lower right", fontsize=8)
+    return save_figure(fig, path)
