@@ -190,3 +190,15 @@ def test_the_speed_page_is_the_committed_speed_results_rendered() -> None:
     from bimfactor.evaluation.speedtable import TARGETS
 
     assert set(TARGETS) <= names
+
+
+def test_the_buildings_page_is_the_committed_buildings_results_rendered() -> None:
+    """docs/buildings.md's tables are docs/results/buildings*.json as `tools/render_buildings.py` renders them, with a
+    block for the paper floor and every shared IFC file (a stale or hand-edited page fails until the tool is run)."""
+    render = _load("render_buildings")
+    assert render.main(["--check"]) == 0
+    report = json.loads(render.RESULTS["buildings"].read_text())
+    assert "paper-floor.ifc" in report["buildings"] and "AC11-Institute-Var-2-IFC.ifc" in report["buildings"]
+    for block in report["buildings"].values():
+        average = block[report["variants"][0]]["average"]
+        assert {"trans_err_m", "orient_err_deg", "room_acc", "success_rate", "wrong_convergence_rate"} <= set(average)

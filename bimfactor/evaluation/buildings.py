@@ -156,7 +156,8 @@ def format_buildings_report(report: dict) -> str:
     header = "| variant | " + " | ".join(title for _, title, _ in ROW_KEYS) + " | runs |"
     rule = "|---" * (len(ROW_KEYS) + 2) + "|"
     for name, block in report["buildings"].items():
-        lines += ["", f"## {name} ({block['storeys']} storeys)", "", header, rule]
+        storeys = block["storeys"]
+        lines += ["", f"## {name} ({storeys} storey{'' if storeys == 1 else 's'})", "", header, rule]
         for variant in report["variants"]:
             avg = block[variant]["average"]
             cells = [_fmt(avg.get(key), pattern) for key, _, pattern in ROW_KEYS]

@@ -1,0 +1,48 @@
+"""Render docs/results/buildings*.json (OUT/results.json of `bimfactor bench buildings`) into docs/buildings.md.
+
+.venv/bin/bimfactor bench buildings --variant smcl+graph -o runs/bench-buildings
+cp runs/bench-buildings/results.json docs/results/buildings.json
+.venv/bin/python tools/render_buildings.py            # rewrite the tables between the markers
+.venv/bin/python tools/render_buildings.py --check    # exit 1 when they are out of date
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from bimfactor.evaluation.buildings import format_buildings_report
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from render_results import replace_block, write_or_check  # a sibling script
+
+ROOT = Path(__file__).resolve().parent.parent
+PAGE = ROOT / "docs" / "buildings.md"
+# marker name → the committed results it renders
+RESULTS = {
+    "buildings": ROOT / "docs" / "results" / "buildings.json",
+    "buildings-plates": ROOT / "docs" / "results" / "buildings-plates.json",
+}
+
+
+def render(name: str) -> str:
+    """One committed run's tables, without the report's own title line."""
+    text = format_buildings_report(json.loads(RESULTS[name].read_text()))
+    return text.split("\n", 2)[2].strip().replace("\n## ", "\n### ")  # under the page's own sections
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--check", action="store_true", help="exit 1 when docs/buildings.md is out of date")
+    args = parser.parse_args(argv)
+    page = PAGE.read_text()
+    for name, path in RESULTS.items():
+        if path.is_file():
+            page = replace_block(page, render(name), f"<!-- {name}:begin -->", f"<!-- {name}:end -->")
+    return write_or_check({PAGE: page}, args.check, "tools/render_buildings.py")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
