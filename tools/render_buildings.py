@@ -24,6 +24,7 @@ PAGE = ROOT / "docs" / "buildings.md"
 RESULTS = {
     "buildings": ROOT / "docs" / "results" / "buildings.json",
     "buildings-plates": ROOT / "docs" / "results" / "buildings-plates.json",
+    "buildings-150": ROOT / "docs" / "results" / "buildings-150.json",
 }
 
 
