@@ -1563,7 +1563,7 @@ def bench_buildings(
         list[Path] | None,
         typer.Argument(
             metavar="IFC",
-            help="IFC files (default: the paper-floor preset and every IFC under ../shared/data/ifc).",
+            help="IFC files, or paper-floor for the preset (default: it and every IFC under ../shared/data/ifc).",
             show_default=False,
         ),
     ] = None,
@@ -1600,19 +1600,27 @@ def bench_buildings(
     Examples:
       bimfactor bench buildings
       bimfactor bench buildings ../shared/data/ifc/duplex.ifc --variant smcl+graph -o runs/bench-duplex
+      bimfactor bench buildings paper-floor ../shared/data/ifc/AC11-Institute-Var-2-IFC.ifc -o runs/bench-two
       bimfactor bench buildings --set evaluation.trajectory_length=150 -o runs/bench-buildings-150
       bimfactor bench buildings --address ray://head:10001 -o /shared/runs/bench-buildings
     """
     with _cli_errors(debug):
         cfg = _protocol_config(config, overrides, variants, scenario, verbose)
         from bimfactor.bim.ifc import read_schema
-        from bimfactor.evaluation.buildings import default_buildings, format_buildings_report, run_buildings_bench
+        from bimfactor.evaluation.buildings import (
+            PAPER_FLOOR,
+            default_buildings,
+            format_buildings_report,
+            run_buildings_bench,
+        )
         from bimfactor.evaluation.paper import RUNNERS, check_protocol
 
         check_protocol(cfg)
         if runner not in RUNNERS:
             raise ConfigError(f"unknown runner '{runner}' (known: {', '.join(RUNNERS)})")
-        chosen: list[str | Path] = list(buildings) if buildings else default_buildings()
+        # "paper-floor" (not a file of that name) is the preset, as in the default set
+        given = [PAPER_FLOOR if str(b) == PAPER_FLOOR and not b.exists() else b for b in buildings or []]
+        chosen: list[str | Path] = given or default_buildings()
         for building in chosen:
             if isinstance(building, Path):
                 if not building.is_file():

@@ -106,3 +106,6 @@ def test_bench_buildings_refuses_bad_input_before_any_prior(tmp_path: Path) -> N
         result = runner.invoke(app, ["bench", "buildings", *args, "-o", str(tmp_path / "out")])
         assert result.exit_code == 2 and message in result.output, result.output
         assert not (tmp_path / "out").exists()
+    # "paper-floor" names the preset, not a file: the error is about the missing file after it
+    result = runner.invoke(app, ["bench", "buildings", "paper-floor", str(tmp_path / "gone.ifc"), "-o", str(tmp_path)])
+    assert result.exit_code == 2 and "gone.ifc" in result.output and "paper-floor" not in result.output
