@@ -25,6 +25,7 @@ RESULTS = {
     "buildings": ROOT / "docs" / "results" / "buildings.json",
     "buildings-plates": ROOT / "docs" / "results" / "buildings-plates.json",
     "buildings-150": ROOT / "docs" / "results" / "buildings-150.json",
+    "buildings-150-plates": ROOT / "docs" / "results" / "buildings-150-plates.json",
 }
 
 
