@@ -8,9 +8,9 @@ output is a mode's graph pose (`localization.output`: the most probable mode nea
 or the most probable mode) with the whole belief's covariance about it. The `full` variant adds the coarse-to-fine
 loop: the keyframe's depth scan is registered against the BIM walls from the most probable mode's pose
 (`registration.fine`), and an accepted fit enters that mode's graph as a pose factor, before the output is chosen.
-Only the best mode is registered: a registration with its ambiguity probes costs several ICP runs, the output is
-mostly the best mode's, and a wrong mode seldom passes the gate anyway (fitness, probes), so registering every
-mode would multiply the step time by the number of modes for estimates nobody reads.
+Only the best mode is registered: a registration with its ambiguity probes costs about as much as the rest of the
+step (docs/speed.md), the output is mostly the best mode's, and a wrong mode seldom passes the gate anyway (fitness,
+probes), so registering every mode would multiply the step time by the number of modes for estimates nobody reads.
 
 The offline pass over a localized sequence, every surviving mode's trajectory smoothed as a whole, is
 `bimfactor.refine.refine_run`.
