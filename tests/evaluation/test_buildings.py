@@ -58,7 +58,7 @@ def test_ray_runs_equal_the_process_pool_runs(paper_floor_prior: Path, config_ov
     )
     jobs = paper_jobs(paper_floor_prior, cfg, twin_motions(BimPrior.load(paper_floor_prior)))
     local = run_jobs(jobs, "local", "processes", workers=1)
-    on_ray = run_jobs(jobs, "ray", "ray", workers=2)
+    on_ray = run_jobs(jobs, "ray", "ray", workers=1)
     assert [len(runs) for runs in on_ray] == [len(runs) for runs in local] == [2, 2]
     for mine, theirs in zip([r for runs in local for r in runs], [r for runs in on_ray for r in runs], strict=True):
         assert (mine.variant, mine.trajectory, mine.repeat) == (theirs.variant, theirs.trajectory, theirs.repeat)
