@@ -42,7 +42,8 @@ def building_name(building: str | Path) -> str:
 
 
 def build_priors(buildings: list[str | Path], cfg: Config, out_dir: Path) -> dict[str, Path]:
-    """Each building's prior in OUT/priors/<stem>/ (the preset written to OUT first), by building name."""
+    """Each building's prior in OUT/priors/<stem>/ (the preset written to OUT first), by building name; a prior an
+    earlier run left there is kept when it is this IFC's with the same prior settings (`reusable_prior`)."""
     from bimfactor.bim.prior import build_prior
     from bimfactor.bim.synth import write_building
     from bimfactor.progress import progress
@@ -54,9 +55,36 @@ def build_priors(buildings: list[str | Path], cfg: Config, out_dir: Path) -> dic
             ifc = out_dir / f"{PAPER_FLOOR}.ifc"
             write_building(PAPER_FLOOR, cfg.seed, ifc)
         prior_dir = out_dir / "priors" / ifc.stem
-        build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
+        if reusable_prior(prior_dir, ifc, cfg):
+            log.info("%s: the prior in %s is kept (same IFC, same prior settings)", ifc.name, prior_dir)
+        else:
+            build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
         priors[building_name(building)] = prior_dir
     return priors
+
+
+def reusable_prior(prior_dir: Path, ifc: Path, cfg: Config) -> bool:
+    """Whether `prior_dir` holds a prior of this very IFC file (SHA-256) in this bimfactor's format, built with the
+    same prior settings (`bim`, `embed` and the seed of its saved config.yaml): an experiment on the filter or the
+    simulator then reruns in minutes less, and any change that could change the prior rebuilds it."""
+    from bimfactor.bim.ifc import file_sha256
+    from bimfactor.bim.prior import PRIOR_VERSION
+    from bimfactor.config import load_config
+    from bimfactor.errors import BimfactorError
+
+    meta_file, cfg_file = prior_dir / "prior.json", prior_dir / "config.yaml"
+    if not (meta_file.is_file() and cfg_file.is_file()):
+        return False
+    try:
+        meta = json.loads(meta_file.read_text())
+        built = load_config(cfg_file)
+    except (ValueError, BimfactorError):
+        return False
+    return (
+        meta.get("version") == PRIOR_VERSION
+        and meta.get("source_sha256") == file_sha256(ifc)
+        and (built.bim, built.embed, built.seed) == (cfg.bim, cfg.embed, cfg.seed)
+    )
 
 
 def run_buildings_bench(

@@ -109,3 +109,28 @@ def test_bench_buildings_refuses_bad_input_before_any_prior(tmp_path: Path) -> N
     # "paper-floor" names the preset, not a file: the error is about the missing file after it
     result = runner.invoke(app, ["bench", "buildings", "paper-floor", str(tmp_path / "gone.ifc"), "-o", str(tmp_path)])
     assert result.exit_code == 2 and "gone.ifc" in result.output and "paper-floor" not in result.output
+
+
+def test_a_prior_is_kept_only_for_the_same_ifc_and_prior_settings(
+    paper_floor_prior: Path, config_overrides: list[str], tmp_path: Path
+) -> None:
+    import shutil
+
+    from bimfactor.evaluation.buildings import reusable_prior
+
+    ifc = paper_floor_prior.parent / "paper-floor.ifc"
+    cfg = load_config(None, config_overrides)
+    prior_dir = tmp_path / "prior"
+    shutil.copytree(paper_floor_prior, prior_dir)
+    (prior_dir / "config.yaml").write_text(cfg.dump_yaml())  # as bench buildings saves it
+    assert reusable_prior(prior_dir, ifc, cfg)
+    # the filter or the simulator may change: the prior stays
+    assert reusable_prior(prior_dir, ifc, load_config(None, [*config_overrides, "smcl.num_particles=500"]))
+    # a prior setting, the seed or another file: it is rebuilt
+    assert not reusable_prior(prior_dir, ifc, load_config(None, [*config_overrides, "bim.grid.resolution_m=0.1"]))
+    assert not reusable_prior(prior_dir, ifc, load_config(None, [*config_overrides, "seed=1"]))
+    edited = tmp_path / "edited.ifc"
+    edited.write_bytes(ifc.read_bytes() + b"/* edited */\n")
+    assert not reusable_prior(prior_dir, edited, cfg)
+    (prior_dir / "config.yaml").unlink()
+    assert not reusable_prior(prior_dir, ifc, cfg)
