@@ -1613,11 +1613,10 @@ def bench_buildings(
             format_buildings_report,
             run_buildings_bench,
         )
-        from bimfactor.evaluation.paper import RUNNERS, check_protocol
+        from bimfactor.evaluation.paper import check_protocol, check_runner
 
         check_protocol(cfg)
-        if runner not in RUNNERS:
-            raise ConfigError(f"unknown runner '{runner}' (known: {', '.join(RUNNERS)})")
+        check_runner(runner)
         # "paper-floor" (not a file of that name) is the preset, as in the default set
         given = [PAPER_FLOOR if str(b) == PAPER_FLOOR and not b.exists() else b for b in buildings or []]
         chosen: list[str | Path] = given or default_buildings()

@@ -114,18 +114,17 @@ def _localize(ctx: DemoContext) -> str:
     names = [name for name, _ in STAGES]
     variant = ctx.cfg.localization.variant
     stages = STAGES[: names.index(variant) + 1] if variant in names else [(variant, variant)]
-    lines, run, previous = [], None, None
+    lines, run = [], None
     for name, label in stages:
         if name == "smcl" and variant != "smcl":
             continue  # the filter is the same in every variant: its line comes from the next run's filter track
         cfg = ctx.cfg if name == variant else updated(ctx.cfg, {"localization.variant": name})
         snapshots = sorted({0, n // 4, n // 2, n - 1}) if name == variant else ()
         run = localize_sequence(ctx.prior, sequence.meta, sequence, cfg, ctx.cfg.seed, snapshot_steps=snapshots)
-        if previous is None and name != "smcl":
+        if not lines and name != "smcl":  # the first run: its filter track is S-MCL's line
             filtered = track_metrics(run.filter, run.gt_poses, run.gt_rooms)
             assert filtered is not None
             lines.append(_stage_line(STAGES[0][1], filtered))
-        previous = run
         m = run_metrics(run)
         assert m is not None
         extra = ""

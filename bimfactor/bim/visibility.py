@@ -30,7 +30,6 @@ import logging
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
-from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -194,9 +193,13 @@ _CHUNKS_PER_WORKER = 8  # objects differ in cost (a window in a corridor against
 _MIN_PARALLEL_OBJECTS = 64  # fewer objects than this: one process (a pool's start-up would cost more than it saves)
 
 
-def _pairs(work: _Work, steps: list[tuple[int, int]]) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """(lattice rows, object ids) of the visible pairs of each (storey, object) step, as arrays per object."""
-    blocking: dict[int, np.ndarray] = {}  # each storey's structure, edited per object and restored
+def _pairs(
+    work: _Work, steps: list[tuple[int, int]], blocking: dict[int, np.ndarray] | None = None
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(lattice rows, object ids) of the visible pairs of each (storey, object) step, as arrays per object.
+    `blocking` holds each storey's structure, copied once and edited per object and restored (pass one dict to calls
+    over the same work, so the copy is not made again)."""
+    blocking = {} if blocking is None else blocking
     pair_rows, pair_ids = [], []
     for s, obj in steps:
         row_ids, origins = work.origins_of[s]
@@ -226,9 +229,9 @@ def _run_steps(work: _Work, steps: list[tuple[int, int]], progress: bool) -> tup
     global _WORK
     workers = min(os.cpu_count() or 1, max(len(steps) // _MIN_PARALLEL_OBJECTS, 1))
     if workers == 1 or "fork" not in multiprocessing.get_all_start_methods():
-        chunks = [[step] for step in steps]
-        results = map(partial(_pairs, work), chunks)
-        return _gather(progress_bar(results, "visibility", len(chunks), "object") if progress else results)
+        blocking: dict[int, np.ndarray] = {}
+        results = (_pairs(work, [step], blocking) for step in steps)
+        return _gather(progress_bar(results, "visibility", len(steps), "object") if progress else results)
     size = max(len(steps) // (workers * _CHUNKS_PER_WORKER), 1)
     chunks = [steps[i : i + size] for i in range(0, len(steps), size)]
     _WORK = work

@@ -453,6 +453,13 @@ RUNNERS = ("processes", "ray")
 """Where the protocol's runs go: a local process pool (one worker per CPU; one worker runs in this process), or Ray
 (a local Ray instance, or the cluster at an address)."""
 
+
+def check_runner(runner: str) -> None:
+    """ConfigError for a runner not in `RUNNERS`."""
+    if runner not in RUNNERS:
+        raise ConfigError(f"unknown runner '{runner}' (known: {', '.join(RUNNERS)})")
+
+
 Job = tuple[str, str, int, int, dict]
 """One run of the protocol: `_run_one`'s arguments (prior folder, config as JSON, trajectory, repeat, twins)."""
 
@@ -467,8 +474,7 @@ def run_jobs(
     jobs: list[Job], desc: str, runner: str = "processes", workers: int | None = None, address: str | None = None
 ) -> list[list[RunResult]]:
     """Each job's `_run_one` results, in the jobs' order, whichever runner ran them (they do not depend on it)."""
-    if runner not in RUNNERS:
-        raise ConfigError(f"unknown runner '{runner}' (known: {', '.join(RUNNERS)})")
+    check_runner(runner)
     if runner == "ray":
         return _ray_jobs(jobs, desc, workers, address)
     workers = workers or min(len(jobs), os.cpu_count() or 1)
@@ -514,14 +520,7 @@ def _ray_jobs(jobs: list[Job], desc: str, workers: int | None, address: str | No
             ray.shutdown()
 
 
-def run_paper_bench(
-    prior_dir: str | Path,
-    cfg: Config,
-    out_dir: str | Path,
-    workers: int | None = None,
-    runner: str = "processes",
-    address: str | None = None,
-) -> dict:
+def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, workers: int | None = None) -> dict:
     """Run the protocol on a prior's building; writes OUT/results.json, OUT/config.yaml and OUT/error_by_step.png;
     returns the report."""
     check_protocol(cfg)
@@ -532,7 +531,7 @@ def run_paper_bench(
     prior = BimPrior.load(prior_dir)
     twins = twin_motions(prior)  # once here, not in every run
     desc = f"bench paper ({', '.join(cfg.evaluation.variants)})"
-    results = [r for runs in run_jobs(paper_jobs(prior_dir, cfg, twins), desc, runner, workers, address) for r in runs]
+    results = [r for runs in run_jobs(paper_jobs(prior_dir, cfg, twins), desc, workers=workers) for r in runs]
     report = paper_report(prior_dir, prior, cfg, twins, results)
     out = Path(out_dir)
     write_text_atomic(out / "config.yaml", cfg.dump_yaml())
