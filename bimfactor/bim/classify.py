@@ -4,8 +4,14 @@ The object labels inside a room are joined into one sentence ("sink, toilet, bat
 sentence encoder, and matched by cosine similarity against a pool of room-category embeddings; the best
 match is the room's type. The pool lives in `bimfactor/configs/room_categories.yaml`.
 
-`bimfactor/configs/room_names_eval.yaml` maps architects' room names to the same categories. It is for evaluation
-only (scoring the classifier on real IFC models); the classifier never reads room names.
+A room that carries an architect's name (IfcSpace LongName or Name) is typed by that name first: the name and
+each of its words are encoded and matched against the pool's `names` (short, multilingual: "office", "buero",
+"restroom"). The name decides when its best category scores at least `name_min_score` and leads the next category
+by `name_margin`; a generic name ("Room") or an unknown one ("Dachboden") falls back to the objects.
+
+`bimfactor/configs/room_names_eval.yaml` maps architects' room names to the same categories by regular
+expressions. It is for evaluation only: the ground truth that both paths, with and without names, are scored
+against (`bimfactor bench prior`).
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from typing import Any, Literal
 import numpy as np
 import yaml
 
+from bimfactor.bim.vocabulary import normalise
 from bimfactor.config import ClassifyConfig, config_file
 from bimfactor.embed.text import TextEmbedder
 from bimfactor.errors import ConfigError
@@ -110,6 +117,11 @@ class RoomCategoryPool:
     embeddings: np.ndarray
     embedder: TextEmbedder = field(repr=False)
     min_score: float = 0.0
+    room_names: tuple[tuple[str, ...], ...] = ()  # per category: the names a room of it is given
+    room_name_embeddings: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32), repr=False)
+    room_name_category: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    name_min_score: float = 1.0
+    name_margin: float = 0.0
 
     @classmethod
     def load(cls, path: str | Path, embedder: TextEmbedder) -> RoomCategoryPool:
@@ -130,9 +142,11 @@ class RoomCategoryPool:
                 raise ConfigError(f"{path}: category '{name}' needs a non-empty list of prompt sentences")
             names.append(name)
             prompts.append(tuple(sentences))
-        min_score = data.get("min_score", 0.0)
-        if not isinstance(min_score, int | float) or not -1.0 <= min_score <= 1.0:
-            raise ConfigError(f"{path}: 'min_score' must be a number in [-1, 1]")
+        min_score, name_min_score, name_margin = (
+            _unit_number(path, data, key, default) for key, default in (("min_score", 0.0), ("name_min_score", 1.0),
+                                                                        ("name_margin", 0.0))
+        )  # fmt: skip
+        room_names = _room_names(path, data.get("names", {}), names)
 
         # One batch for every prompt, then one normalised mean per category.
         flat = [sentence for group in prompts for sentence in group]
@@ -140,8 +154,38 @@ class RoomCategoryPool:
         bounds = np.cumsum([0, *(len(group) for group in prompts)])
         means = np.stack([vectors[a:b].mean(axis=0) for a, b in itertools.pairwise(bounds)])
         means /= np.linalg.norm(means, axis=1, keepdims=True)
-        logger.debug("room-category pool %s: %d categories, %d prompts", path.name, len(names), len(flat))
-        return cls(tuple(names), tuple(prompts), means.astype(np.float32), embedder, float(min_score))
+        flat_names = [normalise(name) for group in room_names for name in group]
+        logger.debug("room-category pool %s: %d categories, %d prompts, %d names", path.name, len(names), len(flat),
+                     len(flat_names))  # fmt: skip
+        return cls(
+            tuple(names),
+            tuple(prompts),
+            means.astype(np.float32),
+            embedder,
+            min_score,
+            room_names,
+            embedder.encode(flat_names).astype(np.float32),
+            np.repeat(np.arange(len(names)), [len(group) for group in room_names]),
+            name_min_score,
+            name_margin,
+        )
+
+
+def _unit_number(path: Path, data: dict[str, Any], key: str, default: float) -> float:
+    value = data.get(key, default)
+    if not isinstance(value, int | float) or not -1.0 <= value <= 1.0:
+        raise ConfigError(f"{path}: '{key}' must be a number in [-1, 1]")
+    return float(value)
+
+
+def _room_names(path: Path, table: Any, categories: Sequence[str]) -> tuple[tuple[str, ...], ...]:
+    """Per category, its own name and the names the pool file lists for it."""
+    if not isinstance(table, dict) or not all(isinstance(v, list) for v in table.values()):
+        raise ConfigError(f"{path}: 'names' must be a mapping of category → list of room names")
+    unknown = sorted(set(table) - set(categories))
+    if unknown:
+        raise ConfigError(f"{path}: 'names' lists categories that are not in 'categories': {', '.join(unknown)}")
+    return tuple(tuple(dict.fromkeys([category, *map(str, table.get(category, []))])) for category in categories)
 
 
 def load_room_category_pool(cfg: ClassifyConfig, embedder: TextEmbedder) -> RoomCategoryPool:
@@ -189,6 +233,64 @@ def classify_rooms(
         scores = {name: float(s) for name, s in zip(pool.names, row, strict=True)}
         category = pool.names[best] if row[best] >= pool.min_score else UNKNOWN
         results[i] = RoomClassification(category, float(row[best]), sentences[i], scores)
+    return results
+
+
+_ROMAN = re.compile(r"^[ivx]+$")
+
+
+def _name_texts(name: str) -> list[str]:
+    """The texts a room name is matched by: the whole name without numbers, and each word of two letters or more
+    that is not a roman numeral ("WC Herren III" → "wc herren iii", "wc", "herren")."""
+    words = [w for w in normalise(name).split() if w.isalpha()]
+    whole = " ".join(words)
+    return list(dict.fromkeys([whole, *(w for w in words if len(w) >= 2 and not _ROMAN.match(w))])) if whole else []
+
+
+def classify_room_names(names: Sequence[str], pool: RoomCategoryPool) -> list[RoomClassification | None]:
+    """Type rooms by their architects' names (module docstring); None where a name does not decide."""
+    texts = [_name_texts(name) for name in names]
+    flat = [t for group in texts for t in group]
+    results: list[RoomClassification | None] = [None] * len(names)
+    if not flat or len(pool.room_name_category) == 0:
+        return results
+    similarity = pool.embedder.encode(flat) @ pool.room_name_embeddings.T  # (texts, pool names)
+    per_category = np.full((len(flat), len(pool.names)), -1.0)
+    np.maximum.at(per_category.T, pool.room_name_category, similarity.T)
+    start = 0
+    for i, group in enumerate(texts):
+        if not group:
+            continue
+        scores = per_category[start : start + len(group)].max(axis=0)
+        start += len(group)
+        order = np.argsort(-scores)
+        best, second = float(scores[order[0]]), float(scores[order[1]]) if len(order) > 1 else -1.0
+        if best >= pool.name_min_score and best - second >= pool.name_margin:
+            all_scores = dict(zip(pool.names, map(float, scores), strict=True))
+            results[i] = RoomClassification(pool.names[order[0]], best, f'(name: "{names[i]}")', all_scores)
+    return results
+
+
+def type_rooms(
+    room_labels: Sequence[Sequence[str]],
+    room_names: Sequence[str],
+    room_neighbours: Sequence[int],
+    pool: RoomCategoryPool,
+    cfg: ClassifyConfig,
+    *,
+    use_names: bool = True,
+) -> list[RoomClassification]:
+    """Every room's type: by its name where the name decides, else by its objects (the paper), and an object-less
+    room that joins `cfg.hallway_min_doors` or more places is a hallway. `room_labels` leave out ignored labels."""
+    results = classify_rooms(room_labels, pool, min_objects=cfg.min_objects)
+    if cfg.hallway_min_doors > 0:
+        for i, (labels, neighbours) in enumerate(zip(room_labels, room_neighbours, strict=True)):
+            if not labels and neighbours >= cfg.hallway_min_doors:
+                results[i] = RoomClassification("hallway", 0.0, f"(topology: joins {neighbours} places)", {})
+    if use_names:
+        for i, by_name in enumerate(classify_room_names(room_names, pool)):
+            if by_name is not None:
+                results[i] = by_name
     return results
 
 

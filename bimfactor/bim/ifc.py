@@ -55,6 +55,11 @@ class Mesh:
         return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
 
 
+# Labelled BIM objects that are part of the building: structure in the occupancy grid (not furniture), never
+# moved or removed in an as-built world.
+FIXED_OBJECT_CLASSES = ("IfcDoor", "IfcWindow", "IfcStair", "IfcStairFlight", "IfcRamp", "IfcTransportElement")
+
+
 @dataclass
 class IfcElement:
     """One IFC product with the texts that name it and its geometry.

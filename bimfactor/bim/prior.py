@@ -18,7 +18,7 @@ import json
 import logging
 import typing
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -28,9 +28,9 @@ import typing_extensions
 from scipy.spatial import cKDTree
 
 from bimfactor.bim import rooms as room_ops
-from bimfactor.bim.classify import classify_rooms, load_room_category_pool
+from bimfactor.bim.classify import RoomClassification, load_room_category_pool, type_rooms
 from bimfactor.bim.grid import GridSpec, StoreyGrid, build_storey_grid, grid_spec_for, rasterise_polygons
-from bimfactor.bim.ifc import IfcElement, IfcModel, Storey, load_ifc
+from bimfactor.bim.ifc import FIXED_OBJECT_CLASSES, IfcElement, IfcModel, Storey, load_ifc
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.bim.vocabulary import Vocabulary, label_elements
 from bimfactor.config import Config, config_file
@@ -348,7 +348,7 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     model = load_ifc(ifc_path, bim.ifc)
     lap("read_ifc")
 
-    furniture_classes = [c for c in bim.objects.classes if c not in ("IfcDoor", "IfcWindow")]
+    furniture_classes = [c for c in bim.objects.classes if c not in FIXED_OBJECT_CLASSES]
     spec = grid_spec_for(model, bim.grid, bim.grid.obstacle_exclude_classes)
     x0, x1, y0, y1 = spec.extent
     check_grid_memory((x1 - x0, y1 - y0), len(model.storeys), cfg, padding_included=True)
@@ -394,7 +394,8 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     embeddings = np.asarray([label_vectors[o.label] for o in objects], np.float32).reshape(-1, dim)
     lap("assign_objects")
 
-    _classify(rooms, objects, doors, cfg, embedder)
+    for room, result in zip(rooms, classify_prior_rooms(rooms, objects, doors, cfg, embedder), strict=True):
+        room.category, room.category_score, room.sentence = result.category, result.score, result.sentence
     lap("classify_rooms")
 
     room_edges = sorted(
@@ -538,28 +539,28 @@ def _make_objects(elements: list[IfcElement], labels, storeys: list[StoreyLayers
     return objects
 
 
-def _classify(
-    rooms: list[Room], objects: list[BimObject], doors: list[Door], cfg: Config, embedder: TextEmbedder
-) -> None:
-    """The paper's language-encoded room types; object-less rooms joining many places are typed by topology."""
-    if not rooms:
-        return
+def classify_prior_rooms(
+    rooms: Sequence[Room],
+    objects: Sequence[BimObject],
+    doors: Sequence[Door],
+    cfg: Config,
+    embedder: TextEmbedder,
+    *,
+    use_names: bool = True,
+) -> list[RoomClassification]:
+    """The rooms' types (`bim.classify.type_rooms`): by name where it decides, else the paper's language-encoded
+    object sentence, else topology. `use_names=False` types them by objects and topology alone."""
     ccfg = cfg.bim.classify
-    pool = load_room_category_pool(ccfg, embedder)
     ignore = set(ccfg.ignore_labels)
-    room_labels = [[objects[i].label for i in room.object_ids if objects[i].label not in ignore] for room in rooms]
-    for room, result in zip(rooms, classify_rooms(room_labels, pool, min_objects=ccfg.min_objects), strict=True):
-        room.category = result.category
-        room.category_score = result.score
-        room.sentence = result.sentence
-    if ccfg.hallway_min_doors > 0:
-        for room, labels in zip(rooms, room_labels, strict=True):
-            neighbours = {
-                d.room_b if d.room_a == room.id else d.room_a for d in doors if room.id in (d.room_a, d.room_b)
-            }
-            neighbours.discard(room.id)
-            if not labels and len(neighbours) >= ccfg.hallway_min_doors:
-                room.category, room.sentence = "hallway", f"(topology: joins {len(neighbours)} places)"
+    labels = [[objects[i].label for i in room.object_ids if objects[i].label not in ignore] for room in rooms]
+    places: dict[int, set[int]] = {room.id: set() for room in rooms}
+    for d in doors:
+        for a, b in ((d.room_a, d.room_b), (d.room_b, d.room_a)):
+            if a in places and b != a:
+                places[a].add(b)
+    neighbours = [len(places[room.id]) for room in rooms]
+    pool = load_room_category_pool(ccfg, embedder)
+    return type_rooms(labels, [room.space_name for room in rooms], neighbours, pool, ccfg, use_names=use_names)
 
 
 def _proximity_edges(objects: list[BimObject], radius_m: float) -> list[tuple[int, int]]:

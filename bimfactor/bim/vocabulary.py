@@ -2,7 +2,8 @@
 
 The rule table lives in `bimfactor/configs/vocabulary.yaml` (English and German names, IFC predefined types).
 Resolution order: rules on name / type name / object type / predefined type, then the label shared by
-the element's type siblings, then the nearest vocabulary label by text embedding, then the IFC class.
+the element's type siblings, then a specific label its IFC class or type class gives (a radiator, stairs), then
+the nearest vocabulary label by text embedding, then a generic class label (furniture, fixture).
 """
 
 from __future__ import annotations
@@ -87,11 +88,17 @@ class Vocabulary:
         return None
 
     def class_label(self, element: IfcElement) -> str:
-        for ifc_class in element.ancestry:
+        """The label of the most specific listed class among the element's type class and its ancestry."""
+        for ifc_class in (element.type_class, *element.ancestry):
             for listed, label in self.class_labels:
                 if listed == ifc_class:
                     return label
         return element.ifc_class.removeprefix("Ifc").lower()
+
+    def specific_class_label(self, element: IfcElement) -> str | None:
+        """The class label when a rule can give it too (radiator, stairs), not a generic one (furniture)."""
+        label = self.class_label(element)
+        return label if label in self.labels else None
 
 
 def label_elements(
@@ -114,6 +121,10 @@ def label_elements(
         votes = by_type.get((el.type_class, el.type_name)) if el.type_name else None
         if labels[i] is None and votes:
             labels[i] = ObjectLabel(votes.most_common(1)[0][0], LabelSource.TYPE_SIBLINGS, el.raw_text)
+    # A class that names what the element is (IfcSpaceHeater, IfcStair) outranks a guess from free text.
+    for i, el in enumerate(elements):
+        if labels[i] is None and (label := vocabulary.specific_class_label(el)) is not None:
+            labels[i] = ObjectLabel(label, LabelSource.IFC_CLASS, el.raw_text)
     # Nearest label by embedding, for texts the rules do not know.
     pending = [i for i, lab in enumerate(labels) if lab is None and normalise(elements[i].raw_text)]
     if embedder is not None and pending:

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from bimfactor.bim.classify import RoomNameTable, load_room_name_table
-from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.prior import BimPrior, classify_prior_rooms
+from bimfactor.config import Config
+from bimfactor.embed.text import TextEmbedder
 
 
 @dataclass
@@ -45,17 +48,28 @@ def room_type_accuracy(
     ignore_labels: tuple[str, ...] = ("door", "window"),
     min_objects: int = 2,
     table: RoomNameTable | None = None,
+    types: Sequence[tuple[str, str]] | None = None,
 ) -> RoomTypeAccuracy:
-    """Score rooms that carry an architect's name the evaluation table knows and ≥ `min_objects` labels."""
+    """Score rooms that carry an architect's name the evaluation table knows and ≥ `min_objects` labels.
+
+    `types`: (category, sentence) per room to score instead of the prior's own (e.g. typed without names).
+    """
     table = table or load_room_name_table()
+    types = types or [(room.category, room.sentence) for room in prior.rooms]
     result = RoomTypeAccuracy()
-    for room in prior.rooms:
+    for room, (category, sentence) in zip(prior.rooms, types, strict=True):
         expected = table.category(room.space_name) if room.space_name else None
         labelled = [i for i in room.object_ids if prior.objects[i].label not in ignore_labels]
         if expected is None or len(labelled) < min_objects:
             continue
-        result.rows.append(RoomTypeRow(room.id, room.space_name, expected, room.category, room.sentence))
+        result.rows.append(RoomTypeRow(room.id, room.space_name, expected, category, sentence))
     return result
+
+
+def object_only_types(prior: BimPrior, cfg: Config, embedder: TextEmbedder) -> list[tuple[str, str]]:
+    """Each room's (category, sentence) typed from its objects and doors alone, as the paper does."""
+    rooms = classify_prior_rooms(prior.rooms, prior.objects, prior.doors, cfg, embedder, use_names=False)
+    return [(r.category, r.sentence) for r in rooms]
 
 
 def ifcspace_matched_share(prior: BimPrior) -> float:

@@ -21,7 +21,7 @@ import numpy as np
 import open3d as o3d
 
 from bimfactor.bim.grid import GridSpec, band_polygons, rasterise_polygons
-from bimfactor.bim.ifc import IfcElement, IfcModel, Mesh
+from bimfactor.bim.ifc import FIXED_OBJECT_CLASSES, IfcElement, IfcModel, Mesh
 from bimfactor.bim.plates import DOOR_PLATE_LABEL, door_plates
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.rooms import OUTSIDE
@@ -43,8 +43,6 @@ NON_PHYSICAL_CLASSES = (
 )
 # Physical, but open in the simulated world: a door leaf would hide the room behind it.
 OPEN_CLASSES = ("IfcDoor",)
-# BIM objects that are part of the structure and never move in an as-built world.
-FIXED_OBJECT_CLASSES = ("IfcDoor", "IfcWindow")
 
 # Synthetic instances carry no IFC class and no guid; their label says what they are.
 FLOOR_LABEL, CEILING_LABEL, CLUTTER_LABEL = "floor", "ceiling", "clutter"

@@ -12,11 +12,13 @@ from bimfactor.bim.classify import (
     UNKNOWN,
     RoomCategoryPool,
     classify_room,
+    classify_room_names,
     classify_rooms,
     load_room_category_pool,
     load_room_name_table,
     room_name_to_category,
     room_sentence,
+    type_rooms,
 )
 from bimfactor.config import config_file, load_config
 from bimfactor.embed.text import MiniLMTextEmbedder
@@ -103,6 +105,9 @@ def test_pool_embedding_is_normalised_prompt_mean(tmp_path: Path, embedder: Mini
         {"categories": {"unknown": ["a room"]}},
         {"categories": {"gym": []}},
         {"categories": {"gym": ["a gym"]}, "min_score": 2.0},
+        {"categories": {"gym": ["a gym"]}, "names": {"sauna": ["sauna"]}},
+        {"categories": {"gym": ["a gym"]}, "names": ["gym"]},
+        {"categories": {"gym": ["a gym"]}, "name_margin": "wide"},
         ["not", "a", "mapping"],
     ],
 )
@@ -160,6 +165,51 @@ def test_low_score_is_unknown(tmp_path: Path, embedder: MiniLMTextEmbedder) -> N
     result = classify_room(["toilet", "sink"], strict)
     assert result.category == UNKNOWN
     assert 0.0 < result.score < 0.99
+
+
+@pytest.mark.parametrize(
+    ("name", "category"),
+    [
+        ("Buero Meier", "office"),
+        ("Büro 1.23", "office"),
+        ("Open Office 3", "office"),
+        ("WC Herren", "bathroom"),
+        ("Women's Restroom", "bathroom"),
+        ("Bathroom 1", "bathroom"),
+        ("Break Room", "kitchen"),
+        ("Küche", "kitchen"),
+        ("Besprechungsraum II", "meeting room"),
+        ("Conference Room 2.14", "meeting room"),
+        ("Seminarraum", "classroom"),
+        ("Labor K3", "laboratory"),
+        ("Flur 1.OG Treppe", "hallway"),
+        ("Entrance hall", "hallway"),
+        ("Lobby", "hallway"),
+        ("Technikraum II", "technical room"),
+        ("Schlafzimmer", "bedroom"),
+        ("Living Room", "living room"),
+        # names that do not say what a room is for: the objects decide
+        ("Room", None),
+        ("Roof", None),
+        ("Dachboden-1", None),
+        ("A101", None),
+        ("", None),
+    ],
+)
+def test_room_names_decide_where_they_say_what_the_room_is(
+    pool: RoomCategoryPool, name: str, category: str | None
+) -> None:
+    [result] = classify_room_names([name], pool)
+    assert (result.category if result else None) == category, result
+
+
+def test_a_deciding_name_outranks_the_objects(pool: RoomCategoryPool) -> None:
+    cfg = load_config().bim.classify
+    labels, names, neighbours = [["table", "chair"], ["table", "chair"], []], ["Buero Meier", "Room", "Flur"], [1, 1, 1]
+    by_name = type_rooms(labels, names, neighbours, pool, cfg)
+    objects_only = type_rooms(labels, names, neighbours, pool, cfg, use_names=False)
+    assert [r.category for r in by_name] == ["office", objects_only[1].category, "hallway"]
+    assert by_name[0].sentence == '(name: "Buero Meier")' and objects_only[2].category == UNKNOWN
 
 
 def test_batch_matches_single_rooms(pool: RoomCategoryPool) -> None:

@@ -16,13 +16,16 @@ def vocabulary() -> Vocabulary:
     return Vocabulary.load(config_file("vocabulary.yaml"))
 
 
-def element(ifc_class: str = "IfcFurniture", name: str = "", type_name: str = "", predefined: str = "") -> IfcElement:
+def element(
+    ifc_class: str = "IfcFurniture", name: str = "", type_name: str = "", predefined: str = "", type_class: str = ""
+) -> IfcElement:
     ancestry = {
         "IfcFurniture": ("IfcFurniture", "IfcFurnishingElement", "IfcElement"),
         "IfcWindow": ("IfcWindow", "IfcBuildingElement", "IfcElement"),
         "IfcFlowTerminal": ("IfcFlowTerminal", "IfcDistributionFlowElement", "IfcElement"),
+        "IfcStair": ("IfcStair", "IfcBuildingElement", "IfcElement"),
     }[ifc_class]
-    type_class = "IfcFurnitureType" if type_name else ""
+    type_class = type_class or ("IfcFurnitureType" if type_name else "")
     return IfcElement("g", ifc_class, ancestry, name, "", type_name, type_class, predefined, "", 0, None)
 
 
@@ -54,6 +57,22 @@ def test_normalise_spells_out_umlauts_and_separators() -> None:
         ("M_Base Cabinet-Double Door & 2", "cabinet"),
         ("1525 x 2007mm - Queen", "bed"),
         ("Fire hydrant", "fire hydrant"),
+        # offices, institutes, building services (IFC predefined types included)
+        ("Heizkörper 22-600", "radiator"),
+        ("PANELRADIATOR", "radiator"),
+        ("BASEBOARDHEATER", "radiator"),
+        ("Warmwasserspeicher", "boiler"),
+        ("Whiteboard 2000", "whiteboard"),
+        ("Wandtafel", "whiteboard"),
+        ("Laserdrucker", "printer"),
+        ("Spindschrank 4-tuerig", "locker"),
+        ("Steel Shelves 900", "bookshelf"),
+        ("Aktenschrank", "cabinet"),
+        ("Feuerloescher 6kg", "fire extinguisher"),
+        ("Aufzug 630 kg", "elevator"),
+        ("ELEVATOR", "elevator"),
+        ("Treppe-EG", "stairs"),
+        ("STRAIGHT_RUN_STAIR", "stairs"),
         ("Kubus-Einrichtung-2", None),
         ("Parking", None),
     ],
@@ -83,6 +102,19 @@ def test_fallbacks_embedding_then_ifc_class(vocabulary: Vocabulary) -> None:
     assert (labels[1].label, labels[1].source) == ("window", LabelSource.IFC_CLASS)
     assert (labels[2].label, labels[2].source) == ("fixture", LabelSource.IFC_CLASS)
     assert labels[0].raw_text == "Recliner"
+
+
+def test_a_class_that_names_the_element_outranks_the_embedding_guess(vocabulary: Vocabulary) -> None:
+    # A radiator named by a product code alone was labelled "piano" by the nearest text embedding.
+    elements = [
+        element("IfcFlowTerminal", name="Kermi Therm-X2 Profil-K 22", type_class="IfcSpaceHeaterType"),
+        element("IfcStair", name="Stair:Residential 200mm"),
+        element("IfcFlowTerminal", name="Kermi Therm-X2 Profil-K 22"),
+    ]
+    labels = label_elements(elements, vocabulary, MiniLMTextEmbedder(), min_similarity=0.0)
+    assert (labels[0].label, labels[0].source) == ("radiator", LabelSource.IFC_CLASS)
+    assert labels[1].label == "stairs"
+    assert labels[2].source is LabelSource.EMBEDDING  # a plain flow terminal's class says nothing specific
 
 
 def test_vocabulary_labels_are_unique_and_embeddable(vocabulary: Vocabulary) -> None:

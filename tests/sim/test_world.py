@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bimfactor.bim.ifc import FIXED_OBJECT_CLASSES
 from bimfactor.sim.simulate import build_world
 from bimfactor.sim.trajectory import SimTrajectory
 from bimfactor.sim.world import CEILING_LABEL, CLUTTER_LABEL, FLOOR_LABEL, SimWorld, is_physical
@@ -67,7 +68,7 @@ def test_the_robot_stands_on_a_floor(
 
 def test_as_built_changes_are_recorded_and_real(building: Building, world: SimWorld, as_built_world: SimWorld) -> None:
     changes = as_built_world.changes
-    movable = [o for o in building.prior.objects if o.ifc_class not in ("IfcDoor", "IfcWindow")]
+    movable = [o for o in building.prior.objects if o.ifc_class not in FIXED_OBJECT_CLASSES]
     kinds = [c["kind"] for c in changes]
     assert kinds.count("removed") == round(0.1 * len(movable)) > 0
     assert kinds.count("moved") == round(0.2 * len(movable)) > 0
