@@ -341,13 +341,14 @@ class Localizer:
                 "localize with the embed.* settings the prior was built with, or rebuild the prior with these"
             )
         embedder = text_embedder or make_text_embedder(cfg.embed)
-        self.perception = make_perception(cfg, meta, embedder, seed=seed, detections=detections)
         self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
-        if cfg.perception.text.enabled and not len(self.filter.models.plates):
-            log.warning(
-                "perception.text reads door plates, but the prior has none (no IfcSpace numbers, or a prior built "
-                "before they were kept: rebuild it with `bimfactor prior`); the text read will weigh nothing"
-            )
+        # Door plates are read wherever the prior has room numbers to match them to (no OCR cost elsewhere).
+        has_plates = bool(len(self.filter.models.plates))
+        if cfg.perception.text.enabled and not has_plates:
+            log.info("no door plates are read: the prior has no numbered rooms (IfcSpace Name beside a LongName)")
+        self.perception = make_perception(
+            cfg, meta, embedder, seed=seed, detections=detections, read_text=cfg.perception.text.enabled and has_plates
+        )
         start = cfg.smcl.start
         self._start_belief(None if start.pose is None else [*start.pose[:2], np.deg2rad(start.pose[2])], start.storey)
         self.backend = (

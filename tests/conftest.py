@@ -57,9 +57,17 @@ def geometry_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def config_overrides(geometry_cache_dir: Path) -> list[str]:
-    """`--set`-style overrides every test config should carry: the session's geometry cache, and the filter alone
-    (the default runs every stage; tests of the graph and ICP stages name their variant)."""
-    return [f"bim.ifc.cache_dir={geometry_cache_dir}", "localization.variant=smcl"]
+    """`--set`-style overrides every test config should carry: the session's geometry cache, the filter alone (the
+    default runs every stage; tests of the graph and ICP stages name their variant) and the simulated world of the
+    IFC model alone (the default moves, removes and adds objects; tests of that name it), so that a test's expected
+    objects are the model's."""
+    return [
+        f"bim.ifc.cache_dir={geometry_cache_dir}",
+        "localization.variant=smcl",
+        "sim.as_built.moved_fraction=0",
+        "sim.as_built.removed_fraction=0",
+        "sim.as_built.clutter_count=0",
+    ]
 
 
 @pytest.fixture(scope="session")

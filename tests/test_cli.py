@@ -317,7 +317,7 @@ def test_bench_prior_writes_results(tmp_path: Path, ifc_file, cli_config_args: l
     assert result.exit_code == 0, result.output
     header, _rule, row = result.stdout.splitlines()[:3]
     assert header.split()[:5] == ["file", "storeys", "rooms", "doors", "objects"]
-    assert row.split()[:5] == ["AC20-FZK-Haus.ifc", "2", "7", "5", "16"]
+    assert row.split()[:5] == ["AC20-FZK-Haus.ifc", "2", "7", "5", "17"]  # 16 objects and the staircase
     report = json.loads((out / "results.json").read_text())
     (entry,) = report["rows"]
     assert entry["file"] == "AC20-FZK-Haus.ifc"

@@ -156,11 +156,11 @@ def machine_with_23_gib(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_a_billion_particles_are_refused_with_the_memory_they_need(tmp_path: Path, machine_with_23_gib) -> None:
     line = assert_one_line_error(synth_with(tmp_path, "--set", "smcl.resampler.max_particles=1000000000"))
     assert line == (
-        "error: smcl.resampler.max_particles=1000000000 needs about 1.0 TiB for the particle filter "
-        "(1.1 KiB a particle); this machine has 23 GiB available"
+        "error: smcl.resampler.max_particles=1000000000 and smcl.text_reset.oversample=4 need about 4.2 TiB for the "
+        "particle filter (1.1 KiB a particle); this machine has 23 GiB available"
     )
     sets = ("--set", "smcl.resampler.kind=systematic", "--set", "smcl.num_particles=1000000000")
-    assert_one_line_error(synth_with(tmp_path, *sets), contains="smcl.num_particles=1000000000 needs about")
+    assert_one_line_error(synth_with(tmp_path, *sets), contains="smcl.num_particles=1000000000 and smcl.text_reset")
     line = assert_one_line_error(synth_with(tmp_path, "--set", "smcl.challenger.particles=100000000"))
     assert "smcl.challenger.particles=100000000 needs about 103 GiB" in line and "max_particles" not in line
 
@@ -168,18 +168,26 @@ def test_a_billion_particles_are_refused_with_the_memory_they_need(tmp_path: Pat
 def test_particle_counts_are_checked_against_this_machine(tmp_path: Path) -> None:
     """Without a stand-in: a trillion particles (about a PiB) fit on no machine."""
     line = assert_one_line_error(synth_with(tmp_path, "--set", "smcl.resampler.max_particles=1000000000000"))
-    assert "smcl.resampler.max_particles=1000000000000 needs about" in line and "available" in line
+    assert "smcl.resampler.max_particles=1000000000000 and smcl.text_reset.oversample=4 need about" in line
+    assert "available" in line
 
 
 def test_the_default_particles_fit_in_little_memory(test_config: Config, config_overrides: list[str]) -> None:
     check_particle_memory(test_config, available=64 << 20)
-    with_text = load_config(None, [*config_overrides, "perception.text.enabled=true"])
-    check_particle_memory(with_text, available=64 << 20)
+    without_text = load_config(None, [*config_overrides, "perception.text.enabled=false"])
+    check_particle_memory(without_text, available=64 << 20)
     with pytest.raises(
         ConfigError, match=r"^smcl.resampler.max_particles=5000 needs about 5.\d MiB .* has 1.0 MiB available$"
     ):
+        check_particle_memory(without_text, available=1 << 20)
+    # The door-plate reset screens 4 × 4 × 1000 drawn poses: the default's largest set.
+    with pytest.raises(
+        ConfigError, match=r"^smcl.resampler.max_particles=5000 and smcl.text_reset.oversample=4 need about 2\d MiB"
+    ):
         check_particle_memory(test_config, available=1 << 20)
-    big_challenger = load_config(None, [*config_overrides, "smcl.challenger.particles=5000"])
+    big_challenger = load_config(
+        None, [*config_overrides, "perception.text.enabled=false", "smcl.challenger.particles=5000"]
+    )
     with pytest.raises(
         ConfigError, match=r"^smcl.resampler.max_particles=5000 and smcl.challenger.particles=5000 need about"
     ):

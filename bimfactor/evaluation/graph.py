@@ -385,10 +385,19 @@ def sim_detector_statistics(
     seed: int | None = None,
 ) -> dict[str, Any]:
     """The sim front end's measured rates over sequences: recall of objects in view within 6 m (≥ 50 pixels),
-    label confusion, false positives per frame, and crop-to-text / crop-to-crop cosine statistics."""
+    label confusion, false positives per frame, and crop-to-text / crop-to-crop cosine statistics of the detections
+    the detector labelled right (what the preset's d' and cosines describe; a confused crop looks like the class it
+    was taken for, and `confused_crop_to_true_text` gives its cosine to its true label's text)."""
     vocabulary = household_vocabulary(cfg)
     in_view = detected = confused = true_positives = false_positives = frames = 0
-    embeddings, labels, instance_keys = [], [], []
+    embeddings, labels, instance_keys, confused_cosines = [], [], [], []
+    texts: dict[str, np.ndarray] = {}
+
+    def text_vectors(label: str) -> np.ndarray:
+        if label not in texts:
+            texts[label] = text_embedder.encode([label])[0]
+        return texts[label]
+
     for sim in sims:
         perception = make_perception(cfg, sim.meta, text_embedder, seed, sim_preset)
         object_ids = np.asarray([int(r["object_id"]) for r in sim.meta.instances])
@@ -411,8 +420,11 @@ def sim_detector_statistics(
                     false_positives += 1
                     continue
                 true_positives += 1
-                confused += d.label != true_label[d.gt_instance_id]
-                if object_ids[d.gt_instance_id] >= 0:
+                truth = true_label[d.gt_instance_id]
+                if d.label != truth:
+                    confused += 1
+                    confused_cosines.append(float(e @ text_vectors(truth)))
+                elif object_ids[d.gt_instance_id] >= 0:
                     embeddings.append(e)
                     labels.append(true_label[d.gt_instance_id])
                     instance_keys.append((sim.meta.name, d.gt_instance_id))
@@ -427,6 +439,7 @@ def sim_detector_statistics(
         "vs_vocabulary": similarity_statistics(emb_arr, labels, vocabulary, text_embedder),
         "vs_bim_categories": similarity_statistics(emb_arr, labels, sorted(set(labels)), text_embedder),
         "crop_to_crop": crop_similarity_statistics(emb_arr, labels, instance_keys),
+        "confused_crop_to_true_text": float(np.mean(confused_cosines)) if confused_cosines else float("nan"),
     }
     mean, std = label_cosine_statistics(text_embedder.encode(vocabulary))
     result["vocabulary_text_cosine"] = {"mean": mean, "std": std}

@@ -18,7 +18,7 @@ import numpy as np
 from bimfactor.bim.vocabulary import Vocabulary
 from bimfactor.config import Config, PerceptionConfig, config_file, updated
 from bimfactor.embed.text import TextEmbedder
-from bimfactor.errors import InputError
+from bimfactor.errors import DependencyError, InputError
 from bimfactor.perception.base import Detection, Detector, Embedder, Segmenter, TextReader, TextReading
 from bimfactor.perception.detections import (
     DetectionsTable,
@@ -142,12 +142,15 @@ def make_perception(
     seed: int | None = None,
     sim_preset: str | None = None,
     detections: DetectionsTable | None = None,
+    read_text: bool | None = None,
 ) -> Perception:
     """The perception stack `cfg.perception.backend` names for a sequence (`choose_backend`); `seed` defaults to
     `cfg.seed`.
 
     The sim backend needs the simulator's instance table in `meta`; `sim_preset` overrides `perception.sim_preset`.
-    The detections backend reads `detections` (`detections.read_detections`).
+    The detections backend reads `detections` (`detections.read_detections`). `read_text` (default
+    `perception.text.enabled`) says whether door plates are read: the localizer reads none when its prior has none.
+    With `perception.text.reader: auto` on real frames and RapidOCR not installed, it reads none and says so once.
     """
     p = cfg.perception
     seed = cfg.seed if seed is None else seed
@@ -155,11 +158,17 @@ def make_perception(
     vocabulary = household_vocabulary(cfg)
     graph = OnlineSceneGraph(p, meta.intrinsics, meta.T_base_camera, embedding_dim=text_embedder.dim)
     reader: TextReader | None = None
-    if p.text.enabled and (p.text.reader == "rapidocr" or (p.text.reader == "auto" and backend != "sim")):
+    read_text = p.text.enabled if read_text is None else read_text
+    if read_text and (p.text.reader == "rapidocr" or (p.text.reader == "auto" and backend != "sim")):
         from bimfactor.perception.ocr import RapidOcrReader
 
-        reader = RapidOcrReader(p.text.min_score)
-    elif p.text.enabled:
+        try:
+            reader = RapidOcrReader(p.text.min_score)
+        except DependencyError as exc:
+            if p.text.reader == "rapidocr":
+                raise
+            log.warning("door plates are not read: %s", exc)
+    elif read_text:
         reader = SimTextReader(meta, p.text, sim_rng(seed, meta, READER_STREAM))
     if backend == "vlm":
         from bimfactor.perception.vlm import make_vlm_backends

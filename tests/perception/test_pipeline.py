@@ -36,13 +36,14 @@ def test_each_step_reports_the_nodes_in_view(test_config: Config, text_embedder,
 def test_short_paper_floor_sequence_finds_the_meeting_table_group(
     test_config: Config, text_embedder, paper_floor, meeting_orbit: SimResult, tmp_path: Path
 ) -> None:
-    """15 frames, paper preset, noisy odometry: measured precision 0.23 (odometry drift of ~3° a frame splits
-    the chairs), recall 0.83 (5 of the 6 objects seen), label accuracy 1.0."""
+    """15 frames, paper preset, noisy odometry: measured precision 0.14 (odometry drift of ~3° a frame splits the
+    chairs, and a confused crop looks like its confused class, so it fuses apart; 0.23 when confusion changed only
+    the label), recall 0.83 (5 of the 6 objects seen), label accuracy 1.0."""
     figure = tmp_path / "graph.png"
     report = evaluate_sequence(meeting_orbit, paper_floor.prior, test_config, text_embedder, figure_path=figure)
     assert report["n_objects"] == 6
     assert report["recall"] >= 0.5
-    assert report["precision"] >= 0.15
+    assert report["precision"] >= 0.1
     assert report["label_accuracy"] >= 0.5
     assert all(labels_match(m["node_label"], m["label"]) for m in report["matches"])
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -111,11 +112,41 @@ def test_the_text_reader_is_the_one_perception_text_reader_names(
         cfg = load_config(None, [*config_overrides, *overrides])
         return make_perception(cfg, meeting_orbit.meta, text_embedder).reader
 
-    assert reader() is None  # text off by default
-    assert isinstance(reader("perception.text.enabled=true"), SimTextReader)
+    assert isinstance(reader(), SimTextReader)  # plates are read by default
+    assert reader("perception.text.enabled=false") is None
     with pytest.raises(ConfigError, match=r"text\.reader 'sim' reads the simulator's plates"):
         load_config(None, [*config_overrides, "perception.backend=vlm", "perception.text.reader=sim"])
     ocr = pytest.importorskip("bimfactor.perception.ocr")
     pytest.importorskip("rapidocr_onnxruntime")
     # RapidOCR on the simulated colour frames, with the sim backend's objects.
     assert isinstance(reader("perception.text.enabled=true", "perception.text.reader=rapidocr"), ocr.RapidOcrReader)
+
+
+def test_real_frames_without_rapidocr_read_no_plates_unless_rapidocr_is_asked_for(
+    config_overrides: list[str], text_embedder, meeting_orbit: SimResult, tmp_path: Path, monkeypatch, caplog
+) -> None:
+    """A bare `pip install .` has no RapidOCR: the default reader (auto) reads no plates and warns; naming the reader
+    `rapidocr` stops with the install hint."""
+    import logging
+    import sys
+
+    from bimfactor.config import load_config
+    from bimfactor.errors import DependencyError
+    from bimfactor.perception.detections import FrameRecord, read_detections, write_detections
+
+    path = tmp_path / "detections.jsonl"
+    frames = meeting_orbit.frames
+    write_detections(path, [FrameRecord([], f.timestamp_s) for f in frames])
+    stamps = np.asarray([f.timestamp_s for f in frames])
+    table = read_detections(path, stamps, np.arange(len(frames)), meeting_orbit.meta.intrinsics, text_embedder.dim)
+    monkeypatch.setitem(sys.modules, "rapidocr_onnxruntime", None)  # import fails as if not installed
+
+    def perception(*overrides: str):
+        cfg = load_config(None, [*config_overrides, "perception.backend=detections", *overrides])
+        return make_perception(cfg, meeting_orbit.meta, text_embedder, detections=table)
+
+    with caplog.at_level(logging.WARNING, logger="bimfactor.perception.pipeline"):
+        assert perception().reader is None
+    assert "door plates are not read" in caplog.text and "RapidOCR" in caplog.text
+    with pytest.raises(DependencyError):
+        perception("perception.text.reader=rapidocr")

@@ -47,8 +47,9 @@ def _plate_records(world: SimWorld) -> list[dict]:
     return [rec for rec in world.instances if rec["label"] == DOOR_PLATE_LABEL]
 
 
-def test_plates_hang_only_when_asked(duplex: Building, plated) -> None:
-    plain = build_world(duplex.prior, duplex.model, duplex.cfg, seed=0)
+def test_plates_hang_by_default_and_only_then(duplex: Building, plated) -> None:
+    assert _plate_records(build_world(duplex.prior, duplex.model, duplex.cfg, seed=0))  # the default hangs them
+    plain = build_world(duplex.prior, duplex.model, updated(duplex.cfg, {"sim.door_plates.enabled": False}), seed=0)
     assert _plate_records(plain) == []
     _, world = plated
     records = _plate_records(world)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from bimfactor.bim.ifc import FIXED_OBJECT_CLASSES
+from bimfactor.bim.plates import DOOR_PLATE_LABEL
 from bimfactor.sim.simulate import build_world
 from bimfactor.sim.trajectory import SimTrajectory
 from bimfactor.sim.world import CEILING_LABEL, CLUTTER_LABEL, FLOOR_LABEL, SimWorld, is_physical
@@ -35,7 +36,11 @@ def test_instance_table_is_the_physical_elements(building: Building, world: SimW
     physical = [e for e in building.model.elements if is_physical(e)]
     objects = {o.guid: o for o in building.prior.objects}
     assert [rec["id"] for rec in world.instances] == list(range(len(world.instances)))
-    assert all(set(rec) == {"id", "guid", "ifc_class", "object_id", "label"} for rec in world.instances)
+    plates = [rec for rec in world.instances if rec["label"] == DOOR_PLATE_LABEL]  # hung by default, not IFC elements
+    assert all(not rec["guid"] and rec["object_id"] == -1 for rec in plates)
+    plate_ids = {rec["id"] for rec in plates}
+    records = [rec for rec in world.instances if rec["id"] not in plate_ids]
+    assert all(set(rec) == {"id", "guid", "ifc_class", "object_id", "label"} for rec in records)
     from_ifc = [rec for rec in world.instances if rec["guid"]]
     assert sorted(rec["guid"] for rec in from_ifc) == sorted(e.guid for e in physical)
     assert not {"IfcDoor", "IfcSpace", "IfcOpeningElement"} & {rec["ifc_class"] for rec in from_ifc}
