@@ -7,7 +7,10 @@ One step (`SemanticMCL.step`) is the paper's loop:
              semantic Hungarian score, and beyond it door plates read and the depth scan); normalise;
 3. resample: when ESS < δ_ess·M, draw the particles anew (`resampling`: systematic as the paper, or KLD-sized);
              the recoveries (`recovery`) may redraw some of them elsewhere;
-4. estimate: weighted mean x, y and circular mean yaw on the storey holding the most weight; its room.
+4. estimate: weighted mean x, y and circular mean yaw on the storey holding the most weight; its room. The estimate
+             is `compact` when its spread and storey share pass `smcl.converged`, and `converged` when it is compact
+             and every recovery confirms it: the challenger must have looked for a look-alike place that explains
+             the frames as well and found none (`recovery.challenger`).
 
 Recoveries act at their points of the loop: after the update (the belief is lost: spread it over the building again)
 and after the estimate (a challenger explains the frames better: take its particles).
@@ -45,7 +48,9 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class PoseEstimate:
-    """The filter's pose estimate: (3,) x, y, yaw in the world frame on `storey`, with its (3, 3) covariance."""
+    """The filter's pose estimate: (3,) x, y, yaw in the world frame on `storey`, with its (3, 3) covariance.
+
+    `compact`: one cluster on one storey (`smcl.converged`); `converged`: compact, and no recovery doubts it."""
 
     pose: np.ndarray
     storey: int
@@ -55,6 +60,7 @@ class PoseEstimate:
     position_std_m: float
     yaw_std_rad: float
     storey_share: float
+    compact: bool = False
 
 
 @dataclass
@@ -195,7 +201,8 @@ class SemanticMCL:
                 if taken is not None:
                     log.info("a challenger explains the frames better: the belief moves there")
                     self.adopt(*taken)
-                    estimate, challenged = self.estimate(), True
+                    challenged = True
+            estimate = self.estimate()  # what the challenge found confirms the belief, or not
             lap("recover")
         return StepResult(
             estimate=estimate,
@@ -312,11 +319,12 @@ class SemanticMCL:
         yaw_std = float(np.sqrt(covariance[2, 2]))
         share = float(storey_weight[storey] / storey_weight.sum())
         done = self.cfg.converged
-        converged = (
+        compact = bool(
             position_std < done.pos_std_m and yaw_std < np.deg2rad(done.yaw_std_deg) and share >= done.storey_share
         )
+        converged = compact and all(recovery.confirms() for recovery in self.recoveries)
         room_id = int(self.prior.room_at(mean[None, :2], storey)[0])
-        return PoseEstimate(mean, storey, covariance, bool(converged), room_id, position_std, yaw_std, share)
+        return PoseEstimate(mean, storey, covariance, converged, room_id, position_std, yaw_std, share, compact)
 
     # -------------------------------------------------------------------------------- starting the belief
 

@@ -125,10 +125,12 @@ def test_converges_from_a_uniform_start_within_20_steps(office_prior, office_vis
 
 def track_from(
     prior: BimPrior, table: VisibilityTable, cfg: SmclConfig, start: np.ndarray, seed: int
-) -> tuple[list[float], list[bool]]:
-    """The scripted path tracked from a belief converged about `start`: position error and `challenged` per step."""
+) -> tuple[list[float], list[bool], list[bool]]:
+    """The scripted path tracked from a belief gathered about `start`: position error, `challenged` and `converged`
+    per step."""
     steps = drive(prior, table, cfg, seed, start)
-    return [float(np.hypot(*(r.pose[:2] - pose[:2]))) for pose, r in steps], [r.challenged for _, r in steps]
+    errors = [float(np.hypot(*(r.pose[:2] - pose[:2]))) for pose, r in steps]
+    return errors, [r.challenged for _, r in steps], [r.converged for _, r in steps]
 
 
 def _challenger_cfg(smcl_cfg: SmclConfig, challenger: bool) -> SmclConfig:
@@ -152,15 +154,22 @@ def test_a_challenger_moves_a_belief_locked_one_office_along_the_corridor(
     # The belief starts converged 5 m west of the robot: the corridor's doors repeat every 5 m. Without a
     # challenger it stays there for the whole path; with one it moves to the robot and tracks it.
     start = scripted_path(WAYPOINTS)[0] + [-5.0, 0.0, 0.0]
-    locked, never = track_from(office_prior, office_visibility, _challenger_cfg(smcl_cfg, False), start, seed)
+    locked, never, _ = track_from(office_prior, office_visibility, _challenger_cfg(smcl_cfg, False), start, seed)
     assert min(locked) > 4.0 and not any(never)
-    errors, challenged = track_from(office_prior, office_visibility, _challenger_cfg(smcl_cfg, True), start, seed)
+    errors, challenged, converged = track_from(
+        office_prior, office_visibility, _challenger_cfg(smcl_cfg, True), start, seed
+    )
     (moved,) = np.flatnonzero(challenged)
     assert max(errors[moved:]) < 0.6 and min(errors[:moved]) > 4.0
+    # Compact all along, but converged only where the challenger found no better place: never 5 m off.
+    assert not any(converged[:moved]) and converged[-1]
 
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_challenger_leaves_a_belief_at_the_right_place_alone(office_prior, office_visibility, smcl_cfg, seed):
     start = scripted_path(WAYPOINTS)[0]
-    errors, challenged = track_from(office_prior, office_visibility, _challenger_cfg(smcl_cfg, True), start, seed)
+    errors, challenged, converged = track_from(
+        office_prior, office_visibility, _challenger_cfg(smcl_cfg, True), start, seed
+    )
     assert not any(challenged) and max(errors) < 0.6
+    assert converged[-1] and not converged[0]  # confirmed once a challenger found no better place

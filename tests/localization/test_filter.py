@@ -139,10 +139,16 @@ def test_estimate_is_the_weighted_circular_mean_on_the_heaviest_storey(smcl_cfg:
     np.testing.assert_allclose(est.pose[:2], [3.1, 2.1])
     assert abs(wrap_angle(est.pose[2] - np.pi)) < 1e-9
     assert est.room_id == 2  # room A of storey 1
-    assert est.converged  # std 0.14 m, 5°, 94 % on one storey
+    assert est.compact  # std 0.14 m, 5°, 94 % on one storey ...
+    assert not est.converged  # ... but no challenger has looked for a look-alike place yet
+    paper_flag = updated(smcl_cfg, {"challenger.enabled": False})
+    no_challenger = SemanticMCL(prior, table, paper_flag, np.random.default_rng(0), num_particles=4)
+    no_challenger.initialize()
+    no_challenger.particles, no_challenger.storeys, no_challenger.weights = mcl.particles, mcl.storeys, mcl.weights
+    assert no_challenger.estimate().converged  # the paper's flag: compact is converged
     assert est.covariance.shape == (3, 3) and np.allclose(est.covariance, est.covariance.T)
     mcl.weights = np.array([0.4, 0.4, 0.1, 0.1])
-    assert not mcl.estimate().converged  # only 80 % of the weight on the estimated storey
+    assert not mcl.estimate().compact  # only 80 % of the weight on the estimated storey
 
 
 def test_observations_decide_the_storey(smcl_cfg: SmclConfig, test_config: Config):

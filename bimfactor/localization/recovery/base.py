@@ -7,6 +7,8 @@
 - `replacements` and `draw`: at a resampling, how many particles to redraw instead of resampling them, and the poses
   to redraw them at (fewer: the rest are drawn uniformly);
 - `challenge`: after the estimate, a weighted particle set the belief should take over instead (or None);
+- `confirms`: whether the recovery lets a compact estimate be reported converged (the challenger: only once it
+  looked for a look-alike place and found none that explains the frames as well);
 - `reset`: the particles were set anew (a start, a relocalization, a set taken over).
 
 `RecoveryBase` does nothing at each; a recovery overrides the hooks it needs.
@@ -45,6 +47,8 @@ class Recovery(Protocol):
         self, odom_increment: np.ndarray | None, frame: FrameData, estimate: PoseEstimate, log_evidence: float | None
     ) -> WeightedSet | None: ...
 
+    def confirms(self) -> bool: ...
+
 
 class RecoveryBase:
     """A recovery that does nothing at any hook; subclasses override the ones they need."""
@@ -68,3 +72,6 @@ class RecoveryBase:
         self, odom_increment: np.ndarray | None, frame: FrameData, estimate: PoseEstimate, log_evidence: float | None
     ) -> WeightedSet | None:
         return None
+
+    def confirms(self) -> bool:
+        return True
