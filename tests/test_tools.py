@@ -134,6 +134,9 @@ def test_render_results_writes_table_one_into_the_readme_and_the_full_tables_int
     results.mkdir(parents=True)
     (results / "paper-floor-seed0-default.json").write_text(json.dumps(_bench_paper_report(0.3)))
     (results / "paper-floor-seed1-default.json").write_text(json.dumps(_bench_paper_report(0.5)))
+    # Other benchmarks' results lie beside them, for renderers of their own: left alone, not an error.
+    (results / "buildings.json").write_text(json.dumps({"benchmark": "buildings", "buildings": {}}))
+    (results / "speed.json").write_text(json.dumps({"benchmark": "speed"}))
     readme, page = tmp_path / "README.md", tmp_path / "docs/results.md"
     readme.write_text("# x\n\nbefore\n<!-- results:begin -->\nold table\n<!-- results:end -->\nafter\n")
     args = ["--results", str(results), "--readme", str(readme), "--page", str(page)]
@@ -141,7 +144,7 @@ def test_render_results_writes_table_one_into_the_readme_and_the_full_tables_int
     assert render.main(args) == 0
     text = readme.read_text()
     assert text.startswith("# x\n\nbefore\n<!-- results:begin -->\n") and text.endswith("<!-- results:end -->\nafter\n")
-    assert "old table" not in text
+    assert "old table" not in text and "buildings" not in text
     assert (
         "| Variant | [seed 0, default](docs/results/paper-floor-seed0-default.json) "
         "| [seed 1, default](docs/results/paper-floor-seed1-default.json) |" in text

@@ -36,6 +36,7 @@ NAME = re.compile(r"^(?P<building>.+?)-seed(?P<seed>\d+)-(?P<preset>[A-Za-z0-9_]
 PRESET_ORDER = {"default": 0, "paper": 1, "fast": 2}
 VARIANT_ORDER = {"smcl": 0, "smcl+graph": 1, "refine": 2, "full": 3}
 IFC_DIR = "../shared/data/ifc"
+OTHER_BENCHMARKS = {"buildings": "tools/render_buildings.py", "speed": "tools/render_speed.py"}  # their renderers
 
 
 @dataclass(frozen=True)
@@ -67,13 +68,16 @@ class Source:
 
 def load_sources(results_dir: Path) -> list[Source]:
     """Every BUILDING-seedN-PRESET[-TAG].json under `results_dir`, sorted: paper floor first, then by seed and preset
-    (default, paper, fast, others); a name that does not fit is an error, not skipped."""
+    (default, paper, fast, others); a `bench paper` file whose name does not fit is an error, not skipped. Other
+    benchmarks' results there (`bench buildings`, `bench speed`) have renderers of their own and are left alone."""
     sources = []
     for path in sorted(results_dir.glob("*.json")):
+        report = json.loads(path.read_text())
+        if report.get("benchmark") in OTHER_BENCHMARKS:
+            continue
         match = NAME.match(path.stem)
         if not match:
             raise SystemExit(f"error: {path}: name must be BUILDING-seedN-PRESET[-TAG].json")
-        report = json.loads(path.read_text())
         if report.get("benchmark") != "paper":
             raise SystemExit(f"error: {path}: not a results.json of bimfactor bench paper")
         sources.append(Source(path, match["building"], int(match["seed"]), match["preset"], match["tag"], report))
