@@ -341,7 +341,15 @@ class Localizer:
                 "localize with the embed.* settings the prior was built with, or rebuild the prior with these"
             )
         embedder = text_embedder or make_text_embedder(cfg.embed)
-        self.filter = SemanticMCL(prior, visibility_of(prior, cfg), cfg.smcl, np.random.default_rng([seed, 0x5CC1]))
+        # The flag waits for evidence against look-alike places: the challenger's search, and the twin places the
+        # building's symmetry names (with the challenger off, as in `paper`, the flag is the spread test alone).
+        self.filter = SemanticMCL(
+            prior,
+            visibility_of(prior, cfg),
+            cfg.smcl,
+            np.random.default_rng([seed, 0x5CC1]),
+            twins=self.twins if cfg.smcl.challenger.enabled else None,
+        )
         # Door plates are read wherever the prior has room numbers to match them to (no OCR cost elsewhere).
         has_plates = bool(len(self.filter.models.plates))
         if cfg.perception.text.enabled and not has_plates:

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.symmetry import Motion
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import SmclConfig
 from bimfactor.errors import InputError
@@ -40,6 +41,7 @@ from bimfactor.localization.particles import FreeSpace, ParticleSampler
 from bimfactor.localization.recovery import Recovery, make_recoveries
 from bimfactor.localization.resampling import make_resampler, systematic_resample
 from bimfactor.localization.stats import effective_sample_size, weighted_pose_stats
+from bimfactor.localization.twins import TwinEvidence
 from bimfactor.progress import Laps
 from bimfactor.types import Observations, wrap_angle
 
@@ -137,6 +139,7 @@ class SemanticMCL:
         rng: np.random.Generator,
         num_particles: int | None = None,
         models: FilterModels | None = None,
+        twins: dict[int, Motion] | None = None,
     ) -> None:
         self.prior, self.cfg, self.rng = prior, cfg, rng
         self.min_particles = int(num_particles or cfg.num_particles)
@@ -152,6 +155,8 @@ class SemanticMCL:
         # Particles redrawn at the last resampling and not yet weighed by a measurement: left out of the estimate.
         self.fresh = np.zeros(self.max_particles, bool)
         self.recoveries: list[Recovery] = make_recoveries(cfg, m.plates, self.sampler, self._rival)
+        # A belief on a storey with a twin place is converged only once the frames tell it from its twin.
+        self.twin_evidence = TwinEvidence(twins, self._log_likelihood) if twins else None
         self._initialized = False
 
     def _rival(self, cfg: SmclConfig, n: int) -> SemanticMCL:
@@ -218,6 +223,15 @@ class SemanticMCL:
             challenged=challenged,
         )
 
+    def _log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, frame: FrameData) -> np.ndarray | None:
+        """(M,) Σ_m ln p_m(z | x) of the measurement models that weigh this frame at the given poses; None if none."""
+        total = None
+        for model in self.models.measurements:
+            term = model.weigh(particles, storeys, frame)
+            if term is not None:
+                total = term.log_likelihood if total is None else total + term.log_likelihood
+        return total
+
     def predict(self, odom_increment: np.ndarray) -> None:
         """Move the particles by a (3,) robot-frame odometry increment (dx, dy, dyaw) with the motion noise."""
         self._require_initialized()
@@ -257,6 +271,8 @@ class SemanticMCL:
             log_evidence = float(peak + np.log(self.weights.sum())) if np.isfinite(peak) else None
             self._normalise("after the measurement update")
             update = Update(before, terms, log_evidence)
+            if self.twin_evidence is not None and log_evidence is not None:
+                self.twin_evidence.observe(self.particles, self.storeys, before, log_evidence, frame)
         for recovery in self.recoveries:
             recovery.after_update(update, frame)
         return update
@@ -323,6 +339,8 @@ class SemanticMCL:
             position_std < done.pos_std_m and yaw_std < np.deg2rad(done.yaw_std_deg) and share >= done.storey_share
         )
         converged = compact and all(recovery.confirms() for recovery in self.recoveries)
+        if self.twin_evidence is not None:
+            converged = converged and self.twin_evidence.settled(storey)
         room_id = int(self.prior.room_at(mean[None, :2], storey)[0])
         return PoseEstimate(mean, storey, covariance, converged, room_id, position_std, yaw_std, share, compact)
 
@@ -384,6 +402,8 @@ class SemanticMCL:
         self.fresh = np.zeros(len(particles), bool)
         for recovery in self.recoveries:
             recovery.reset()
+        if self.twin_evidence is not None:
+            self.twin_evidence.reset()
         self._initialized = True
 
     # -------------------------------------------------------------------------------- helpers
