@@ -72,7 +72,12 @@ def load_sources(results_dir: Path) -> list[Source]:
     benchmarks' results there (`bench buildings`, `bench speed`) have renderers of their own and are left alone."""
     sources = []
     for path in sorted(results_dir.glob("*.json")):
-        report = json.loads(path.read_text())
+        try:
+            report = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise SystemExit(f"error: {path}: not JSON ({exc.msg}, line {exc.lineno})") from None
+        if not isinstance(report, dict):
+            raise SystemExit(f"error: {path}: not a results.json of bimfactor bench paper")
         if report.get("benchmark") in OTHER_BENCHMARKS:
             continue
         match = NAME.match(path.stem)

@@ -237,19 +237,21 @@ def classify_rooms(
 
 
 _ROMAN = re.compile(r"^[ivx]+$")
+WORD_MIN_SCORE = 0.9  # a single word of a name decides only when it is one of the pool's names, near enough
 
 
-def _name_texts(name: str) -> list[str]:
+def _name_texts(name: str) -> tuple[str, list[str]]:
     """The texts a room name is matched by: the whole name without numbers, and each word of two letters or more
-    that is not a roman numeral ("WC Herren III" → "wc herren iii", "wc", "herren")."""
-    words = [w for w in normalise(name).split() if w.isalpha()]
-    whole = " ".join(words)
-    return list(dict.fromkeys([whole, *(w for w in words if len(w) >= 2 and not _ROMAN.match(w))])) if whole else []
+    that is not a roman numeral ("WC Herren III" → "wc herren iii"; "wc", "herren")."""
+    words = [w for w in re.sub(r"\d+", " ", normalise(name)).split() if w.isalpha()]
+    return " ".join(words), [w for w in dict.fromkeys(words) if len(w) >= 2 and not _ROMAN.match(w)]
 
 
 def classify_room_names(names: Sequence[str], pool: RoomCategoryPool) -> list[RoomClassification | None]:
-    """Type rooms by their architects' names (module docstring); None where a name does not decide."""
-    texts = [_name_texts(name) for name in names]
+    """Type rooms by their architects' names (module docstring); None where a name does not decide. A single word
+    counts only where it is nearly one of the pool's names (`WORD_MIN_SCORE`): "Kitchen Storage" is not typed by
+    "storage" alone, nor "Umkleide Herren" by a loose likeness of "herren"."""
+    texts = [[whole, *words] if whole else [] for whole, words in map(_name_texts, names)]
     flat = [t for group in texts for t in group]
     results: list[RoomClassification | None] = [None] * len(names)
     if not flat or len(pool.room_name_category) == 0:
@@ -261,8 +263,10 @@ def classify_room_names(names: Sequence[str], pool: RoomCategoryPool) -> list[Ro
     for i, group in enumerate(texts):
         if not group:
             continue
-        scores = per_category[start : start + len(group)].max(axis=0)
+        block = per_category[start : start + len(group)]
         start += len(group)
+        words = block[1:]
+        scores = np.maximum(block[0], np.where(words >= WORD_MIN_SCORE, words, -1.0).max(axis=0, initial=-1.0))
         order = np.argsort(-scores)
         best, second = float(scores[order[0]]), float(scores[order[1]]) if len(order) > 1 else -1.0
         if best >= pool.name_min_score and best - second >= pool.name_margin:

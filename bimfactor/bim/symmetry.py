@@ -41,6 +41,11 @@ class Motion:
         out[:, 2] = np.arctan2(np.sin(poses[:, 2] + self.theta_rad), np.cos(poses[:, 2] + self.theta_rad))
         return out
 
+    def inverse(self) -> Motion:
+        """The motion back: x ↦ R(−θ)(x − t)."""
+        back = -(_rotation(-self.theta_rad) @ np.asarray(self.translation, float))
+        return Motion(-self.theta_rad, back, self.matched, self.total)
+
     def move(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) points carried by the motion."""
         return _move(xy, self.theta_rad, self.translation)

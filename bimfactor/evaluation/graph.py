@@ -423,7 +423,8 @@ def sim_detector_statistics(
                 truth = true_label[d.gt_instance_id]
                 if d.label != truth:
                     confused += 1
-                    confused_cosines.append(float(e @ text_vectors(truth)))
+                    if object_ids[d.gt_instance_id] >= 0:  # a BIM object's crop, as below (clutter has no label)
+                        confused_cosines.append(float(e @ text_vectors(truth)))
                 elif object_ids[d.gt_instance_id] >= 0:
                     embeddings.append(e)
                     labels.append(true_label[d.gt_instance_id])

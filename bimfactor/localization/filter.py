@@ -271,8 +271,8 @@ class SemanticMCL:
             log_evidence = float(peak + np.log(self.weights.sum())) if np.isfinite(peak) else None
             self._normalise("after the measurement update")
             update = Update(before, terms, log_evidence)
-            if self.twin_evidence is not None and log_evidence is not None:
-                self.twin_evidence.observe(self.particles, self.storeys, before, log_evidence, frame)
+            if self.twin_evidence is not None:
+                self.twin_evidence.observe(self.particles, self.storeys, before, log_likelihood, frame)
         for recovery in self.recoveries:
             recovery.after_update(update, frame)
         return update

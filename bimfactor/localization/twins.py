@@ -31,33 +31,53 @@ class TwinEvidence:
         self.twins = twins
         self.log_likelihood = log_likelihood  # (particles, storeys, frame) → (M,) Σ_m ln p_m(z | x), or None
         self.nats = 0.0
+        back = {storey: motion.inverse() for storey, motion in twins.items()}
+        half_turns = all(_same(back[s], m) for s, m in twins.items())  # T⁻¹ = T: one image
+        self._both_ways = [twins] if half_turns else [twins, back]
 
     def reset(self) -> None:
         """The belief started over (a start, a relocalization, a set taken over)."""
         self.nats = 0.0
 
     def observe(
-        self, particles: np.ndarray, storeys: np.ndarray, weights: np.ndarray, log_evidence: float, frame: FrameData
-    ) -> None:
-        """Add one frame: the belief's `log_evidence` over `weights` (before the update) against its image's."""
-        twin = np.zeros(len(particles), bool)
-        images = particles.copy()
-        for storey, motion in self.twins.items():
-            on = storeys == storey
-            if on.any():
-                images[on] = motion.apply(particles[on])
-                twin |= on
+        self, particles: np.ndarray, storeys: np.ndarray, weights: np.ndarray, log_likelihood: np.ndarray,
+        frame: FrameData,
+    ) -> None:  # fmt: skip
+        """Add one frame: the belief's (M,) `log_likelihood` over `weights` (before the update) against its image's.
+        The image is taken both ways (T and T⁻¹: a twin may lie on either side of a motion that is not a half-turn),
+        and the likelier one is the rival; only the particles on a storey with a twin are weighed again."""
+        twin = np.isin(storeys, list(self.twins))
         if not twin.any():
             return
-        log_likelihood = self.log_likelihood(images, storeys, frame)
-        if log_likelihood is None:
-            return
-        with np.errstate(divide="ignore"):
-            log_w = np.log(weights) + log_likelihood
-        peak = log_w.max()
-        if np.isfinite(peak):
-            self.nats += log_evidence - float(peak + np.log(np.exp(log_w - peak).sum()))
+        own, rival = _log_sum(weights, log_likelihood), -np.inf
+        for motions in self._both_ways:
+            images = particles[twin].copy()
+            for storey, motion in motions.items():
+                on = storeys[twin] == storey
+                images[on] = motion.apply(images[on])
+            at_images = self.log_likelihood(images, storeys[twin], frame)
+            if at_images is None:
+                return
+            image_ll = log_likelihood.copy()
+            image_ll[twin] = at_images
+            rival = max(rival, _log_sum(weights, image_ll))
+        if np.isfinite(own) and np.isfinite(rival):
+            self.nats += own - rival
 
     def settled(self, storey: int) -> bool:
         """Whether a belief on `storey` is told from its twin: no twin there, or the frames favour it enough."""
         return storey not in self.twins or self.nats >= SETTLED_NATS
+
+
+def _log_sum(weights: np.ndarray, log_likelihood: np.ndarray) -> float:
+    """ln Σ w_i exp(ℓ_i), stable; −inf when every term is 0."""
+    with np.errstate(divide="ignore"):
+        log_w = np.log(weights) + log_likelihood
+    peak = log_w.max()
+    return float(peak + np.log(np.exp(log_w - peak).sum())) if np.isfinite(peak) else -np.inf
+
+
+def _same(a: Motion, b: Motion) -> bool:
+    """Whether two motions carry every point to the same place."""
+    turn = (a.theta_rad - b.theta_rad + np.pi) % (2 * np.pi) - np.pi
+    return abs(turn) < 1e-9 and np.allclose(a.translation, b.translation, atol=1e-9)

@@ -35,6 +35,7 @@ from bimfactor.progress import progress
 from bimfactor.types import Frame, Observations, SequenceMeta
 
 log = logging.getLogger(__name__)
+_WARNED = {"no_ocr": False}  # a missing RapidOCR is said once a process, not once a sequence
 
 # Independent random streams of the sim backend within one (seed, sequence).
 DETECTOR_STREAM, SEGMENTER_STREAM, EMBEDDER_STREAM, READER_STREAM = 0xDE7, 0x5E6, 0xE3B, 0x7E7
@@ -167,7 +168,9 @@ def make_perception(
         except DependencyError as exc:
             if p.text.reader == "rapidocr":
                 raise
-            log.warning("door plates are not read: %s", exc)
+            if not _WARNED["no_ocr"]:
+                log.warning("door plates are not read: %s", exc)
+                _WARNED["no_ocr"] = True
     elif read_text:
         reader = SimTextReader(meta, p.text, sim_rng(seed, meta, READER_STREAM))
     if backend == "vlm":

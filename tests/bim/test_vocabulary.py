@@ -73,6 +73,16 @@ def test_normalise_spells_out_umlauts_and_separators() -> None:
         ("ELEVATOR", "elevator"),
         ("Treppe-EG", "stairs"),
         ("STRAIGHT_RUN_STAIR", "stairs"),
+        ("Wendeltreppe", "stairs"),
+        ("Kuehlschrank", "refrigerator"),  # before "schrank"
+        # words that contain a rule's word but are something else
+        ("Theater Seat", "chair"),
+        ("Treppenhocker", "chair"),
+        ("Lift table", "table"),
+        ("Rollcontainer", "cabinet"),
+        ("Waste container", None),
+        ("Spindel", None),
+        ("Monitoring panel", None),
         ("Kubus-Einrichtung-2", None),
         ("Parking", None),
     ],

@@ -140,6 +140,9 @@ def test_real_frames_without_rapidocr_read_no_plates_unless_rapidocr_is_asked_fo
     stamps = np.asarray([f.timestamp_s for f in frames])
     table = read_detections(path, stamps, np.arange(len(frames)), meeting_orbit.meta.intrinsics, text_embedder.dim)
     monkeypatch.setitem(sys.modules, "rapidocr_onnxruntime", None)  # import fails as if not installed
+    from bimfactor.perception import pipeline as perception_pipeline
+
+    monkeypatch.setitem(perception_pipeline._WARNED, "no_ocr", False)  # said once a process: not yet in this one
 
     def perception(*overrides: str):
         cfg = load_config(None, [*config_overrides, "perception.backend=detections", *overrides])
