@@ -254,7 +254,7 @@ def classify_room_names(names: Sequence[str], pool: RoomCategoryPool) -> list[Ro
     texts = [[whole, *words] if whole else [] for whole, words in map(_name_texts, names)]
     flat = [t for group in texts for t in group]
     results: list[RoomClassification | None] = [None] * len(names)
-    if not flat or len(pool.room_name_category) == 0:
+    if not flat:
         return results
     similarity = pool.embedder.encode(flat) @ pool.room_name_embeddings.T  # (texts, pool names)
     per_category = np.full((len(flat), len(pool.names)), -1.0)

@@ -32,7 +32,7 @@ from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import SmclConfig
 from bimfactor.errors import InputError
 from bimfactor.localization.measurements import FrameData, MeasurementModel, make_measurements
-from bimfactor.localization.measurements.base import Update
+from bimfactor.localization.measurements.base import Term, Update
 from bimfactor.localization.measurements.scan import ScanLikelihood
 from bimfactor.localization.measurements.semantic import SemanticLikelihood
 from bimfactor.localization.measurements.text import PlateLikelihood
@@ -223,14 +223,19 @@ class SemanticMCL:
             challenged=challenged,
         )
 
-    def _log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, frame: FrameData) -> np.ndarray | None:
-        """(M,) Σ_m ln p_m(z | x) of the measurement models that weigh this frame at the given poses; None if none."""
-        total = None
+    def _terms(self, particles: np.ndarray, storeys: np.ndarray, frame: FrameData) -> dict[str, Term]:
+        """The terms of the measurement models that weigh this frame at the given poses, by model name."""
+        terms = {}
         for model in self.models.measurements:
             term = model.weigh(particles, storeys, frame)
             if term is not None:
-                total = term.log_likelihood if total is None else total + term.log_likelihood
-        return total
+                terms[model.name] = term
+        return terms
+
+    def _log_likelihood(self, particles: np.ndarray, storeys: np.ndarray, frame: FrameData) -> np.ndarray | None:
+        """(M,) Σ_m ln p_m(z | x) of the measurement models that weigh this frame at the given poses; None if none."""
+        terms = self._terms(particles, storeys, frame)
+        return sum(term.log_likelihood for term in terms.values()) if terms else None
 
     def predict(self, odom_increment: np.ndarray) -> None:
         """Move the particles by a (3,) robot-frame odometry increment (dx, dy, dyaw) with the motion noise."""
@@ -248,11 +253,7 @@ class SemanticMCL:
         """Weight ×= P(z | x) = Π_m p_m(z | x) over the measurement models that weigh this frame, and normalise; a
         frame with nothing to weigh by leaves the weights as they are. The recoveries watch the result."""
         self._require_initialized()
-        terms = {}
-        for model in self.models.measurements:
-            term = model.weigh(self.particles, self.storeys, frame)
-            if term is not None:
-                terms[model.name] = term
+        terms = self._terms(self.particles, self.storeys, frame)
         if not terms:
             update = Update(self.weights, terms)
         else:
@@ -338,11 +339,15 @@ class SemanticMCL:
         compact = bool(
             position_std < done.pos_std_m and yaw_std < np.deg2rad(done.yaw_std_deg) and share >= done.storey_share
         )
-        converged = compact and all(recovery.confirms() for recovery in self.recoveries)
-        if self.twin_evidence is not None:
-            converged = converged and self.twin_evidence.settled(storey)
+        converged = self._converged(compact, storey)
         room_id = int(self.prior.room_at(mean[None, :2], storey)[0])
         return PoseEstimate(mean, storey, covariance, converged, room_id, position_std, yaw_std, share, compact)
+
+    def _converged(self, compact: bool, storey: int) -> bool:
+        """A compact estimate on `storey` is converged when every recovery confirms it and the frames tell it from
+        its twin place, if the storey has one."""
+        settled = self.twin_evidence is None or self.twin_evidence.settled(storey)
+        return compact and settled and all(recovery.confirms() for recovery in self.recoveries)
 
     # -------------------------------------------------------------------------------- starting the belief
 

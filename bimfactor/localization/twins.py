@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from scipy.special import logsumexp
 
 from bimfactor.bim.symmetry import Motion
 from bimfactor.localization.measurements.base import FrameData
@@ -70,11 +71,8 @@ class TwinEvidence:
 
 
 def _log_sum(weights: np.ndarray, log_likelihood: np.ndarray) -> float:
-    """ln Σ w_i exp(ℓ_i), stable; −inf when every term is 0."""
-    with np.errstate(divide="ignore"):
-        log_w = np.log(weights) + log_likelihood
-    peak = log_w.max()
-    return float(peak + np.log(np.exp(log_w - peak).sum())) if np.isfinite(peak) else -np.inf
+    """ln Σ w_i exp(ℓ_i); −inf when every term is 0."""
+    return float(logsumexp(log_likelihood, b=weights))
 
 
 def _same(a: Motion, b: Motion) -> bool:

@@ -413,8 +413,7 @@ class SimEmbedder:
         self._text_basis = basis[:, singular > 1e-6 * singular[0]]
         self._modality = self._orthogonal(np.random.default_rng([seed, _MODALITY_STREAM]))
         self._class_dirs: dict[str, np.ndarray] = {}
-        self._appearance: dict[tuple[int, str], np.ndarray] = {}
-        self._text_embedder = text_embedder
+        self._appearance: dict[tuple[int, str], np.ndarray] = {}  # by (instance, the class it is seen as)
         log.debug("sim embedder: μ=%.3f σ=%.3f over %d labels → %s", mean, std, len(vocabulary), self.noise)
 
     def _orthogonal(self, rng: np.random.Generator) -> np.ndarray:
@@ -431,8 +430,6 @@ class SimEmbedder:
             if label not in self._class_dirs:
                 checksum = zlib.crc32(label.encode())
                 self._class_dirs[label] = self._orthogonal(np.random.default_rng([self._seed, _CLASS_STREAM, checksum]))
-            if label not in self._text:
-                self._text[label] = self._text_embedder.encode([label])[0].astype(np.float64)
             u = _unit(np.random.default_rng([self._seed, _APPEARANCE_STREAM, instance_id]).standard_normal(self.dim))
             n = self.noise
             self._appearance[key] = (
