@@ -30,6 +30,7 @@ from bimfactor import __version__
 from bimfactor.errors import BimfactorError, ConfigError, InputError
 
 if TYPE_CHECKING:
+    from bimfactor.active import Suggestion
     from bimfactor.bim.ifc import IfcModel
     from bimfactor.bim.prior import BimPrior
     from bimfactor.config import Config
@@ -1247,6 +1248,13 @@ def localize(
     initial_pose: InitialPoseOption = None,
     storey: StoreyOption = None,
     detections: DetectionsOption = None,
+    suggest: Annotated[
+        bool,
+        typer.Option(
+            "--suggest",
+            help="End with where to look next (active localization): RUN_DIR/suggestion.json and suggestion.png.",
+        ),
+    ] = False,
     force: ForceOption = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
@@ -1265,8 +1273,9 @@ def localize(
     saturated depth or an odometry jump; on a building with twin storeys the estimate's twin pose and the
     belief's weight there), modes.csv (graph variants: every mode per step), metrics.json (with
     ground truth: the paper's translation / orientation error, room accuracy and the 95 % ellipse coverage; full:
-    ICP acceptance and rejection reasons), snapshots.npz, config.yaml, trajectory.png and particles.png. RUN_DIR
-    must be new, empty or an earlier run.
+    ICP acceptance and rejection reasons), snapshots.npz, config.yaml, trajectory.png and particles.png; with
+    --suggest, suggestion.json and suggestion.png: the goal (odometry frame) whose view best tells the belief's modes
+    apart after the last frame, or why there is none (docs/active.md). RUN_DIR must be new, empty or an earlier run.
 
     \b
     Examples:
@@ -1277,6 +1286,7 @@ def localize(
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-guess --initial-pose 63.5,7.9,-97
       bimfactor localize runs/prior/ac11 runs/ac11-k2 -o runs/loc-ac11-k2 --storey 2
       bimfactor localize runs/prior/office runs/office-bag -o runs/loc-bag --detections yolo-world.jsonl
+      bimfactor localize runs/prior/duplex runs/duplex-k0 -o runs/loc-duplex-next --suggest
     """
     with _cli_errors(debug):
         cfg = _start(
@@ -1313,6 +1323,7 @@ def localize(
             snapshot_steps=snapshot_steps,
             prior_dir=prior_dir,
             detections=table,
+            suggest=suggest,
         )
         figures = write_run(
             run,
@@ -1344,6 +1355,20 @@ def localize(
         twins = twin_summary(run)
         if twins is not None:
             typer.echo(twins)
+        if run.suggestion is not None:
+            typer.echo(_suggestion_line(run.suggestion))
+
+
+def _suggestion_line(suggestion: Suggestion) -> str:
+    """One line on where to look next: the goal in the odometry frame and its gain, or why there is none."""
+    if suggestion.goal_odom is None:
+        return f"nothing to suggest: {suggestion.reason} (suggestion.json)"
+    x, y, yaw = (float(v) for v in suggestion.goal_odom)
+    return (
+        f"next: drive to ({x:.2f} m, {y:.2f} m, {math.degrees(yaw):.0f}°) in the odometry frame, "
+        f"{suggestion.travel_m:.1f} m away; its view is expected to tell the {len(suggestion.hypotheses)} places "
+        f"apart by {suggestion.gain_nats:.2f} of {suggestion.entropy_nats:.2f} nats (suggestion.json, suggestion.png)"
+    )
 
 
 @app.command(short_help="Localize with pose graphs, then smooth each surviving mode's whole trajectory (offline).")
@@ -1888,6 +1913,60 @@ def bench_smcl(
             results = _write_bench(output, "smcl", {"rows": rows}, cfg)
         for row in rows:
             typer.echo("  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
+        typer.echo(f"results: {results}")
+
+
+@bench_app.command("suggest", short_help="Time of one active-localization suggestion (5 modes, 200 candidates).")
+def bench_suggest(
+    ifc: Annotated[
+        list[Path] | None,
+        typer.Option("--ifc", metavar="PATH", help="IFC file (repeatable; default: the paper-floor building)."),
+    ] = None,
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
+        "runs/bench-suggest"
+    ),
+    modes: Annotated[int, typer.Option("--modes", min=2, help="Hypotheses to tell apart.")] = 5,
+    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Timed suggestions per building.")] = 20,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Median and 90th-percentile milliseconds of `Localizer.suggest`'s work for MODES hypotheses at random navigable
+    poses: the whole suggestion (candidates, reachability in every place, gains, the path), and the expected gain of
+    exactly active.candidates candidate views; writes OUT/results.json.
+
+    \b
+    Examples:
+      bimfactor bench suggest
+      bimfactor bench suggest --ifc ../shared/data/ifc/AC11-Institute-Var-2-IFC.ifc --ifc ../shared/data/ifc/duplex.ifc
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose)
+        from bimfactor.bim.prior import build_prior
+        from bimfactor.bim.synth import write_building
+        from bimfactor.bim.visibility import VisibilityTable
+        from bimfactor.evaluation.speed import benchmark_suggest
+
+        files = list(ifc or [])
+        rows = []
+        with _bench_dir(output, *files):
+            if not files:
+                write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
+                files = [output / "paper-floor.ifc"]
+            for path in files:
+                prior = build_prior(path, cfg)
+                visibility = prior.visibility or VisibilityTable.build(prior, cfg.bim.visibility)
+                rows.append({"building": path.name, **benchmark_suggest(prior, visibility, cfg, modes, repeats)})
+            results = _write_bench(output, "suggest", {"rows": rows}, cfg)
+        for row in rows:
+            typer.echo(
+                f"{row['building']}: suggestion {row['suggest_ms_median']:.0f} ms median, {row['suggest_ms_p90']:.0f} "
+                f"ms p90 ({row['candidates_scored_median']:.0f} candidates reachable in every place); "
+                f"{row['candidates']} candidates x {row['modes']} modes scored in "
+                f"{row['score_all_candidates_ms_median']:.0f} ms median, "
+                f"{row['score_all_candidates_ms_p90']:.0f} ms p90"
+            )
         typer.echo(f"results: {results}")
 
 

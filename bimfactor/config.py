@@ -798,11 +798,13 @@ class EvaluationConfig(_Strict):
         "from the uniform cloud). guess and kidnap always score from their own start."
     )
     warmup_max_steps: int = Field(ge=0, description="filter_converged: the most unscored steps before the T scored.")
-    scenario: Literal["global", "guess", "kidnap"] = Field(
+    scenario: Literal["global", "guess", "kidnap", "active"] = Field(
         description="How a run starts: global (the paper: from the uniform belief over the building), guess (from a "
         "pose guess `guess_offset_m` / `guess_offset_deg` off the first frame's truth, AMCL's initial pose), or "
         "kidnap (from the uniform belief; after `kidnap_at` keyframes the robot is carried, unseen by odometry, to "
-        "keyframe `kidnap_resume_at` of the route three further on, and the T steps from there are scored)."
+        "keyframe `kidnap_resume_at` of the route three further on, and the T steps from there are scored), or "
+        "active (from the uniform belief, the route until the localizer first suggests where to look, then its "
+        "suggestions (`active`), T keyframes in all; the passive route from the same start runs beside it)."
     )
     known_storey: bool = Field(
         description="global and kidnap: the robot knows the storey it starts on (the uniform start covers the first "
@@ -824,6 +826,22 @@ class EvaluationConfig(_Strict):
         return self.warmup_max_steps if self.scores_from_convergence else 0
 
 
+class ActiveConfig(_Strict):
+    """Where to look next (`bimfactor.active`): the viewpoint whose predicted observations best tell the belief's
+    modes apart, less the way there."""
+
+    horizon_m: float = Field(gt=0.0, description="Candidate viewpoints lie within this path length of the robot.")
+    candidates: int = Field(ge=8, description="At most this many candidate viewpoints (positions × 8 headings).")
+    cost_per_keyframe: float = Field(
+        ge=0.0,
+        description="The travel cost: nats of expected information each keyframe on the way (driven or turned) must "
+        "earn.",
+    )
+    settled_share: float = Field(
+        gt=0.5, le=1.0, description="Nothing to suggest once one mode holds this share of the modes' probability."
+    )
+
+
 class Config(_Strict):
     seed: int = Field(description="Seed of every random generator in a run.")
     bim: BimConfig
@@ -839,6 +857,7 @@ class Config(_Strict):
     io: IoConfig
     registration: RegistrationConfig
     evaluation: EvaluationConfig
+    active: ActiveConfig
 
     @model_validator(mode="after")
     def _scan_within_the_band(self) -> Config:

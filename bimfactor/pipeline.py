@@ -42,6 +42,7 @@ from typing import Self
 
 import numpy as np
 
+from bimfactor.active import Hypothesis, Suggester, Suggestion
 from bimfactor.backend.posegraph import (
     BackendStep,
     ModeEstimate,
@@ -223,7 +224,7 @@ class LocalizationRun:
     otherwise None), `twin_poses` (T, 3) is where each step's twin motion carries the output pose and `twin_share`
     (T,) the belief's weight there (`TWIN_YAW_DEG`, `localization.output_mode_radius_m`); NaN on storeys without a
     twin. `skipped` (T,) says why each step's frame was skipped (`FrameSkip`; None: used); a run built without it
-    (empty) skipped nothing.
+    (empty) skipped nothing. `suggestion`: where to look next after the last frame (`Localizer.suggest`), when asked.
     """
 
     variant: str
@@ -251,6 +252,7 @@ class LocalizationRun:
     twin_poses: np.ndarray | None = None
     twin_share: np.ndarray | None = None
     skipped: list[FrameSkip | None] = field(default_factory=list)
+    suggestion: Suggestion | None = None
 
     @property
     def output(self) -> Track:
@@ -379,6 +381,8 @@ class Localizer:
         self._last_increment = np.zeros(3)
         self._believed_odom = np.zeros(3)
         self._odom_offset: np.ndarray | None = None
+        self._converged = False  # the filter's flag at the last step
+        self._suggester: Suggester | None = None  # built at the first `suggest`
 
     @staticmethod
     def _fine_stage(prior: BimPrior, cfg: Config, prior_dir: str | Path | None) -> FineRegistration:
@@ -435,6 +439,7 @@ class Localizer:
         perception_ms = (time.perf_counter() - started) * 1000
         # the filter ignores the scan without its scan term; a skipped frame brings no observation, not an empty one
         filtered = self.filter.step(increment, observations if skipped is None else None, scan)
+        self._converged = filtered.converged
         out = LocalizerStep(
             filtered,
             None,
@@ -470,6 +475,96 @@ class Localizer:
         if skipped is None:
             self._recent.append(frame)
         return out
+
+    def suggest(self) -> Suggestion:
+        """Where to look next from the belief after the last step (`bimfactor.active`): the viewpoint, as a goal in the
+        odometry frame, whose predicted view best tells the filter's modes apart less the way there, with its
+        expected gain and path; or, with `goal_odom` None, the reason there is none (one place holds the belief, it
+        has converged, or it is still spread over the building)."""
+        if self._suggester is None:
+            self._suggester = Suggester(self.prior, self.filter.models.semantic.visibility, self.cfg)
+        weights = self.filter.estimation_weights()
+        modes = extract_modes(self.filter.particles, weights, self.cfg.backend, self.filter.storeys)
+        share = float(sum(m.weight for m in modes))
+        hypotheses = []
+        for m in modes:
+            p = m.weight / share
+            twin, evidence = self.twins.get(m.storey), self.filter.twin_evidence
+            if twin is None or evidence is None:
+                hypotheses.append(Hypothesis(m.mean, m.storey, p))
+                continue
+            # The mode's image in the twin place explains the frames worse by the twin evidence's nats, no more.
+            image = 1.0 / (1.0 + np.exp(min(evidence.nats, 50.0)))
+            hypotheses.append(Hypothesis(m.mean, m.storey, p * (1 - image)))
+            hypotheses.append(Hypothesis(twin.apply(m.mean[None])[0], m.storey, p * image))
+        return self._suggester.suggest(hypotheses, self._believed_odom, share, self._converged)
+
+    def run_of(self, frames: list[Frame], rows: list[LocalizerStep], snapshots: dict | None = None) -> LocalizationRun:
+        """The run of the given frames from this localizer's steps over them, one each (ground truth carried along
+        when the frames have it)."""
+        gt = [f.gt_pose for f in frames]
+        has_gt = all(g is not None for g in gt)
+        gt_poses = np.asarray(gt, float) if has_gt else None
+        gt_storeys = [f.gt_storey or 0 for f in frames]
+        gt_rooms = (
+            np.asarray([self.prior.room_at(p[None, :2], s)[0] for p, s in zip(gt_poses, gt_storeys, strict=True)])
+            if gt_poses is not None
+            else None
+        )
+        filter_ms = np.asarray([sum(r.filtered.timings_ms.values()) for r in rows])
+        filtered = Track(
+            poses=np.asarray([r.filtered.pose for r in rows]),
+            covariances=np.asarray([r.filtered.covariance for r in rows]),
+            storeys=np.asarray([r.filtered.storey for r in rows]),
+            rooms=np.asarray([r.filtered.room_id for r in rows]),
+            step_ms=filter_ms,
+        )
+        graph = None
+        if self.backend is not None:
+            graph = Track(
+                poses=np.asarray([r.pose for r in rows]),
+                covariances=np.asarray([r.covariance for r in rows]),
+                storeys=np.asarray([r.storey for r in rows]),
+                rooms=np.asarray([r.room_id for r in rows]),
+                step_ms=filter_ms + np.asarray([r.graph_ms + r.fine_ms for r in rows]),
+            )
+        fine = None
+        if self.fine is not None:
+            fine = FineTrack(
+                ran=np.asarray([r.fine is not None for r in rows], bool),
+                accepted=np.asarray([r.fine is not None and r.fine.accepted for r in rows], bool),
+                reasons=[list(r.fine.reasons) if r.fine is not None else [] for r in rows],
+                time_ms=np.asarray([r.fine_ms for r in rows], float),
+            )
+        return LocalizationRun(
+            variant=self.variant,
+            timestamps_s=np.asarray([f.timestamp_s for f in frames]),
+            filter=filtered,
+            converged=np.asarray([r.filtered.converged for r in rows]),
+            ess=np.asarray([r.filtered.ess for r in rows]),
+            n_observations=np.asarray([r.filtered.n_observations for r in rows]),
+            perception_ms=np.asarray([r.perception_ms for r in rows]),
+            n_particles=np.asarray([r.filtered.n_particles for r in rows], np.int64),
+            scan_fit=np.asarray([np.nan if r.filtered.scan_fit is None else r.filtered.scan_fit for r in rows], float),
+            lost_frames=np.asarray([r.filtered.lost_frames for r in rows], np.int64),
+            challenged=np.asarray([r.filtered.challenged for r in rows], bool),
+            odom_increments=np.asarray([r.odom_increment for r in rows[1:]], float).reshape(-1, 3),
+            observations=[r.observations for r in rows],
+            scans=[r.scan for r in rows],
+            graph=graph,
+            modes=[r.graph.modes if r.graph is not None else [] for r in rows],
+            final_modes=self.backend.histories() if self.backend is not None else [],
+            retired_modes=list(self.backend.retired) if self.backend is not None else [],
+            fine=fine,
+            gt_poses=gt_poses,
+            gt_rooms=gt_rooms,
+            snapshots=snapshots or {},
+            twin_poses=np.asarray([np.full(3, np.nan) if r.twin_pose is None else r.twin_pose for r in rows])
+            if self.twins
+            else None,
+            twin_share=np.asarray([r.twin_share for r in rows]) if self.twins else None,
+            skipped=[r.skipped for r in rows],
+        )
 
     def _no_observations(self) -> Observations:
         """What a skipped frame brought: no node, no text (the run's record; the filter is given None)."""
@@ -607,8 +702,10 @@ def localize_sequence(
     matcher: CorrelativeMatcher | None = None,
     twins: dict[int, Motion] | None = None,
     detections: DetectionsTable | None = None,
+    suggest: bool = False,
 ) -> LocalizationRun:
-    """Localize every frame of a sequence; ground truth, when the frames have it, is carried along.
+    """Localize every frame of a sequence; ground truth, when the frames have it, is carried along; with `suggest`,
+    the run ends with where to look next (`Localizer.suggest`).
 
     `prior_dir`, the prior's folder, helps the full variant find a relative IFC `source_file`; `matcher` is the
     graph variants' scan matcher (`scan_matcher`; built when not given); `twins` the building's twin motions
@@ -631,69 +728,9 @@ def localize_sequence(
         rows.append(localizer.step(frame))
         if i in snapshot_steps:
             snapshots[i] = (localizer.filter.particles.copy(), localizer.filter.weights.copy())
-    gt = [f.gt_pose for f in frames]
-    has_gt = all(g is not None for g in gt)
-    gt_poses = np.asarray(gt, float) if has_gt else None
-    gt_storeys = [f.gt_storey or 0 for f in frames]
-    gt_rooms = (
-        np.asarray([prior.room_at(p[None, :2], s)[0] for p, s in zip(gt_poses, gt_storeys, strict=True)])
-        if gt_poses is not None
-        else None
-    )
-    filter_ms = np.asarray([sum(r.filtered.timings_ms.values()) for r in rows])
-    filtered = Track(
-        poses=np.asarray([r.filtered.pose for r in rows]),
-        covariances=np.asarray([r.filtered.covariance for r in rows]),
-        storeys=np.asarray([r.filtered.storey for r in rows]),
-        rooms=np.asarray([r.filtered.room_id for r in rows]),
-        step_ms=filter_ms,
-    )
-    graph = None
-    if localizer.backend is not None:
-        graph = Track(
-            poses=np.asarray([r.pose for r in rows]),
-            covariances=np.asarray([r.covariance for r in rows]),
-            storeys=np.asarray([r.storey for r in rows]),
-            rooms=np.asarray([r.room_id for r in rows]),
-            step_ms=filter_ms + np.asarray([r.graph_ms + r.fine_ms for r in rows]),
-        )
-    fine = None
-    if localizer.fine is not None:
-        fine = FineTrack(
-            ran=np.asarray([r.fine is not None for r in rows], bool),
-            accepted=np.asarray([r.fine is not None and r.fine.accepted for r in rows], bool),
-            reasons=[list(r.fine.reasons) if r.fine is not None else [] for r in rows],
-            time_ms=np.asarray([r.fine_ms for r in rows], float),
-        )
-    return LocalizationRun(
-        variant=localizer.variant,
-        timestamps_s=np.asarray([f.timestamp_s for f in frames]),
-        filter=filtered,
-        converged=np.asarray([r.filtered.converged for r in rows]),
-        ess=np.asarray([r.filtered.ess for r in rows]),
-        n_observations=np.asarray([r.filtered.n_observations for r in rows]),
-        perception_ms=np.asarray([r.perception_ms for r in rows]),
-        n_particles=np.asarray([r.filtered.n_particles for r in rows], np.int64),
-        scan_fit=np.asarray([np.nan if r.filtered.scan_fit is None else r.filtered.scan_fit for r in rows], float),
-        lost_frames=np.asarray([r.filtered.lost_frames for r in rows], np.int64),
-        challenged=np.asarray([r.filtered.challenged for r in rows], bool),
-        odom_increments=np.asarray([r.odom_increment for r in rows[1:]], float).reshape(-1, 3),
-        observations=[r.observations for r in rows],
-        scans=[r.scan for r in rows],
-        graph=graph,
-        modes=[r.graph.modes if r.graph is not None else [] for r in rows],
-        final_modes=localizer.backend.histories() if localizer.backend is not None else [],
-        retired_modes=list(localizer.backend.retired) if localizer.backend is not None else [],
-        fine=fine,
-        gt_poses=gt_poses,
-        gt_rooms=gt_rooms,
-        snapshots=snapshots,
-        twin_poses=np.asarray([np.full(3, np.nan) if r.twin_pose is None else r.twin_pose for r in rows])
-        if localizer.twins
-        else None,
-        twin_share=np.asarray([r.twin_share for r in rows]) if localizer.twins else None,
-        skipped=[r.skipped for r in rows],
-    )
+    run = localizer.run_of(frames, rows, snapshots)
+    run.suggestion = localizer.suggest() if suggest else None
+    return run
 
 
 def skipped_frames_note(run: LocalizationRun, max_steps: int = 10) -> str | None:

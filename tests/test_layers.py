@@ -17,6 +17,7 @@ below it:
     localization
     backend
     registration
+    active       where to look next: the belief's modes (localization) against the BIM's predicted views
     pipeline     pipeline.py, the localizer that runs perception → localization → backend → registration: above
                  every stage it runs, below evaluation, whose reports and benchmarks read its runs
     refine       refine.py, the offline refinement of a localized run: above pipeline, whose runs it refines,
@@ -30,8 +31,9 @@ The checks, each naming the offending import and its file:line:
 
 (a) no import cycle between units. Imports under `if TYPE_CHECKING:` are left out of this check only: they never
     run, and they are how a module annotates with a type of a module that imports it (`bim.visibility`);
-(b) bim, sim, io, perception, localization, backend, registration and embed never import `bimfactor.evaluation` or
-    `bimfactor.cli`, not even for a type: plotting, benchmarks and the CLI sit above the algorithms;
+(b) bim, sim, io, perception, localization, backend, registration, active and embed never import
+    `bimfactor.evaluation` or `bimfactor.cli`, not even for a type: plotting, benchmarks and the CLI sit above the
+    algorithms;
 (c) every import, type-only ones included, goes down `LAYERS` (or stays in its layer).
 """
 
@@ -55,13 +57,14 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("localization",),
     ("backend",),
     ("registration",),
+    ("active",),
     ("pipeline",),
     ("refine",),
     ("evaluation",),
     ("demo",),
     ("cli", "__main__"),
 )
-ALGORITHM_STAGES = ("bim", "sim", "io", "perception", "localization", "backend", "registration", "embed")
+ALGORITHM_STAGES = ("bim", "sim", "io", "perception", "localization", "backend", "registration", "active", "embed")
 NEVER_FROM_STAGES = ("evaluation", "cli")
 
 

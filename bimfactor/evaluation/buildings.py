@@ -99,7 +99,7 @@ def run_buildings_bench(
     OUT/report.md, OUT/buildings.png and OUT/config.yaml, and returns the report."""
     from bimfactor.bim.prior import BimPrior
     from bimfactor.bim.symmetry import twin_motions
-    from bimfactor.evaluation.paper import check_protocol, paper_jobs, paper_report, run_jobs
+    from bimfactor.evaluation.paper import check_protocol, paper_jobs, paper_report, reported_variants, run_jobs
 
     check_protocol(cfg)
     out = Path(out_dir)
@@ -117,7 +117,7 @@ def run_buildings_bench(
         "benchmark": "buildings",
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "runner": runner if address is None else f"{runner} at {address}",
-        "variants": list(cfg.evaluation.variants),
+        "variants": reported_variants(cfg.evaluation),
         "buildings": {},
     }
     for name in priors:
@@ -129,7 +129,7 @@ def run_buildings_bench(
                 for r in runs
                 if r.variant == variant and r.outcome is not None
             }
-            for variant in cfg.evaluation.variants
+            for variant in reported_variants(cfg.evaluation)
         }
         report["buildings"][name] = block
     report["worst"] = worst_building(report)
@@ -164,6 +164,7 @@ ROW_KEYS = (
     ("success_rate", "success", "{:.0%}"),
     ("wrong_convergence_rate", "wrong conv.", "{:.0%}"),
     ("distance_to_convergence_m", "dist. to conv. [m]", "{:.1f}"),
+    ("keyframes_to_convergence", "keyframes to conv.", "{:.0f}"),
     ("top3_rate", "top 3", "{:.0%}"),
 )
 

@@ -156,14 +156,16 @@ TOP_MODES = 3
 class RouteOutcome:
     """How a whole route went, from its first frame: `success` at its last step (within 1 m and 15° of the truth on
     the true storey), `distance_to_convergence_m` the ground-truth distance travelled until the estimate was correct
-    and stayed so to the end (NaN: never), `wrong_convergence` whether the filter ever said converged while more than
-    `WRONG_CONVERGENCE_M` off or on another storey, `top3_share` the share of steps at which one of the
-    `TOP_MODES` most probable modes was correct (NaN: the variant has no modes)."""
+    and stayed so to the end (NaN: never) and `keyframes_to_convergence` the keyframes until then, `wrong_convergence`
+    whether the filter ever said converged while more than `WRONG_CONVERGENCE_M` off or on another storey,
+    `top3_share` the share of steps at which one of the `TOP_MODES` most probable modes was correct (NaN: the variant
+    has no modes)."""
 
     success: bool
     distance_to_convergence_m: float
     wrong_convergence: bool
     top3_share: float
+    keyframes_to_convergence: float = float("nan")
 
 
 def _correct(poses: np.ndarray, storeys: np.ndarray, gt_poses: np.ndarray, gt_storeys: np.ndarray) -> np.ndarray:
@@ -188,10 +190,11 @@ def route_outcome(
     gt_poses, gt_storeys = np.asarray(gt_poses, float), np.asarray(gt_storeys)
     ok = _correct(poses, storeys, gt_poses, gt_storeys)
     travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(gt_poses[:, :2], axis=0).T))])
-    distance = float("nan")
+    distance = keyframes = float("nan")
     if len(ok) and ok[-1]:
         bad = np.flatnonzero(~ok)
-        distance = float(travelled[bad[-1] + 1]) if len(bad) else 0.0
+        keyframes = float(bad[-1] + 1) if len(bad) else 0.0
+        distance = float(travelled[int(keyframes)])
     far = (translation_errors_m(poses, gt_poses) > WRONG_CONVERGENCE_M) | (np.asarray(storeys) != gt_storeys)
     top3 = float("nan")
     if modes is not None and len(modes) == len(ok):
@@ -212,4 +215,5 @@ def route_outcome(
         distance_to_convergence_m=distance,
         wrong_convergence=bool(np.any(np.asarray(converged, bool) & far)),
         top3_share=top3,
+        keyframes_to_convergence=keyframes,
     )

@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from bimfactor.config import Config, updated
+from bimfactor.config import Config, EvaluationConfig, updated
 from bimfactor.errors import ConfigError
 from bimfactor.evaluation.metrics import (
     RouteOutcome,
@@ -59,7 +59,8 @@ from bimfactor.types import wrap_angle
 if TYPE_CHECKING:
     from bimfactor.bim.prior import BimPrior
     from bimfactor.bim.symmetry import Motion
-    from bimfactor.pipeline import Track
+    from bimfactor.pipeline import LocalizationRun, Track
+    from bimfactor.registration.correlative import CorrelativeMatcher
     from bimfactor.sim.simulate import SimResult
     from bimfactor.types import Frame, SequenceMeta
 
@@ -111,10 +112,22 @@ class RunResult:
     outcome: RouteOutcome | None = None  # the whole route from its first frame (`route_outcome`)
 
 
+ACTIVE_SUFFIX = "+active"  # the active scenario's closed-loop runs of a variant (`evaluation.active`)
+
+
+def reported_variants(ev: EvaluationConfig) -> list[str]:
+    """The variants a report holds: `evaluation.variants`, and in the active scenario each again as its closed-loop
+    run, named with `ACTIVE_SUFFIX`."""
+    return [*ev.variants, *(v + ACTIVE_SUFFIX for v in ev.variants)] if ev.scenario == "active" else list(ev.variants)
+
+
+SERVED_BY = {"smcl+graph": {"smcl+graph", "refine"}, "full": {"full"}}  # online variant → the variants its run yields
+
+
 def forward_variants(variants: list[str]) -> list[str]:
-    """The online variants whose runs yield every one of `variants` (see the module docstring)."""
-    served_by = {"smcl+graph": {"smcl+graph", "refine"}, "full": {"full"}}
-    needed = [online for online, serves in served_by.items() if serves & set(variants)]
+    """The online variants whose runs yield every one of `variants` (see the module docstring); `smcl` comes with
+    any of them."""
+    needed = [online for online, serves in SERVED_BY.items() if serves & set(variants)]
     return needed or ["smcl"]
 
 
@@ -208,33 +221,71 @@ def run_seed(seed: int, trajectory: int, repeat: int) -> int:
 
 def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion]) -> list[RunResult]:
     """Simulate trajectory k (config seed), localize it with seed (config seed, repeat), score every variant (also
-    up to the building's `twins`, when it has any); in a worker process, or in this one with one worker."""
+    up to the building's `twins`, when it has any); in a worker process, or in this one with one worker. The active
+    scenario closes the loop (`evaluation.active`)."""
+    from threadpoolctl import threadpool_limits
+
+    # One BLAS / OpenMP thread, as the CLI runs and as Ray's workers do: a threaded BLAS sums in another order, and a
+    # run must not depend on the runner or on what its process loaded before.
+    with threadpool_limits(limits=1):
+        return _run_one_pinned(prior_dir, cfg_json, trajectory, repeat, twins)
+
+
+def _run_one_pinned(
+    prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion]
+) -> list[RunResult]:
     from bimfactor.config import Config
-    from bimfactor.evaluation.metrics import errors_up_to_twin, inside_ellipse, route_outcome, steps_to_converge
-    from bimfactor.evaluation.report import track_metrics
     from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, scan_matcher
-    from bimfactor.refine import refine_run
 
     cfg = Config.model_validate_json(cfg_json)
-    ev = cfg.evaluation
-    variants = ev.variants
+    if cfg.evaluation.scenario == "active":
+        from bimfactor.evaluation.active import active_runs
+
+        return active_runs(prior_dir, cfg, trajectory, repeat, twins)
     prior, meta, frames, cfg, window = scenario_run(prior_dir, cfg, trajectory, repeat)
-    online_variants = forward_variants(variants)
+    online_variants = forward_variants(cfg.evaluation.variants)
     matcher = scan_matcher(prior, cfg) if any(v in GRAPH_VARIANTS for v in online_variants) else None
     forward = {}
     for online in online_variants:
-        online_cfg = cfg.model_copy(update={"localization": cfg.localization.model_copy(update={"variant": online})})
         forward[online] = localize_sequence(
             prior,
             meta,
             frames,
-            online_cfg,
+            online_config(cfg, online),
             seed=run_seed(cfg.seed, trajectory, repeat),
             show_progress=False,
             prior_dir=prior_dir,
             matcher=matcher,
             twins=twins,
         )
+    return score_runs(cfg, prior, frames, forward, window, trajectory, repeat, twins, matcher)
+
+
+def online_config(cfg: Config, online: str) -> Config:
+    """The config of one forward pass: `localization.variant` set to the online variant."""
+    return cfg.model_copy(update={"localization": cfg.localization.model_copy(update={"variant": online})})
+
+
+def score_runs(
+    cfg: Config,
+    prior: BimPrior,
+    frames: list[Frame],
+    forward: dict[str, LocalizationRun],
+    window: slice | None,
+    trajectory: int,
+    repeat: int,
+    twins: dict[int, Motion],
+    matcher: CorrelativeMatcher | None,
+    suffix: str = "",
+) -> list[RunResult]:
+    """Score every variant of `evaluation.variants` of one run's forward passes (by online variant) over the same
+    steps: `window`, or from the filter's own flag (`scoring_window`); results are named variant + `suffix`."""
+    from bimfactor.evaluation.metrics import errors_up_to_twin, inside_ellipse, route_outcome, steps_to_converge
+    from bimfactor.evaluation.report import track_metrics
+    from bimfactor.refine import refine_run
+
+    ev = cfg.evaluation
+    variants = ev.variants
     run = next(iter(forward.values()))  # every forward pass runs the same filter: its estimate is the smcl one
     assert run.gt_poses is not None and run.gt_rooms is not None
     tracks = {"smcl": run.filter, **{online: r.graph for online, r in forward.items() if r.graph is not None}}
@@ -272,7 +323,7 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
             trans_before = float(translation_errors_m(tracks[variant].poses[ahead], run.gt_poses[ahead]).mean())
         results.append(
             RunResult(
-                variant,
+                variant + suffix,
                 trajectory,
                 repeat,
                 errors.trans_err_m,
@@ -363,18 +414,20 @@ def _pooled(runs: list[RunResult]) -> dict:
 
 
 def _outcomes(runs: list[RunResult]) -> dict:
-    """The routes' outcomes over runs (`RouteOutcome`): success and wrong-convergence rates, the median distance to
-    correct convergence over the runs that got there (with how many did), and the top-3 rate over every step (None
-    for a variant without modes)."""
+    """The routes' outcomes over runs (`RouteOutcome`): success and wrong-convergence rates, the median distance and
+    keyframes to correct convergence over the runs that got there (with how many did), and the top-3 rate over every
+    step (None for a variant without modes)."""
     outcomes = [r.outcome for r in runs if r.outcome is not None]
     if not outcomes:
         return {}
     distances = [o.distance_to_convergence_m for o in outcomes if np.isfinite(o.distance_to_convergence_m)]
+    keyframes = [o.keyframes_to_convergence for o in outcomes if np.isfinite(o.keyframes_to_convergence)]
     top3 = [o.top3_share for o in outcomes if np.isfinite(o.top3_share)]
     return {
         "success_rate": float(np.mean([o.success for o in outcomes])),
         "wrong_convergence_rate": float(np.mean([o.wrong_convergence for o in outcomes])),
         "distance_to_convergence_m": float(np.median(distances)) if distances else None,
+        "keyframes_to_convergence": float(np.median(keyframes)) if keyframes else None,
         "correctly_converged_runs": len(distances),
         "top3_rate": float(np.mean(top3)) if top3 else None,
     }
@@ -565,11 +618,11 @@ def paper_report(
             ),
             **({"kidnap_at": ev.kidnap_at, "kidnap_resume_at": ev.kidnap_resume_at} if ev.scenario == "kidnap" else {}),
         },
-        "variants": list(ev.variants),
+        "variants": reported_variants(ev),
         "storeys": len(prior.storeys),
         "twins": {storey: motion.describe() for storey, motion in twins.items()},
     }
-    for variant in ev.variants:
+    for variant in reported_variants(ev):
         runs = [r for r in results if r.variant == variant]
         report[variant] = {
             "average": {**_pooled(runs), **_confidence_intervals(runs)},

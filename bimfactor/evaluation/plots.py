@@ -17,6 +17,7 @@ from bimfactor.io.atomic import atomic_path
 from bimfactor.io.preview import missing_glyphs_quiet
 
 if TYPE_CHECKING:
+    from bimfactor.active import Suggestion
     from bimfactor.bim.prior import BimPrior
 
 
@@ -279,3 +280,48 @@ def save_error_by_step_plot(report: dict, path: str | Path) -> Path | None:
     for ax in (ax_t, ax_o):
         ax.grid(True, which="both", alpha=0.3)
     return save_figure(fig, path)
+
+
+def save_suggestion_figure(prior: BimPrior, suggestion: Suggestion, path: str | Path, title: str = "") -> Path:
+    """Where to look next (`active.Suggestion`): a panel per hypothesis (the four most probable), each its place over
+    the floor plan with the candidate viewpoints there coloured by expected gain, and the suggested path and goal."""
+    from bimfactor.types import se2_compose, se2_inverse
+
+    hyps = suggestion.hypotheses[:4]
+    n = max(len(hyps), 1)
+    fig, axes = plt.subplots(1, n, figsize=(4.8 * n, 4.8), squeeze=False)
+    to_robot = se2_inverse(np.asarray(suggestion.odom_pose, float))
+    relative = se2_compose(to_robot, suggestion.candidates_odom) if len(suggestion.candidates_odom) else None
+    scale = max(float(suggestion.gains_nats.max(initial=0.0)), 1e-6)
+    for ax, h in zip(axes.ravel(), hyps, strict=False):
+        draw_floorplan(ax, prior, h.storey, label_objects=False)
+        if relative is not None:
+            c = se2_compose(h.pose, relative)
+            order = np.argsort(suggestion.gains_nats)
+            points = ax.scatter(c[order, 0], c[order, 1], c=suggestion.gains_nats[order], cmap="viridis", vmin=0,
+                                vmax=scale, s=14, zorder=4)  # fmt: skip
+            if h is hyps[0]:
+                fig.colorbar(points, ax=ax, fraction=0.046, label="expected gain [nats]")
+        if suggestion.goal_odom is not None:
+            path_odom = np.column_stack([suggestion.path_odom, np.zeros(len(suggestion.path_odom))])
+            route = se2_compose(h.pose, se2_compose(to_robot, path_odom))
+            goal = se2_compose(h.pose, se2_compose(to_robot, suggestion.goal_odom))
+            ax.plot(route[:, 0], route[:, 1], color="tab:red", lw=1.6, zorder=5, label="path")
+            ax.quiver(*goal[:2], np.cos(goal[2]), np.sin(goal[2]), color="tab:red", scale=12, width=0.012, zorder=6)
+        ax.quiver(*h.pose[:2], np.cos(h.pose[2]), np.sin(h.pose[2]), color="black", scale=12, width=0.012, zorder=6)
+        reach = 2.0 + (suggestion.travel_m if suggestion.goal_odom is not None else 4.0) + 4.0
+        ax.set_xlim(h.pose[0] - reach, h.pose[0] + reach)
+        ax.set_ylim(h.pose[1] - reach, h.pose[1] + reach)
+        ax.set_title(f"p = {h.probability:.2f}, storey {h.storey}", fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    for ax in axes.ravel()[len(hyps) :]:
+        ax.axis("off")
+    what = (
+        f"goal: expected gain {suggestion.gain_nats:.2f} of {suggestion.entropy_nats:.2f} nats, "
+        f"{suggestion.travel_m:.1f} m away"
+        if suggestion.goal_odom is not None
+        else f"nothing to suggest: {suggestion.reason}"
+    )
+    fig.suptitle(f"{title}\n{what}" if title else what, fontsize=10)
+    return save_figure(fig, path, dpi=110)

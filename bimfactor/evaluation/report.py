@@ -13,7 +13,7 @@ import numpy as np
 
 from bimfactor.bim.prior import BimPrior
 from bimfactor.evaluation.metrics import TrajectoryMetrics, trajectory_metrics
-from bimfactor.evaluation.plots import save_estimate_plot, save_particle_snapshots
+from bimfactor.evaluation.plots import save_estimate_plot, save_particle_snapshots, save_suggestion_figure
 from bimfactor.io.atomic import check_output_dir, output_dir
 from bimfactor.io.tum import write_tum_trajectory
 from bimfactor.pipeline import LocalizationRun, Track
@@ -158,6 +158,9 @@ def _write_run_files(run: LocalizationRun, prior: BimPrior, out_dir: Path, confi
         figures.append(
             save_particle_snapshots(prior, run.snapshots, run.gt_poses, run.poses, storey, out_dir / "particles.png")
         )
+    if run.suggestion is not None:
+        (out_dir / "suggestion.json").write_text(json.dumps(run.suggestion.to_dict(), indent=2))
+        figures.append(save_suggestion_figure(prior, run.suggestion, out_dir / "suggestion.png", title))
     return figures
 
 

@@ -37,7 +37,7 @@ from bimfactor.registration.correlative import CorrelativeMatcher
 from bimfactor.sim.sensors import RgbdCamera
 from bimfactor.sim.simulate import build_world, simulate_sequence
 from bimfactor.sim.trajectory import TrajectorySimulator
-from bimfactor.types import Observations, wrap_angle
+from bimfactor.types import Observations, se2_compose, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -279,3 +279,49 @@ def benchmark_backend(
     }
     log.info("back end, %d modes: %.2f ms median per keyframe", n_modes, row["step_ms_median"])
     return row
+
+
+def benchmark_suggest(prior: BimPrior, visibility: VisibilityTable, cfg: Config, n_modes: int = 5, repeats: int = 20,
+                      seed: int = 0) -> dict[str, Any]:  # fmt: skip
+    """Milliseconds of one suggestion (`active.Suggester.suggest`) for `n_modes` hypotheses at random navigable poses of
+    the storey with the most floor, probabilities falling from the first, and of the gain of exactly
+    `active.candidates` candidate views over the hypotheses (the scoring, without the reachability test that drops
+    candidates some place cannot reach). The navigation graph is built before timing (once per building)."""
+    from bimfactor.active import Hypothesis, Suggester, information_gain
+
+    rng = np.random.default_rng(seed)
+    storey = int(np.argmax([layers.navigable.sum() for layers in prior.storeys]))
+    cells = np.argwhere(prior.storeys[storey].navigable)
+    suggester = Suggester(prior, visibility, cfg)
+    suggester.graph(storey)
+    weights = np.arange(n_modes, 0, -1, dtype=float)
+    weights /= weights.sum()
+    n_candidates = cfg.active.candidates
+    suggest_ms, score_ms, scored = [], [], []
+    for _ in range(repeats + 1):  # the first round warms caches and is dropped
+        xy = prior.grid.cell_to_world(cells[rng.integers(len(cells), size=n_modes)])
+        poses = np.column_stack([xy, rng.uniform(-np.pi, np.pi, n_modes)])
+        hyps = [Hypothesis(p, storey, float(w)) for p, w in zip(poses, weights, strict=True)]
+        t0 = time.perf_counter()
+        out = suggester.suggest(hyps, np.zeros(3))
+        t1 = time.perf_counter()
+        relative = np.column_stack([rng.uniform(-6, 6, (n_candidates, 2)), rng.uniform(-np.pi, np.pi, n_candidates)])
+        views = np.stack([np.asarray(h.pose) for h in hyps])
+        candidate_poses = np.stack([se2_compose(views[k], relative) for k in range(n_modes)], axis=1)
+        t2 = time.perf_counter()
+        information_gain(weights, suggester.views.discrepancy(candidate_poses, np.full(n_modes, storey)))
+        t3 = time.perf_counter()
+        suggest_ms.append((t1 - t0) * 1e3)
+        score_ms.append((t3 - t2) * 1e3)
+        scored.append(len(out.gains_nats))
+    suggest_ms, score_ms, scored = suggest_ms[1:], score_ms[1:], scored[1:]
+    return {
+        "modes": n_modes,
+        "candidates": n_candidates,
+        "suggest_ms_median": float(np.median(suggest_ms)),
+        "suggest_ms_p90": float(np.percentile(suggest_ms, 90)),
+        "candidates_scored_median": float(np.median(scored)),
+        "score_all_candidates_ms_median": float(np.median(score_ms)),
+        "score_all_candidates_ms_p90": float(np.percentile(score_ms, 90)),
+        "repeats": repeats,
+    }

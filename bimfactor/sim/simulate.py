@@ -69,16 +69,7 @@ def simulate_sequence(
     with the same seed) to reuse one world across trajectories.
     """
     world = world if world is not None else build_world(prior, model, cfg, seed)
-    grid = cfg.bim.grid
-    extra = None
-    if any(c["kind"] in ("moved", "clutter") for c in world.changes):
-        extra = {}
-        for layers in prior.storeys:
-            z = layers.storey.elevation_m
-            extra[layers.storey.index] = world.added_obstacles(
-                prior.grid, layers.storey.index, z + grid.band_min_m, z + grid.band_max_m
-            )
-    trajectory = TrajectorySimulator(prior, cfg, extra).trajectory(trajectory_index, seed)
+    trajectory = TrajectorySimulator(prior, cfg, world_obstacles(prior, world, cfg)).trajectory(trajectory_index, seed)
     gt = trajectory.keyframe_poses
     odometry_rng = np.random.default_rng([seed, trajectory_index, ODOMETRY_STREAM])
     odom = simulate_odometry(gt, cfg.odometry.alpha, odometry_rng)
@@ -120,6 +111,23 @@ def simulate_sequence(
     )
     log.info("simulated %s: %d frames on storey %d", meta.name, len(frames), storey)
     return SimResult(meta, frames, trajectory)
+
+
+def world_obstacles(prior: BimPrior, world: SimWorld, cfg: Config) -> dict[int, np.ndarray] | None:
+    """Per storey, the (rows, cols) cells the as-built world blocks beyond the BIM (moved furniture, clutter), which
+    the simulated robot drives around; None when the world adds nothing."""
+    if not any(c["kind"] in ("moved", "clutter") for c in world.changes):
+        return None
+    band = cfg.bim.grid
+    return {
+        layers.storey.index: world.added_obstacles(
+            prior.grid,
+            layers.storey.index,
+            layers.storey.elevation_m + band.band_min_m,
+            layers.storey.elevation_m + band.band_max_m,
+        )
+        for layers in prior.storeys
+    }
 
 
 def kidnap(first: list[Frame], second: list[Frame], at: int, resume_at: int) -> list[Frame]:

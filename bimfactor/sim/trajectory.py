@@ -1,9 +1,7 @@
 """Robot trajectories through the building: room-to-room goals, grid path planning, pure-pursuit driving.
 
-The robot drives on a storey's indoor free space: the prior's navigable layer (rooms, clearance ≥ robot
-radius) joined through its doorways. Paths are planned by Dijkstra on a coarse graph (one node per 0.2 m
-block, at the block's cell farthest from obstacles; edges checked at full resolution, cost grown near
-obstacles closer than `inflation_m`), then shortcut at full resolution. A unicycle pure-pursuit controller
+The robot drives on a storey's indoor free space along paths planned on the BIM's navigation graph
+(`bim.navigation`: Dijkstra on 0.2 m blocks, shortcut at full resolution). A unicycle pure-pursuit controller
 with the robot's speed and turn-rate limits follows them; a keyframe is taken every
 `localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn (`odometry.keyframe_due`), and a
 trajectory has exactly T keyframes: when a goal is reached first, a next goal in another room is chosen.
@@ -20,15 +18,12 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
-from scipy import sparse
-from scipy.sparse import csgraph
-from scipy.spatial import cKDTree
 
-from bimfactor.bim.grid import GridSpec, distance_transform, rasterise_polygons
+from bimfactor.bim.navigation import NavGraph, build_nav_graph
 from bimfactor.bim.prior import BimPrior
-from bimfactor.bim.rooms import OUTSIDE
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config, load_config
 from bimfactor.errors import BimfactorError, InputError
@@ -37,9 +32,6 @@ from bimfactor.types import wrap_angle
 
 log = logging.getLogger(__name__)
 
-PLANNING_CELL_M = 0.2  # side of a coarse planning block
-LOW_CLEARANCE_COST = 10.0  # extra cost per metre at zero clearance margin below inflation_m (linear in deficit)
-DOOR_APPROACH_M = 0.5  # a doorway's free cells reach this far beyond the door on both sides
 MIN_ROOM_NODES = 25  # rooms with fewer planning nodes (1 m² at 0.2 m) are no start or goal (closets)
 FIRST_GOAL_BUDGET = 0.6  # a goal lies within this share of the travel the remaining keyframes allow
 MIN_GOAL_BUDGET_M = 5.0
@@ -86,158 +78,20 @@ class SimTrajectory:
         return self.times_s[self.keyframe_indices]
 
 
-# ------------------------------------------------------------------------------------------ planning graph
-
-
-@dataclass
-class NavGraph:
-    """The coarse planning graph of one storey over its full-resolution traversable mask.
-
-    Nodes: `node_xy` (M, 2) world, `node_clearance` (M,), `node_room` (M,) room id (< 0: doorway or no room),
-    `node_component` (M,); `graph` (M, M) sparse edge costs. `traversable` and `clearance_m` are (rows, cols).
-    """
-
-    storey_index: int
-    spec: GridSpec
-    traversable: np.ndarray
-    clearance_m: np.ndarray
-    node_xy: np.ndarray
-    node_clearance: np.ndarray
-    node_room: np.ndarray
-    node_component: np.ndarray
-    graph: sparse.csr_matrix
-    inflation_m: float
-    _tree: cKDTree | None = field(default=None, repr=False)
-
-    def nearest_node(self, xy: np.ndarray) -> int:
-        if self._tree is None:
-            self._tree = cKDTree(self.node_xy)
-        return int(self._tree.query(np.asarray(xy, float))[1])
-
-    def shortest_paths(self, sources: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(M,) cost to the nearest source and (M,) predecessors (-9999 at sources and unreachable nodes)."""
-        dist, pred, _ = csgraph.dijkstra(
-            self.graph, directed=True, indices=sources, return_predecessors=True, min_only=True
-        )
-        return dist, pred
-
-    def clearance_at(self, xy: np.ndarray) -> np.ndarray:
-        """(N,) clearance at (N, 2) world points; 0 off the traversable space."""
-        rc = self.spec.world_to_cell(xy)
-        ok = self.spec.contains(rc)
-        out = np.zeros(len(rc), np.float32)
-        r, c = rc[ok, 0], rc[ok, 1]
-        out[ok] = np.where(self.traversable[r, c], self.clearance_m[r, c], 0.0)
-        return out
-
-    def segment_min_clearance(self, a: np.ndarray, b: np.ndarray) -> float:
-        """Smallest clearance along the straight segment a→b at full resolution (0 if it leaves free space)."""
-        length = float(np.hypot(*(b - a)))
-        n = max(2, math.ceil(length / (0.5 * self.spec.resolution_m)) + 1)
-        t = np.linspace(0.0, 1.0, n)[:, None]
-        return float(self.clearance_at(a + t * (b - a)).min())
-
-    def plan(self, start_xy: np.ndarray, pred: np.ndarray, goal_node: int) -> np.ndarray:
-        """(P, 2) shortcut polyline from `start_xy` to the goal node along a Dijkstra predecessor tree."""
-        nodes = [goal_node]
-        while pred[nodes[-1]] >= 0:
-            nodes.append(int(pred[nodes[-1]]))
-        nodes.reverse()
-        points = np.vstack([np.asarray(start_xy, float)[None], self.node_xy[nodes]])
-        return self._shortcut(points)
-
-    def _shortcut(self, points: np.ndarray) -> np.ndarray:
-        """String pulling: skip vertices while the straight line keeps the clearance the path had (≤ inflation)."""
-        clearance = self.clearance_at(points)
-        out, i = [points[0]], 0
-        while i < len(points) - 1:
-            j = i + 1
-            while j + 1 < len(points):
-                need = min(self.inflation_m, float(clearance[i : j + 2].min()))
-                if self.segment_min_clearance(points[i], points[j + 1]) < need - 1e-6:
-                    break
-                j += 1
-            out.append(points[j])
-            i = j
-        return np.asarray(out)
-
-
-def traversable_mask(
-    prior: BimPrior, storey_index: int, robot_radius_m: float, extra_obstacles: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """(rows, cols) bool indoor free space a robot centre may occupy (navigable rooms joined by their doorways),
-    and the (rows, cols) clearance in metres, with `extra_obstacles` (rows, cols) bool counted as obstacles."""
-    layers, spec = prior.storeys[storey_index], prior.grid
-    clearance = layers.clearance_m
-    if extra_obstacles is not None and extra_obstacles.any():
-        extra = distance_transform(~extra_obstacles) * np.float32(spec.resolution_m)
-        clearance = np.minimum(clearance, extra.astype(np.float32))
-    free = (clearance >= robot_radius_m) & (layers.room_labels != OUTSIDE)
-    doorways = np.zeros(spec.shape, np.uint8)
-    for door in prior.doors:
-        if door.storey_index != storey_index:
-            continue
-        c, u = np.asarray(door.center_xy), np.asarray(door.axis_xy)
-        n = np.array([-u[1], u[0]]) * (door.depth_m / 2 + DOOR_APPROACH_M)
-        u = u * door.width_m / 2
-        rasterise_polygons([np.array([c - u - n, c + u - n, c + u + n, c - u + n])], spec, out=doorways)
-    return free & (layers.navigable | doorways.astype(bool)), clearance
-
-
-def build_nav_graph(
-    prior: BimPrior,
-    storey_index: int,
-    robot_radius_m: float,
-    inflation_m: float,
-    extra_obstacles: np.ndarray | None = None,
-) -> NavGraph:
-    """The coarse planning graph of a storey (see module docstring)."""
-    spec = prior.grid
-    traversable, clearance = traversable_mask(prior, storey_index, robot_radius_m, extra_obstacles)
-    f = max(1, round(PLANNING_CELL_M / spec.resolution_m))
-    rows_c, cols_c = -(-spec.rows // f), -(-spec.cols // f)
-    score = np.full((rows_c * f, cols_c * f), -1.0, np.float32)
-    score[: spec.rows, : spec.cols] = np.where(traversable, clearance, -1.0)
-    blocks = score.reshape(rows_c, f, cols_c, f).transpose(0, 2, 1, 3).reshape(rows_c, cols_c, f * f)
-    best = blocks.argmax(axis=2)
-    exists = np.take_along_axis(blocks, best[..., None], axis=2)[..., 0] >= 0
-    block_node = np.full((rows_c, cols_c), -1, np.int64)
-    block_node[exists] = np.arange(int(exists.sum()))
-    br, bc = np.nonzero(exists)
-    node_rc = np.stack([br * f + best[br, bc] // f, bc * f + best[br, bc] % f], axis=1)
-    node_xy = spec.cell_to_world(node_rc)
-    node_clearance = clearance[node_rc[:, 0], node_rc[:, 1]]
-    node_room = prior.storeys[storey_index].room_labels[node_rc[:, 0], node_rc[:, 1]].astype(np.int32)
-
-    # Edges to the 8 neighbour blocks whose straight line stays traversable at full resolution.
-    samples = 2 * f + 1
-    t = np.linspace(0.0, 1.0, samples)
-    heads, tails, costs = [], [], []
-    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        a = block_node[: rows_c - dr, max(0, -dc) : cols_c - max(0, dc)]
-        b = block_node[dr:, max(0, dc) : cols_c + min(0, dc)]
-        ok = (a >= 0) & (b >= 0)
-        a, b = a[ok], b[ok]
-        pa, pb = node_rc[a].astype(float), node_rc[b].astype(float)
-        line = np.rint(pa[:, None, :] + t[None, :, None] * (pb - pa)[:, None, :]).astype(np.int64)
-        on_free = traversable[line[..., 0], line[..., 1]].all(axis=1)
-        low = clearance[line[..., 0], line[..., 1]].min(axis=1)
-        a, b, low = a[on_free], b[on_free], low[on_free]
-        length = np.hypot(*(node_xy[b] - node_xy[a]).T)
-        deficit = np.clip((inflation_m - low) / max(inflation_m, 1e-9), 0.0, None)
-        heads.append(a)
-        tails.append(b)
-        costs.append(length * (1.0 + LOW_CLEARANCE_COST * deficit))
-    a, b, w = np.concatenate(heads), np.concatenate(tails), np.concatenate(costs)
-    m = len(node_xy)
-    graph = sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(m, m))
-    _, component = csgraph.connected_components(graph, directed=False)
-    return NavGraph(
-        storey_index, spec, traversable, clearance, node_xy, node_clearance, node_room, component, graph, inflation_m
-    )
-
-
 # ------------------------------------------------------------------------------------------ trajectories
+
+
+class Steering(Protocol):
+    """Closes the loop around a drive (`TrajectorySimulator.trajectory(..., steer=)`): a localizer that sees each
+    keyframe as it is taken and may send the robot to a goal of its own."""
+
+    def on_keyframe(self, pose: np.ndarray, time_s: float, following: bool) -> np.ndarray | None:
+        """A keyframe at the true (3,) pose: a goal (3,) x, y, yaw in the world to drive to now (in place of the last
+        one; the pose itself: give the last one up), or None to drive on. `following`: the robot is on its way to the
+        last goal given."""
+
+    def on_arrival(self) -> np.ndarray | None:
+        """The robot reached the last goal given: the next one, or None to go on with the route."""
 
 
 class TrajectorySimulator:
@@ -315,8 +169,11 @@ class TrajectorySimulator:
             order.extend(g[k] for g in groups if k < len(g))
         return [(int(s), int(c), int(r)) for s, c, r in order]
 
-    def trajectory(self, index: int, seed: int) -> SimTrajectory:
-        """Trajectory `index` for `seed` (bit-for-bit reproducible): starts in the index-th room of the seed's order."""
+    def trajectory(self, index: int, seed: int, steer: Steering | None = None) -> SimTrajectory:
+        """Trajectory `index` for `seed` (bit-for-bit reproducible): starts in the index-th room of the seed's order.
+
+        With `steer`, the robot drives the route until the steering sends it to a goal, then to its goals (each
+        reached, then turned to its heading) while it sends them; until it sends one, and between, the route."""
         order = self.start_rooms(seed)
         storey, comp, room = order[index % len(order)]
         rng = np.random.default_rng([seed, index, _TRAJECTORY_STREAM])
@@ -337,7 +194,7 @@ class TrajectorySimulator:
             near = candidates[to_other[candidates] <= np.quantile(to_other[candidates], 0.1)]
         near = self.viewpoints(storey, near)
         start_node = int(near[rng.integers(len(near))])
-        driver = _Driver(self, graph, rng, steps)
+        driver = _Driver(self, graph, rng, steps, steer)
         driver.run(start_node, rooms)
         return SimTrajectory(
             index=index,
@@ -354,8 +211,17 @@ class TrajectorySimulator:
 class _Driver:
     """Drives one trajectory: picks goals, plans, follows with pure pursuit, takes keyframes."""
 
-    def __init__(self, sim: TrajectorySimulator, graph: NavGraph, rng: np.random.Generator, steps: int) -> None:
-        self.sim, self.graph, self.rng, self.steps = sim, graph, rng, steps
+    def __init__(
+        self,
+        sim: TrajectorySimulator,
+        graph: NavGraph,
+        rng: np.random.Generator,
+        steps: int,
+        steer: Steering | None = None,
+    ) -> None:
+        self.sim, self.graph, self.rng, self.steps, self.steer = sim, graph, rng, steps, steer
+        self.redirect: np.ndarray | None = None  # a goal the steering sent, not yet driven to
+        self.following = False
         robot, tcfg, steps_cfg = sim.cfg.sim.robot, sim.cfg.sim.trajectory, sim.cfg.localization
         self.dt = robot.control_dt_s
         self.v_max = robot.max_speed_mps
@@ -376,6 +242,10 @@ class _Driver:
         for _ in range(MAX_LEGS_PER_STEP * self.steps):
             if len(self.keyframes) >= self.steps:
                 return
+            if self.redirect is not None and pose is not None:
+                pose = self._redirected(pose)
+                node = graph.nearest_node(pose[:2])
+                continue
             xy = graph.node_xy[node] if pose is None else np.array(pose[:2])
             dist, pred = graph.shortest_paths(node)
             goal = self._pick_goal(xy, int(graph.node_room[node]), dist, rooms)
@@ -388,11 +258,33 @@ class _Driver:
                 pose = (float(xy[0]), float(xy[1]), float(wrap_angle(yaw)))
                 self._log(pose, keyframe=True)
             pose = self._follow(pose, path)
+            if self.redirect is not None:
+                continue
             node = goal if np.hypot(*(np.array(pose[:2]) - graph.node_xy[goal])) < 0.5 else graph.nearest_node(pose[:2])
             look = self._look_at(goal) if node == goal else None
             if look is not None:
                 pose = self._turn_to(pose, look)
         raise SimulationError(f"the robot got stuck: {len(self.keyframes)} of {self.steps} keyframes after many goals")
+
+    def _redirected(self, pose: tuple[float, float, float]) -> tuple[float, float, float]:
+        """Drive to the steering's goal (the reachable node nearest to it, then its heading) and ask for the next; a
+        goal that takes no keyframe to reach gives way to the route."""
+        goal, self.redirect = self.redirect, None
+        assert goal is not None
+        graph, before = self.graph, len(self.keyframes)
+        dist, pred = graph.shortest_paths(graph.nearest_node(pose[:2]))
+        reachable = np.flatnonzero(np.isfinite(dist))
+        target = int(reachable[np.argmin(np.hypot(*(graph.node_xy[reachable] - goal[:2]).T))])
+        self.following = True
+        pose = self._follow(pose, graph.plan(np.array(pose[:2]), pred, target))
+        if self.redirect is None:
+            pose = self._turn_to(pose, float(goal[2]))
+        self.following = False
+        if self.redirect is None and self.steer is not None and len(self.keyframes) < self.steps:
+            self.redirect = self.steer.on_arrival()
+        if len(self.keyframes) == before:
+            self.redirect = None
+        return pose
 
     def _pick_goal(self, xy: np.ndarray, current_room: int, dist: np.ndarray, rooms: list[int]) -> int:
         """A node in another room (a viewpoint in any room on `viewpoints` routes): preferably ≥ min_start_goal_m
@@ -434,6 +326,8 @@ class _Driver:
             self.commands[-1] = (0.0, w)
             pose = _integrate(pose, 0.0, w, self.dt)
             self._log(pose, keyframe=self._is_keyframe(pose))
+            if self.redirect is not None:
+                break
         return pose
 
     def _follow(self, pose: tuple[float, float, float], path: np.ndarray) -> tuple[float, float, float]:
@@ -456,6 +350,8 @@ class _Driver:
             self.commands[-1] = (v, w)
             pose = _integrate(pose, v, w, self.dt)
             self._log(pose, keyframe=self._is_keyframe(pose))
+            if self.redirect is not None:
+                return pose
         log.warning("trajectory leg of %.1f m not finished in %d steps; choosing a new goal", total, max_steps)
         return pose
 
@@ -502,6 +398,10 @@ class _Driver:
         self.commands.append((0.0, 0.0))
         if keyframe:
             self.keyframes.append(len(self.poses) - 1)
+            if self.steer is not None:
+                goal = self.steer.on_keyframe(np.array(pose), self.times[-1], self.following)
+                if goal is not None:
+                    self.redirect = np.asarray(goal, float)
 
 
 def _integrate(pose: tuple[float, float, float], v: float, w: float, dt: float) -> tuple[float, float, float]:

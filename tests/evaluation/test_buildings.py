@@ -31,6 +31,7 @@ def test_route_outcome_success_distance_wrong_convergence_and_top3() -> None:
     out = route_outcome(est, storeys, gt, storeys, converged, modes)
     assert out.success and out.wrong_convergence
     assert out.distance_to_convergence_m == pytest.approx(3.0)  # correct from step 3 on, 3 m travelled by then
+    assert out.keyframes_to_convergence == 3
     assert out.top3_share == pytest.approx(5 / 6)  # the second mode is right from step 1
     # On another storey nothing counts as correct, and saying converged there is a wrong convergence too.
     other = route_outcome(gt, storeys + 1, gt, storeys, np.ones(6, bool))
@@ -38,6 +39,7 @@ def test_route_outcome_success_distance_wrong_convergence_and_top3() -> None:
     assert np.isnan(other.top3_share)  # no modes: a variant without a back end
     calm = route_outcome(gt, storeys, gt, storeys, np.zeros(6, bool))
     assert calm.success and not calm.wrong_convergence and calm.distance_to_convergence_m == 0.0
+    assert calm.keyframes_to_convergence == 0 and np.isnan(other.keyframes_to_convergence)
 
 
 def test_ray_runs_equal_the_process_pool_runs(paper_floor_prior: Path, config_overrides: list[str]) -> None:

@@ -114,3 +114,39 @@ def test_reproducible_per_seed(building: Building, six_trajectories: list[SimTra
         assert np.array_equal(first.commands, second.commands)
         assert np.array_equal(first.keyframe_indices, second.keyframe_indices)
         assert first.poses.shape != third.poses.shape or not np.array_equal(first.poses, third.poses)
+
+
+class _SendOnce:
+    """A steering that sends the robot to one goal at keyframe `at` and records the keyframes it sees."""
+
+    def __init__(self, at: int, goal: np.ndarray) -> None:
+        self.at, self.goal, self.seen, self.arrivals = at, goal, [], 0
+
+    def on_keyframe(self, pose: np.ndarray, time_s: float, following: bool) -> np.ndarray | None:
+        self.seen.append(np.array(pose))
+        return self.goal if len(self.seen) == self.at + 1 else None
+
+    def on_arrival(self) -> np.ndarray | None:
+        self.arrivals += 1
+        return None
+
+
+def test_a_steering_sends_the_robot_to_its_goal_and_the_route_is_the_same_before(paper_floor) -> None:
+    from bimfactor.sim.trajectory import TrajectorySimulator
+
+    sim = TrajectorySimulator(paper_floor.prior, paper_floor.cfg)
+    plain = sim.trajectory(0, 0)
+    start = plain.keyframe_poses[3]
+    graph = sim.graphs[plain.storey_index]
+    dist, _ = graph.shortest_paths(graph.nearest_node(start[:2]))
+    near = np.flatnonzero((dist > 3.0) & (dist < 5.0))  # a place 3-5 m of path away
+    goal = np.array([*graph.node_xy[near[0]], 1.0])
+    steer = _SendOnce(3, goal)
+    steered = sim.trajectory(0, 0, steer=steer)
+    kf = steered.keyframe_poses
+    assert len(kf) == len(plain.keyframe_poses) == len(steer.seen)  # every keyframe went to the steering
+    np.testing.assert_allclose(kf[:4], plain.keyframe_poses[:4])  # the route until the goal was sent
+    reached = np.hypot(*(steered.poses[:, :2] - goal[:2]).T).argmin()
+    assert np.hypot(*(steered.poses[reached, :2] - goal[:2])) < 0.3
+    assert abs((steered.poses[reached:, 2] - goal[2] + np.pi) % (2 * np.pi) - np.pi).min() < 1e-2  # turned to it
+    assert steer.arrivals == 1

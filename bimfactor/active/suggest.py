@@ -1,0 +1,264 @@
+"""Where to look next: active Markov localization (Burgard, Fox and Thrun 1997) with the BIM as the sensor model.
+
+The belief's modes are the places the robot may be, with probabilities p_k. A candidate viewpoint is a pose c
+relative to the robot (the odometry frame), so driving there means the same motion whichever place is true; in place
+k's frame it is the world pose x_k ⊕ c. The BIM predicts what the robot would observe there in each place
+(`active.views`), and the evidence D[k, j] the view gives against place j when place k is true. With the view's
+observation taken as the one predicted, the posterior after it is q_j ∝ p_j · exp(−D[k, j]), and the expected
+information gain about which place is true is
+
+    IG(c) = H(p) − Σ_k p_k · H(q(· | k)),
+
+at most H(p) (the view settles it). A candidate scores IG(c) − `cost_per_keyframe` · the keyframes it takes to get
+there: the path's expected length over the places, per `localization.keyframe_distance_m`, and the turns (towards the
+goal, then to its heading) per `keyframe_angle_deg`. Keyframes, not metres: each is a step of the filter and of a
+route's budget, and turning on the spot takes them as driving does.
+
+Candidates: viewpoints on the most probable mode's storey reachable along its navigation graph within
+`horizon_m` (`bim.navigation`), spread by farthest-point sampling, 8 headings each; a candidate must be reachable
+in every place (a robot that drives there bumps into nothing whichever is true), or, where none is, in the most
+probable one. The goal is returned in the odometry frame, with the path planned in the most probable place.
+
+Modes within `SAME_PLACE_M` of each other are one place (`distinct_places`); candidates lie at least `MIN_MOVE_M`
+from the robot. Nothing is suggested when the modes hold less than `MIN_MODES_SHARE` of the particle weight (the
+belief is still spread over the building: there are no few places to tell apart), when one place holds
+`settled_share` of the modes' probability, or when no reachable view tells the places apart.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bimfactor.active.views import ViewPredictor
+from bimfactor.bim.navigation import PLANNING_CELL_M, NavGraph, build_nav_graph
+from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.visibility import VisibilityTable
+from bimfactor.config import Config
+from bimfactor.types import se2_compose, se2_inverse, wrap_angle
+
+HEADINGS = 8  # candidate headings per position, 45° apart (half the field of view)
+MIN_MODES_SHARE = 0.8  # below this share of the particle weight in the modes, the belief is not a few places
+MIN_GAIN_NATS = 0.01  # a view that gains less than this tells the places apart by nothing
+MIN_MOVE_M = 1.0  # a suggestion is a place to go: the view from where the robot stands the filter has just weighed
+SAME_PLACE_M = 2.0  # modes closer than this on one storey are one place (a wrong convergence is one > 2 m off)
+SNAP_M = 1.5 * PLANNING_CELL_M  # a candidate farther than this from a graph node is not on free space
+CLEARANCE_MARGIN_M = 0.1  # paths keep this much beyond the robot's radius from obstacles where they can
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One place the robot may be: (3,) world pose, storey, probability among the hypotheses."""
+
+    pose: np.ndarray
+    storey: int
+    probability: float
+
+
+@dataclass
+class Suggestion:
+    """The next goal, or why there is none (`goal_odom` None and `reason`).
+
+    `odom_pose` (3,) the robot's odometry pose the suggestion is for; `goal_odom` (3,) x, y, yaw in the odometry
+    frame; `path_odom` / `path_world` (P, 2) the path to it in the odometry frame and in the most probable place's
+    world frame (on `storey`); `gain_nats` the expected information gain of
+    its view, `travel_m` the expected path length. `candidates_odom` (C, 3) and `gains_nats` (C,) are every
+    candidate scored, for figures."""
+
+    hypotheses: list[Hypothesis]
+    odom_pose: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    goal_odom: np.ndarray | None = None
+    gain_nats: float = 0.0
+    travel_m: float = 0.0
+    storey: int = 0
+    path_odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    path_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    candidates_odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    gains_nats: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    entropy_nats: float = 0.0
+    reason: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-ready: the goal (x, y in metres, yaw in degrees, odometry frame), gain, path and the hypotheses."""
+        goal = None
+        if self.goal_odom is not None:
+            x, y, yaw = (float(v) for v in self.goal_odom)
+            goal = {"x_m": x, "y_m": y, "yaw_deg": math.degrees(yaw), "frame": "odom"}
+        return {
+            "goal": goal,
+            "odom_pose": {
+                "x_m": float(self.odom_pose[0]),
+                "y_m": float(self.odom_pose[1]),
+                "yaw_deg": math.degrees(float(self.odom_pose[2])),
+            },
+            "reason": self.reason,
+            "expected_gain_nats": self.gain_nats,
+            "belief_entropy_nats": self.entropy_nats,
+            "travel_m": self.travel_m,
+            "storey": self.storey,
+            "path_odom": np.round(self.path_odom, 3).tolist(),
+            "path_world": np.round(self.path_world, 3).tolist(),
+            "hypotheses": [
+                {
+                    "x_m": float(h.pose[0]),
+                    "y_m": float(h.pose[1]),
+                    "yaw_deg": math.degrees(float(h.pose[2])),
+                    "storey": h.storey,
+                    "probability": h.probability,
+                }
+                for h in self.hypotheses
+            ],
+        }
+
+
+def distinct_places(hypotheses: list[Hypothesis]) -> list[Hypothesis]:
+    """The hypotheses as distinct places, most probable first: one within `SAME_PLACE_M` of a more probable one on its
+    storey adds its probability to it (the views of two poses of one place differ by what tracking settles)."""
+    places: list[Hypothesis] = []
+    for h in sorted(hypotheses, key=lambda h: -h.probability):
+        same = next(
+            (
+                k
+                for k, p in enumerate(places)
+                if p.storey == h.storey and np.hypot(*(p.pose[:2] - h.pose[:2])) < SAME_PLACE_M
+            ),
+            None,
+        )
+        if same is None:
+            places.append(h)
+        else:
+            places[same] = Hypothesis(places[same].pose, h.storey, places[same].probability + h.probability)
+    return places
+
+
+def entropy(p: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Shannon entropy in nats of probabilities along `axis` (0 · ln 0 = 0)."""
+    p = np.asarray(p, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(p > 0, -p * np.log(p), 0.0)
+    return terms.sum(axis=axis)
+
+
+def information_gain(probabilities: np.ndarray, discrepancy: np.ndarray) -> np.ndarray:
+    """(C,) IG = H(p) − Σ_k p_k H(q(· | k)), q_j(· | k) ∝ p_j exp(−D[c, k, j]), for (K,) p and (C, K, K) D."""
+    p = np.asarray(probabilities, float)
+    with np.errstate(divide="ignore"):
+        log_q = np.log(p)[None, None, :] - discrepancy
+    log_q -= log_q.max(axis=-1, keepdims=True)
+    q = np.exp(log_q)
+    q /= q.sum(axis=-1, keepdims=True)
+    return entropy(p) - (entropy(q) * p[None, :]).sum(axis=-1)
+
+
+class Suggester:
+    """Suggests the next viewpoint for a belief's hypotheses on one prior (`suggest`); navigation graphs are built
+    per storey when first needed."""
+
+    def __init__(self, prior: BimPrior, visibility: VisibilityTable, cfg: Config) -> None:
+        self.prior, self.cfg = prior, cfg
+        self.views = ViewPredictor(prior, visibility, cfg)
+        self._graphs: dict[int, NavGraph] = {}
+
+    def graph(self, storey: int) -> NavGraph:
+        if storey not in self._graphs:
+            radius = self.cfg.bim.grid.robot_radius_m
+            self._graphs[storey] = build_nav_graph(self.prior, storey, radius, radius + CLEARANCE_MARGIN_M)
+        return self._graphs[storey]
+
+    def suggest(
+        self, hypotheses: list[Hypothesis], odom_pose: np.ndarray, modes_share: float = 1.0, converged: bool = False
+    ) -> Suggestion:
+        """The next goal for (K,) hypotheses (probabilities summing to 1, most probable first) at the robot's current
+        odometry pose; `modes_share` is the particle weight the hypotheses hold, `converged` the filter's flag."""
+        cfg = self.cfg.active
+        hyps = distinct_places(hypotheses)
+        odom_pose = np.asarray(odom_pose, float)
+        out = Suggestion(hyps, odom_pose, entropy_nats=float(entropy([h.probability for h in hyps])))
+        if not hyps:
+            out.reason = "the belief has no modes"
+            return out
+        if converged:
+            out.reason = "the belief has converged"
+            return out
+        if modes_share < MIN_MODES_SHARE:
+            out.reason = f"the belief is still spread over the building (its modes hold {modes_share:.0%})"
+            return out
+        if hyps[0].probability >= cfg.settled_share:
+            out.reason = f"one place holds {hyps[0].probability:.0%} of the belief"
+            return out
+        top = hyps[0]
+        graph = self.graph(top.storey)
+        start = graph.nearest_node(top.pose[:2])
+        dist, pred = graph.reach(start, cfg.horizon_m)
+        away = np.hypot(*(graph.node_xy - top.pose[:2]).T) >= MIN_MOVE_M
+        reachable = np.flatnonzero(np.isfinite(dist) & away)
+        if not len(reachable):
+            out.reason = "no place within the horizon to go to"
+            return out
+        positions = reachable[_farthest_points(graph.node_xy[reachable], max(cfg.candidates // HEADINGS, 1))]
+        yaws = np.arange(HEADINGS) * (2 * np.pi / HEADINGS)
+        world = np.column_stack([np.repeat(graph.node_xy[positions], HEADINGS, axis=0), np.tile(yaws, len(positions))])
+        relative = se2_compose(se2_inverse(top.pose), world)  # (C, 3) in the robot's frame
+        poses = np.stack([se2_compose(h.pose, relative) for h in hyps], axis=1)  # (C, K, 3)
+        storeys = np.asarray([h.storey for h in hyps], np.int64)
+        p = np.asarray([h.probability for h in hyps], float)
+        p /= p.sum()
+        travel = np.full((len(relative), len(hyps)), np.inf)
+        travel[:, 0] = np.repeat(dist[positions], HEADINGS)
+        for k, h in enumerate(hyps[1:], start=1):
+            travel[:, k] = self._travel(h, poses[:, k, :2])
+        everywhere = np.isfinite(travel).all(axis=1)
+        keep = everywhere if everywhere.any() else np.isfinite(travel[:, 0])
+        gains = np.zeros(len(relative))
+        gains[keep] = information_gain(p, self.views.discrepancy(poses[keep], storeys))
+        expected_travel = np.where(np.isfinite(travel), travel, 0.0) @ p / np.maximum(np.isfinite(travel) @ p, 1e-12)
+        keyframes = self._keyframes(relative, expected_travel)
+        informative = keep & (gains >= MIN_GAIN_NATS)
+        out.candidates_odom = se2_compose(np.asarray(odom_pose, float), relative[keep])
+        out.gains_nats = gains[keep]
+        if not informative.any():
+            out.reason = "no reachable view within the horizon tells the places apart"
+            return out
+        # The cost ranks the views that tell the places apart; it vetoes none (doing nothing tells them apart less).
+        best = int(np.argmax(np.where(informative, gains - cfg.cost_per_keyframe * keyframes, -np.inf)))
+        goal_node = positions[best // HEADINGS]
+        out.goal_odom = se2_compose(np.asarray(odom_pose, float), relative[best])
+        out.gain_nats, out.travel_m, out.storey = float(gains[best]), float(expected_travel[best]), top.storey
+        out.path_world = graph.plan(top.pose[:2], pred, int(goal_node))
+        in_robot = se2_compose(se2_inverse(top.pose), np.column_stack([out.path_world, np.zeros(len(out.path_world))]))
+        out.path_odom = se2_compose(np.asarray(odom_pose, float), in_robot)[:, :2]
+        return out
+
+    def _keyframes(self, relative: np.ndarray, travel_m: np.ndarray) -> np.ndarray:
+        """(C,) keyframes the robot takes to reach each (C, 3) relative pose along paths of (C,) length: the distance
+        per keyframe distance, the turns towards the goal and then to its heading per keyframe angle."""
+        kf = self.cfg.localization
+        towards = np.arctan2(relative[:, 1], relative[:, 0])
+        moves = np.hypot(relative[:, 0], relative[:, 1]) >= kf.keyframe_distance_m
+        turns = np.where(
+            moves, np.abs(towards) + np.abs(wrap_angle(relative[:, 2] - towards)), np.abs(wrap_angle(relative[:, 2]))
+        )
+        return travel_m / kf.keyframe_distance_m + turns / np.deg2rad(kf.keyframe_angle_deg)
+
+    def _travel(self, hypothesis: Hypothesis, xy: np.ndarray) -> np.ndarray:
+        """(C,) path length from the hypothesis's pose to each (C, 2) point of its storey; inf off free space or beyond
+        the horizon's reach (1.5 × horizon: the same motion may wind more in another place)."""
+        graph = self.graph(hypothesis.storey)
+        dist, _ = graph.reach(graph.nearest_node(hypothesis.pose[:2]), 1.5 * self.cfg.active.horizon_m)
+        gap, node = graph.nearest_nodes(xy)
+        return np.where(gap <= SNAP_M, dist[node], np.inf)
+
+
+def _farthest_points(xy: np.ndarray, n: int) -> np.ndarray:
+    """Indices of up to n of the (M, 2) points, each the farthest from those before (the first is the first point)."""
+    if len(xy) <= n:
+        return np.arange(len(xy))
+    chosen = [0]
+    gap = np.hypot(*(xy - xy[0]).T)
+    for _ in range(n - 1):
+        k = int(np.argmax(gap))
+        chosen.append(k)
+        gap = np.minimum(gap, np.hypot(*(xy - xy[k]).T))
+    return np.asarray(chosen)

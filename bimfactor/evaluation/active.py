@@ -1,0 +1,175 @@
+"""The active scenario (`evaluation.scenario: active`): the simulated robot follows the localizer's suggestions.
+
+A run starts as the global scenario does, from the uniform belief, on route k. The robot drives the route until the
+localizer first suggests where to look (`Localizer.suggest`), then to each suggested goal: the goal comes in the
+odometry frame, and the robot drives to where that is in the true world (its planner on the true building, as a
+robot's local planner would get there whichever place the belief had right), turns to its heading, and asks again.
+While nothing is suggested (the belief still spread, one place holding it, converged) it drives its route. Frames
+are rendered as the robot goes, with the simulator's motion, odometry and sensor noise; T keyframes in all.
+
+Beside it, from the same start and seeds, the passive route: the first T keyframes of route k. Both are scored from
+their first frame (Table I's cells over the T steps, and the route's outcome: success at its end, distance to correct
+convergence, wrong convergence); the active run's variants are named with `+active` (`smcl+graph+active`).
+Everything the two share is drawn from the same streams, so up to the first suggestion they are one run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bimfactor.bim.symmetry import Motion
+from bimfactor.config import Config, updated
+from bimfactor.evaluation.paper import (
+    ACTIVE_SUFFIX,
+    SERVED_BY,
+    RunResult,
+    forward_variants,
+    online_config,
+    run_seed,
+    score_runs,
+    simulate_routes,
+)
+from bimfactor.pipeline import (
+    GRAPH_VARIANTS,
+    LocalizationRun,
+    Localizer,
+    LocalizerStep,
+    localize_sequence,
+    scan_matcher,
+)
+from bimfactor.sim.sensors import RgbdCamera, simulate_odometry
+from bimfactor.sim.simulate import (
+    ODOMETRY_STREAM,
+    SENSOR_STREAM,
+    build_world,
+    load_world_inputs,
+    sim_sequence_meta,
+    world_obstacles,
+)
+from bimfactor.sim.trajectory import TrajectorySimulator
+from bimfactor.types import Frame, se2_compose, se2_inverse
+
+
+@dataclass
+class _Steer:
+    """The closed loop (`sim.trajectory.Steering`): renders each keyframe, steps the localizer, turns its
+    suggestions into goals in the true world."""
+
+    localizer: Localizer
+    camera: RgbdCamera
+    elevation_m: float
+    storey: int
+    alpha: list[float]
+    odometry_rng: np.random.Generator
+    sensor_rng: np.random.Generator
+    frames: list[Frame] = field(default_factory=list)
+    rows: list[LocalizerStep] = field(default_factory=list)
+    goals: list[dict] = field(default_factory=list)
+    first_suggestion: int | None = None
+
+    def on_keyframe(self, pose: np.ndarray, time_s: float, following: bool) -> np.ndarray | None:
+        if self.frames:
+            previous = self.frames[-1]
+            increment = simulate_odometry(np.stack([previous.gt_pose, pose]), self.alpha, self.odometry_rng)[1]
+            odom = se2_compose(previous.odom_pose, increment)
+        else:
+            odom = np.zeros(3)
+        image = self.camera.render(pose, self.elevation_m, self.sensor_rng)
+        frame = Frame(
+            index=len(self.frames),
+            timestamp_s=float(time_s),
+            rgb=image.rgb,
+            depth_m=image.depth_m,
+            odom_pose=odom,
+            gt_pose=np.asarray(pose, float).copy(),
+            gt_storey=self.storey,
+            instance_ids=image.instance_ids,
+        )
+        self.frames.append(frame)
+        self.rows.append(self.localizer.step(frame))
+        if not following:
+            return self._next_goal()
+        # On the way: once nothing is to be told apart any more (one place holds the belief, or it converged, or it
+        # spread out again), the goal is given up where the robot stands and it goes on with its route.
+        return None if self.localizer.suggest().goal_odom is not None else np.asarray(pose, float)
+
+    def on_arrival(self) -> np.ndarray | None:
+        return self._next_goal()
+
+    def _next_goal(self) -> np.ndarray | None:
+        """The localizer's suggestion as a goal in the true world: the odometry-frame goal carried by the true pose
+        of the last keyframe (where the robot stands)."""
+        suggestion = self.localizer.suggest()
+        if suggestion.goal_odom is None:
+            return None
+        last = self.frames[-1]
+        world_from_odom = se2_compose(last.gt_pose, se2_inverse(last.odom_pose))
+        goal = se2_compose(world_from_odom, suggestion.goal_odom)
+        if self.first_suggestion is None:
+            self.first_suggestion = len(self.frames) - 1
+        self.goals.append(
+            {"keyframe": len(self.frames) - 1, "gain_nats": suggestion.gain_nats, "xy": [float(v) for v in goal[:2]]}
+        )
+        return goal
+
+
+def active_route(
+    prior_dir: str | Path, cfg: Config, trajectory: int, repeat: int, twins: dict[int, Motion]
+) -> tuple[LocalizationRun, list[Frame], _Steer]:
+    """One closed-loop run of route `trajectory` in the online variant `cfg.localization.variant`: the localizer's
+    run, the frames it saw and the loop's record (goals, the keyframe of the first suggestion)."""
+    prior, model = load_world_inputs(prior_dir, cfg)
+    world = build_world(prior, model, cfg, cfg.seed)
+    sim = TrajectorySimulator(prior, cfg, world_obstacles(prior, world, cfg))
+    starts = sim.start_rooms(cfg.seed)
+    storey = starts[trajectory % len(starts)][0]  # the route's storey, as `TrajectorySimulator.trajectory` picks it
+    camera = RgbdCamera.from_config(world, cfg)
+    name = f"active-{Path(prior.source_file).stem}-t{trajectory}-s{cfg.seed}"
+    meta = sim_sequence_meta(name, prior, world, camera, {"trajectory_index": trajectory, "seed": cfg.seed})
+    matcher = scan_matcher(prior, cfg) if cfg.localization.variant in GRAPH_VARIANTS else None
+    localizer = Localizer(
+        prior, meta, cfg, run_seed(cfg.seed, trajectory, repeat), prior_dir=prior_dir, matcher=matcher, twins=twins
+    )
+    steer = _Steer(
+        localizer,
+        camera,
+        prior.storeys[storey].storey.elevation_m,
+        storey,
+        list(cfg.odometry.alpha),
+        np.random.default_rng([cfg.seed, trajectory, ODOMETRY_STREAM]),
+        np.random.default_rng([cfg.seed, trajectory, SENSOR_STREAM]),
+    )
+    sim.trajectory(trajectory, cfg.seed, steer=steer)
+    return localizer.run_of(steer.frames, steer.rows), steer.frames, steer
+
+
+def active_runs(
+    prior_dir: str | Path, cfg: Config, trajectory: int, repeat: int, twins: dict[int, Motion]
+) -> list[RunResult]:
+    """The passive route and the closed loop from the same start, each variant scored over its T keyframes from the
+    first (the active run's named with `ACTIVE_SUFFIX`)."""
+    ev = cfg.evaluation
+    cfg = updated(cfg, {"evaluation.score_from": "start"})
+    window = slice(0, ev.trajectory_length)
+    (sim,), prior = simulate_routes(prior_dir, cfg, [(trajectory, ev.trajectory_length)])
+    online = forward_variants(ev.variants)
+    matcher = scan_matcher(prior, cfg) if any(v in GRAPH_VARIANTS for v in online) else None
+    seed = run_seed(cfg.seed, trajectory, repeat)
+    passive = {
+        v: localize_sequence(
+            prior, sim.meta, sim.frames, online_config(cfg, v), seed, show_progress=False, prior_dir=prior_dir,
+            matcher=matcher, twins=twins,
+        )
+        for v in online
+    }  # fmt: skip
+    results = score_runs(cfg, prior, sim.frames, passive, window, trajectory, repeat, twins, matcher)
+    # Each online variant drives its own loop: score the variants it yields on its own frames.
+    for k, v in enumerate(online):
+        run, frames, _ = active_route(prior_dir, online_config(cfg, v), trajectory, repeat, twins)
+        served = [x for x in ev.variants if x in SERVED_BY.get(v, {v}) or (x == "smcl" and k == 0)]
+        own = updated(cfg, {"evaluation.variants": served})
+        results += score_runs(own, prior, frames, {v: run}, window, trajectory, repeat, twins, matcher, ACTIVE_SUFFIX)
+    return results

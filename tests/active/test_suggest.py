@@ -1,0 +1,120 @@
+"""Active localization: the expected information gain of a view, and the suggestions built on it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from bimfactor.active import Hypothesis, Suggester, information_gain
+from bimfactor.bim.visibility import VisibilityTable
+from bimfactor.config import Config
+from bimfactor.types import se2_compose, se2_inverse
+from tests.active.twins import SHIFT_M, make_twin_prior
+
+IN_A = np.array([3.1, 6.5, -np.pi / 2])  # in room A facing its door
+IN_B = IN_A + np.array([SHIFT_M, 0.0, 0.0])  # the same place in room B
+
+
+@pytest.fixture(scope="module")
+def twins(test_config: Config) -> Suggester:
+    prior = make_twin_prior()
+    return Suggester(prior, VisibilityTable.build(prior, test_config.bim.visibility, progress=False), test_config)
+
+
+def _gain(suggester: Suggester, relative: np.ndarray) -> float:
+    """IG of the view `relative` to the robot for an even belief over room A and room B."""
+    poses = np.stack([se2_compose(IN_A, relative), se2_compose(IN_B, relative)])[None]
+    D = suggester.views.discrepancy(poses, np.zeros(2, np.int64))
+    return float(information_gain(np.array([0.5, 0.5]), D)[0])
+
+
+def test_a_view_of_the_plate_separates_the_twins_and_a_view_inside_them_does_not(twins: Suggester) -> None:
+    through_the_door_and_back = np.array([4.8, 0.0, np.pi])  # 4.8 m ahead (south), turned to face the door
+    turned_round_inside = np.array([0.0, 0.0, np.pi])  # the room's far wall, its table: the same in both rooms
+    plate_view, room_view = _gain(twins, through_the_door_and_back), _gain(twins, turned_round_inside)
+    assert plate_view > 0.2  # of ln 2: a plate is read with probability 0.6, not surely (KL(0.6 ‖ ε) = 1.7 nats)
+    assert room_view < 0.05
+    assert plate_view > room_view
+
+
+def test_the_suggestion_walks_to_the_plate(twins: Suggester) -> None:
+    odom = np.array([1.0, -2.0, 0.3])  # any odometry frame
+    hyps = [Hypothesis(IN_A, 0, 0.5), Hypothesis(IN_B, 0, 0.5)]
+    s = twins.suggest(hyps, odom)
+    assert s.goal_odom is not None and s.reason == ""
+    # The goal, carried into room B's frame, faces B's plate from the corridor, within reading distance.
+    goal_b = se2_compose(IN_B, se2_between_odom(odom, s.goal_odom))
+    plate = np.array([9.1, 3.0])
+    assert goal_b[1] < 3.0 and np.hypot(*(goal_b[:2] - plate)) <= 2.5
+    bearing = np.arctan2(*(plate - goal_b[:2])[::-1]) - goal_b[2]
+    assert abs((bearing + np.pi) % (2 * np.pi) - np.pi) < np.pi / 4
+    assert s.gain_nats > 0.2 and len(s.path_odom) >= 2
+    np.testing.assert_allclose(s.path_odom[-1], s.goal_odom[:2], atol=0.3)
+
+
+def se2_between_odom(odom: np.ndarray, goal_odom: np.ndarray) -> np.ndarray:
+    return se2_compose(se2_inverse(odom), goal_odom)
+
+
+@pytest.mark.parametrize(
+    ("hyps", "converged", "why"),
+    [
+        ([Hypothesis(IN_A, 0, 0.97), Hypothesis(IN_B, 0, 0.03)], False, "one place holds 97%"),
+        ([Hypothesis(IN_A, 0, 0.5), Hypothesis(IN_B, 0, 0.5)], True, "converged"),
+        ([], False, "no modes"),
+    ],
+)
+def test_a_settled_belief_suggests_nothing(twins: Suggester, hyps: list, converged: bool, why: str) -> None:
+    s = twins.suggest(hyps, np.zeros(3), converged=converged)
+    assert s.goal_odom is None and why in s.reason
+
+
+def test_a_spread_belief_suggests_nothing(twins: Suggester) -> None:
+    s = twins.suggest([Hypothesis(IN_A, 0, 0.5), Hypothesis(IN_B, 0, 0.5)], np.zeros(3), modes_share=0.2)
+    assert s.goal_odom is None and "spread" in s.reason
+
+
+free_xy = st.tuples(st.floats(0.6, 5.6), st.floats(3.7, 9.3))  # inside room A, off its walls
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(a=free_xy, yaw=st.floats(-np.pi, np.pi), share=st.floats(0.3, 0.7))
+def test_every_suggested_goal_is_reachable_in_every_place(twins: Suggester, a, yaw: float, share: float) -> None:
+    pose_a = np.array([*a, yaw])
+    pose_b = pose_a + np.array([SHIFT_M, 0.0, 0.0])
+    free = twins.graph(0)
+    if free.clearance_at(np.array([a]))[0] < 0.3:
+        return  # by an object
+    s = twins.suggest([Hypothesis(pose_a, 0, share), Hypothesis(pose_b, 0, 1 - share)], np.zeros(3))
+    assert s.goal_odom is not None
+    for pose in (pose_a, pose_b):
+        goal = se2_compose(pose, s.goal_odom)  # odometry frame = the robot's frame here
+        gap, node = free.nearest_nodes(goal[None, :2])
+        dist, _ = free.reach(free.nearest_node(pose[:2]), np.inf)
+        assert gap[0] <= 0.3 and np.isfinite(dist[node[0]])
+
+
+def test_a_suggestion_is_written_as_json_and_drawn(twins: Suggester, tmp_path) -> None:
+    import json
+
+    from bimfactor.evaluation.plots import save_suggestion_figure
+
+    s = twins.suggest([Hypothesis(IN_A, 0, 0.5), Hypothesis(IN_B, 0, 0.5)], np.array([1.0, -2.0, 0.3]))
+    data = json.loads(json.dumps(s.to_dict()))
+    assert data["goal"]["frame"] == "odom" and data["goal"]["x_m"] == pytest.approx(s.goal_odom[0])
+    assert data["odom_pose"]["x_m"] == 1.0 and len(data["hypotheses"]) == 2 and data["path_odom"]
+    assert save_suggestion_figure(twins.prior, s, tmp_path / "suggestion.png", "twins").stat().st_size > 10_000
+    none = twins.suggest([Hypothesis(IN_A, 0, 1.0)], np.zeros(3))
+    assert none.to_dict()["goal"] is None
+    assert save_suggestion_figure(twins.prior, none, tmp_path / "none.png").is_file()
+
+
+def test_the_suggestion_benchmark_times_the_whole_suggestion_and_the_scoring(twins: Suggester, test_config) -> None:
+    from bimfactor.evaluation.speed import benchmark_suggest
+
+    row = benchmark_suggest(twins.prior, twins.views.visibility, test_config, n_modes=3, repeats=2)
+    assert row["modes"] == 3 and row["candidates"] == test_config.active.candidates
+    assert row["suggest_ms_median"] > 0 and row["score_all_candidates_ms_median"] > 0
+    assert 0 <= row["candidates_scored_median"] <= test_config.active.candidates
