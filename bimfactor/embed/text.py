@@ -1,7 +1,9 @@
 """Text embedders: the bundled all-MiniLM-L6-v2 by default, CLIP's text tower when its weights exist.
 
 Every embedder returns (N, D) float32 rows of unit L2 norm, so a dot product is a cosine similarity.
-Models are loaded once per process and every text is encoded once (an in-memory text → vector cache).
+Models are loaded once per process and every text is encoded once (an in-memory text → vector cache), on its own:
+in a batch a text's vector differs in its last bits with its batch-mates, and then a run would depend on what its
+process embedded before.
 """
 
 from __future__ import annotations
@@ -22,7 +24,6 @@ logger = logging.getLogger(__name__)
 
 MINILM_NAME = "all-MiniLM-L6-v2"
 MINILM_DIM = 384
-_ENCODE_BATCH = 64
 
 VLM_INSTALL_HINT = "bash tools/setup.sh --vlm (or pip install 'bimfactor[vlm]')"
 """How the optional libraries of CLIP and the vlm perception backend (the `vlm` extra) are installed."""
@@ -139,13 +140,12 @@ class MiniLMTextEmbedder:
             ids = np.array([e.ids for e in encoded], dtype=np.int64)
             mask = np.array([e.attention_mask for e in encoded], dtype=np.float32)
             lengths = mask.sum(axis=1).astype(np.int64)
-            # Batches of texts of similar length (as sentence-transformers sorts them), each cut to its longest.
-            order = np.argsort(lengths, kind="stable")
+            # One text at a time, cut to its own length: in a batch a text's vector differs in its last bits with its
+            # batch-mates (padding, and BLAS kernels chosen by the batch's size; ~1e-6), and a text's vector must not
+            # depend on which texts came with it (a process that embedded it before in another batch gave other runs).
             out = np.empty((len(texts), int(config["hidden_size"])), np.float32)
-            for start in range(0, len(texts), _ENCODE_BATCH):
-                rows = order[start : start + _ENCODE_BATCH]
-                width = int(lengths[rows].max())
-                out[rows] = bert_mean_pooled(weights, config, ids[rows, :width], mask[rows, :width])
+            for row, width in enumerate(lengths):
+                out[row] = bert_mean_pooled(weights, config, ids[row : row + 1, :width], mask[row : row + 1, :width])[0]
             return out
 
         return _LoadedModel(encode_batch, int(config["hidden_size"]))
@@ -236,10 +236,9 @@ class ClipTextEmbedder:
 
         def encode_batch(texts: list[str]) -> np.ndarray:
             chunks = []
-            with torch.no_grad():
-                for start in range(0, len(texts), _ENCODE_BATCH):
-                    tokens = tokenizer(texts[start : start + _ENCODE_BATCH]).to(device)
-                    chunks.append(model.encode_text(tokens).float().cpu().numpy())
+            with torch.no_grad():  # one text at a time, as MiniLM's: a vector must not depend on its batch-mates
+                for text in texts:
+                    chunks.append(model.encode_text(tokenizer([text]).to(device)).float().cpu().numpy())
             return np.concatenate(chunks, axis=0)
 
         dim = int(encode_batch(["a photo"]).shape[1])
