@@ -141,8 +141,9 @@ ScenarioOption = Annotated[
     typer.Option(
         "--scenario",
         metavar="NAME",
-        help="global (the paper: from the uniform belief), guess (from a pose guess off the truth) or kidnap "
-        "(carried to another route mid-run); default: the config's evaluation.scenario.",
+        help="global (the paper: from the uniform belief), guess (from a pose guess off the truth), kidnap "
+        "(carried to another route mid-run) or active (following the localizer's suggestions, beside the passive "
+        "route: variants +active); default: the config's evaluation.scenario.",
     ),
 ]
 VerboseOption = Annotated[bool, typer.Option("--verbose", "-v", help="Log progress (INFO); default is WARNING.")]

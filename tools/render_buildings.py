@@ -26,6 +26,7 @@ RESULTS = {
     for name in (
         "buildings",  # the defaults
         "buildings-150",  # the defaults, 150-keyframe routes
+        "buildings-active",  # the defaults, --scenario active: each route passive and following the suggestions
         "buildings-before",  # the benchmark's earlier defaults: the IFC model's world, no plates, confusion on labels
         "buildings-before-plates",
         "buildings-before-150",

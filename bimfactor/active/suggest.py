@@ -221,8 +221,11 @@ class Suggester:
         if not informative.any():
             out.reason = "no reachable view within the horizon tells the places apart"
             return out
-        # The cost ranks the views that tell the places apart; it vetoes none (doing nothing tells them apart less).
-        best = int(np.argmax(np.where(informative, gains - cfg.cost_per_keyframe * keyframes, -np.inf)))
+        score = np.where(informative, gains - cfg.cost_per_keyframe * keyframes, -np.inf)
+        best = int(np.argmax(score))
+        if score[best] <= 0:  # no view is worth its way: the route's own keyframes are worth more
+            out.reason = "no view within the horizon is worth the way there"
+            return out
         goal_node = positions[best // HEADINGS]
         out.goal_odom = se2_compose(np.asarray(odom_pose, float), relative[best])
         out.gain_nats, out.travel_m, out.storey = float(gains[best]), float(expected_travel[best]), top.storey
