@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Self
 
 import numpy as np
+from scipy.special import expit
 
 from bimfactor.active import Hypothesis, Suggester, Suggestion
 from bimfactor.backend.posegraph import (
@@ -383,6 +384,7 @@ class Localizer:
         self._odom_offset: np.ndarray | None = None
         self._converged = False  # the filter's flag at the last step
         self._suggester: Suggester | None = None  # built at the first `suggest`
+        self._suggestion: Suggestion | None = None  # `suggest`'s answer for the belief after the last step
 
     @staticmethod
     def _fine_stage(prior: BimPrior, cfg: Config, prior_dir: str | Path | None) -> FineRegistration:
@@ -413,6 +415,7 @@ class Localizer:
         over too; the odometry and the online scene graph carry on. InputError for a guess with no navigable space
         about it."""
         self._start_belief(pose, storey)
+        self._suggestion = None
         if self.backend is not None:
             self.backend = MultiHypothesisBackend.from_prior(self.prior, self.cfg.backend, self.cfg.odometry)
         self._recent.clear()
@@ -440,6 +443,7 @@ class Localizer:
         # the filter ignores the scan without its scan term; a skipped frame brings no observation, not an empty one
         filtered = self.filter.step(increment, observations if skipped is None else None, scan)
         self._converged = filtered.converged
+        self._suggestion = None
         out = LocalizerStep(
             filtered,
             None,
@@ -480,7 +484,9 @@ class Localizer:
         """Where to look next from the belief after the last step (`bimfactor.active`): the viewpoint, as a goal in the
         odometry frame, whose predicted view best tells the filter's modes apart less the way there, with its
         expected gain and path; or, with `goal_odom` None, the reason there is none (one place holds the belief, it
-        has converged, or it is still spread over the building)."""
+        has converged, or it is still spread over the building). Asked again before the next step, the same answer."""
+        if self._suggestion is not None:
+            return self._suggestion
         if self._suggester is None:
             self._suggester = Suggester(self.prior, self.filter.models.semantic.visibility, self.cfg)
         weights = self.filter.estimation_weights()
@@ -494,10 +500,11 @@ class Localizer:
                 hypotheses.append(Hypothesis(m.mean, m.storey, p))
                 continue
             # The mode's image in the twin place explains the frames worse by the twin evidence's nats, no more.
-            image = 1.0 / (1.0 + np.exp(min(evidence.nats, 50.0)))
+            image = float(expit(-evidence.nats))
             hypotheses.append(Hypothesis(m.mean, m.storey, p * (1 - image)))
             hypotheses.append(Hypothesis(twin.apply(m.mean[None])[0], m.storey, p * image))
-        return self._suggester.suggest(hypotheses, self._believed_odom, share, self._converged)
+        self._suggestion = self._suggester.suggest(hypotheses, self._believed_odom, share, self._converged)
+        return self._suggestion
 
     def run_of(self, frames: list[Frame], rows: list[LocalizerStep], snapshots: dict | None = None) -> LocalizationRun:
         """The run of the given frames from this localizer's steps over them, one each (ground truth carried along

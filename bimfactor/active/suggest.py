@@ -191,7 +191,7 @@ class Suggester:
         top = hyps[0]
         graph = self.graph(top.storey)
         start = graph.nearest_node(top.pose[:2])
-        dist, pred = graph.reach(start, cfg.horizon_m)
+        dist, pred = graph.shortest_paths(start, cfg.horizon_m)
         away = np.hypot(*(graph.node_xy - top.pose[:2]).T) >= MIN_MOVE_M
         reachable = np.flatnonzero(np.isfinite(dist) & away)
         if not len(reachable):
@@ -216,7 +216,7 @@ class Suggester:
         expected_travel = np.where(np.isfinite(travel), travel, 0.0) @ p / np.maximum(np.isfinite(travel) @ p, 1e-12)
         keyframes = self._keyframes(relative, expected_travel)
         informative = keep & (gains >= MIN_GAIN_NATS)
-        out.candidates_odom = se2_compose(np.asarray(odom_pose, float), relative[keep])
+        out.candidates_odom = se2_compose(odom_pose, relative[keep])
         out.gains_nats = gains[keep]
         if not informative.any():
             out.reason = "no reachable view within the horizon tells the places apart"
@@ -227,11 +227,11 @@ class Suggester:
             out.reason = "no view within the horizon is worth the way there"
             return out
         goal_node = positions[best // HEADINGS]
-        out.goal_odom = se2_compose(np.asarray(odom_pose, float), relative[best])
+        out.goal_odom = se2_compose(odom_pose, relative[best])
         out.gain_nats, out.travel_m, out.storey = float(gains[best]), float(expected_travel[best]), top.storey
         out.path_world = graph.plan(top.pose[:2], pred, int(goal_node))
         in_robot = se2_compose(se2_inverse(top.pose), np.column_stack([out.path_world, np.zeros(len(out.path_world))]))
-        out.path_odom = se2_compose(np.asarray(odom_pose, float), in_robot)[:, :2]
+        out.path_odom = se2_compose(odom_pose, in_robot)[:, :2]
         return out
 
     def _keyframes(self, relative: np.ndarray, travel_m: np.ndarray) -> np.ndarray:
@@ -249,7 +249,7 @@ class Suggester:
         """(C,) path length from the hypothesis's pose to each (C, 2) point of its storey; inf off free space or beyond
         the horizon's reach (1.5 × horizon: the same motion may wind more in another place)."""
         graph = self.graph(hypothesis.storey)
-        dist, _ = graph.reach(graph.nearest_node(hypothesis.pose[:2]), 1.5 * self.cfg.active.horizon_m)
+        dist, _ = graph.shortest_paths(graph.nearest_node(hypothesis.pose[:2]), 1.5 * self.cfg.active.horizon_m)
         gap, node = graph.nearest_nodes(xy)
         return np.where(gap <= SNAP_M, dist[node], np.inf)
 

@@ -57,15 +57,11 @@ class NavGraph:
         gap, node = self._tree.query(np.asarray(xy, float).reshape(-1, 2))
         return gap, node.astype(np.int64)
 
-    def reach(self, source: int, limit: float) -> tuple[np.ndarray, np.ndarray]:
-        """(M,) path cost from node `source` to every node, inf beyond `limit`, and (M,) the predecessors (`plan`)."""
-        dist, pred = csgraph.dijkstra(self.graph, directed=True, indices=source, return_predecessors=True, limit=limit)
-        return dist, pred
-
-    def shortest_paths(self, sources: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(M,) cost to the nearest source and (M,) predecessors (-9999 at sources and unreachable nodes)."""
+    def shortest_paths(self, sources: int | np.ndarray, limit: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) cost to the nearest source (inf beyond `limit`) and (M,) predecessors (-9999 at sources and unreachable
+        nodes)."""
         dist, pred, _ = csgraph.dijkstra(
-            self.graph, directed=True, indices=sources, return_predecessors=True, min_only=True
+            self.graph, directed=True, indices=sources, return_predecessors=True, min_only=True, limit=limit
         )
         return dist, pred
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.symmetry import Motion
 from bimfactor.config import Config, updated
 from bimfactor.evaluation.paper import (
@@ -30,7 +31,6 @@ from bimfactor.evaluation.paper import (
     online_config,
     run_seed,
     score_runs,
-    simulate_routes,
 )
 from bimfactor.pipeline import (
     GRAPH_VARIANTS,
@@ -46,10 +46,13 @@ from bimfactor.sim.simulate import (
     SENSOR_STREAM,
     build_world,
     load_world_inputs,
+    render_frame,
     sim_sequence_meta,
+    simulate_sequence,
     world_obstacles,
 )
 from bimfactor.sim.trajectory import TrajectorySimulator
+from bimfactor.sim.world import SimWorld
 from bimfactor.types import Frame, se2_compose, se2_inverse
 
 
@@ -77,16 +80,8 @@ class _Steer:
             odom = se2_compose(previous.odom_pose, increment)
         else:
             odom = np.zeros(3)
-        image = self.camera.render(pose, self.elevation_m, self.sensor_rng)
-        frame = Frame(
-            index=len(self.frames),
-            timestamp_s=float(time_s),
-            rgb=image.rgb,
-            depth_m=image.depth_m,
-            odom_pose=odom,
-            gt_pose=np.asarray(pose, float).copy(),
-            gt_storey=self.storey,
-            instance_ids=image.instance_ids,
+        frame = render_frame(
+            self.camera, len(self.frames), float(time_s), pose, odom, self.storey, self.elevation_m, self.sensor_rng
         )
         self.frames.append(frame)
         self.rows.append(self.localizer.step(frame))
@@ -117,12 +112,20 @@ class _Steer:
 
 
 def active_route(
-    prior_dir: str | Path, cfg: Config, trajectory: int, repeat: int, twins: dict[int, Motion]
+    prior_dir: str | Path,
+    cfg: Config,
+    trajectory: int,
+    repeat: int,
+    twins: dict[int, Motion],
+    loaded: tuple[BimPrior, SimWorld] | None = None,
 ) -> tuple[LocalizationRun, list[Frame], _Steer]:
     """One closed-loop run of route `trajectory` in the online variant `cfg.localization.variant`: the localizer's
-    run, the frames it saw and the loop's record (goals, the keyframe of the first suggestion)."""
-    prior, model = load_world_inputs(prior_dir, cfg)
-    world = build_world(prior, model, cfg, cfg.seed)
+    run, the frames it saw and the loop's record (goals, the keyframe of the first suggestion). `loaded`: the prior
+    and the seed's world, when the caller has them."""
+    if loaded is None:
+        prior, model = load_world_inputs(prior_dir, cfg)
+        loaded = prior, build_world(prior, model, cfg, cfg.seed)
+    prior, world = loaded
     sim = TrajectorySimulator(prior, cfg, world_obstacles(prior, world, cfg))
     starts = sim.start_rooms(cfg.seed)
     storey = starts[trajectory % len(starts)][0]  # the route's storey, as `TrajectorySimulator.trajectory` picks it
@@ -154,7 +157,9 @@ def active_runs(
     ev = cfg.evaluation
     cfg = updated(cfg, {"evaluation.score_from": "start"})
     window = slice(0, ev.trajectory_length)
-    (sim,), prior = simulate_routes(prior_dir, cfg, [(trajectory, ev.trajectory_length)])
+    prior, model = load_world_inputs(prior_dir, cfg)
+    world = build_world(prior, model, cfg, cfg.seed)
+    sim = simulate_sequence(prior, model, cfg, trajectory, cfg.seed, progress=False, world=world)
     online = forward_variants(ev.variants)
     matcher = scan_matcher(prior, cfg) if any(v in GRAPH_VARIANTS for v in online) else None
     seed = run_seed(cfg.seed, trajectory, repeat)
@@ -168,7 +173,7 @@ def active_runs(
     results = score_runs(cfg, prior, sim.frames, passive, window, trajectory, repeat, twins, matcher)
     # Each online variant drives its own loop: score the variants it yields on its own frames.
     for k, v in enumerate(online):
-        run, frames, _ = active_route(prior_dir, online_config(cfg, v), trajectory, repeat, twins)
+        run, frames, _ = active_route(prior_dir, online_config(cfg, v), trajectory, repeat, twins, (prior, world))
         served = [x for x in ev.variants if x in SERVED_BY.get(v, {v}) or (x == "smcl" and k == 0)]
         own = updated(cfg, {"evaluation.variants": served})
         results += score_runs(own, prior, frames, {v: run}, window, trajectory, repeat, twins, matcher, ACTIVE_SUFFIX)

@@ -81,19 +81,7 @@ def simulate_sequence(
     times = trajectory.keyframe_times_s
     steps = range(len(gt))
     for i in progress_bar(steps, desc="simulating frames", unit="frame") if progress else steps:
-        image = camera.render(gt[i], elevation, sensor_rng)
-        frames.append(
-            Frame(
-                index=i,
-                timestamp_s=float(times[i]),
-                rgb=image.rgb,
-                depth_m=image.depth_m,
-                odom_pose=odom[i],
-                gt_pose=gt[i].copy(),
-                gt_storey=storey,
-                instance_ids=image.instance_ids,
-            )
-        )
+        frames.append(render_frame(camera, i, float(times[i]), gt[i], odom[i], storey, elevation, sensor_rng))
     meta = sim_sequence_meta(
         f"sim-{Path(prior.source_file).stem}-t{trajectory_index}-s{seed}",
         prior,
@@ -111,6 +99,30 @@ def simulate_sequence(
     )
     log.info("simulated %s: %d frames on storey %d", meta.name, len(frames), storey)
     return SimResult(meta, frames, trajectory)
+
+
+def render_frame(
+    camera: RgbdCamera,
+    index: int,
+    time_s: float,
+    gt_pose: np.ndarray,
+    odom_pose: np.ndarray,
+    storey: int,
+    elevation_m: float,
+    rng: np.random.Generator,
+) -> Frame:
+    """Keyframe `index`: the RGB-D image rendered at the true (3,) pose on the storey, with its odometry pose."""
+    image = camera.render(gt_pose, elevation_m, rng)
+    return Frame(
+        index=index,
+        timestamp_s=time_s,
+        rgb=image.rgb,
+        depth_m=image.depth_m,
+        odom_pose=odom_pose,
+        gt_pose=np.array(gt_pose, float),
+        gt_storey=storey,
+        instance_ids=image.instance_ids,
+    )
 
 
 def world_obstacles(prior: BimPrior, world: SimWorld, cfg: Config) -> dict[int, np.ndarray] | None:
