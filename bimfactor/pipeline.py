@@ -44,6 +44,7 @@ import numpy as np
 from scipy.special import expit
 
 from bimfactor.active import Hypothesis, Suggester, Suggestion
+from bimfactor.active.suggest import SEEN_VIEWS
 from bimfactor.backend.posegraph import (
     BackendStep,
     ModeEstimate,
@@ -385,6 +386,7 @@ class Localizer:
         self._converged = False  # the filter's flag at the last step
         self._suggester: Suggester | None = None  # built at the first `suggest`
         self._suggestion: Suggestion | None = None  # `suggest`'s answer for the belief after the last step
+        self._seen: deque[np.ndarray] = deque(maxlen=SEEN_VIEWS)  # odometry poses of the views the belief weighed
 
     @staticmethod
     def _fine_stage(prior: BimPrior, cfg: Config, prior_dir: str | Path | None) -> FineRegistration:
@@ -416,6 +418,7 @@ class Localizer:
         about it."""
         self._start_belief(pose, storey)
         self._suggestion = None
+        self._seen.clear()
         if self.backend is not None:
             self.backend = MultiHypothesisBackend.from_prior(self.prior, self.cfg.backend, self.cfg.odometry)
         self._recent.clear()
@@ -430,6 +433,7 @@ class Localizer:
                 "(a TUM RGB-D folder has none; convert a recording with an odometry topic)"
             )
         increment, frame, skipped = self._odometry_step(frame)
+        self._seen.append(self._believed_odom.copy())
         skipped = skipped or depth_problem(frame.depth_m, self.cfg)
         started = time.perf_counter()
         if skipped is None:
@@ -488,7 +492,7 @@ class Localizer:
         if self._suggestion is not None:
             return self._suggestion
         if self._suggester is None:
-            self._suggester = Suggester(self.prior, self.filter.models.semantic.visibility, self.cfg)
+            self._suggester = Suggester(self.prior, self.filter.models.semantic.visibility, self.cfg, self.meta)
         weights = self.filter.estimation_weights()
         modes = extract_modes(self.filter.particles, weights, self.cfg.backend, self.filter.storeys)
         share = float(sum(m.weight for m in modes))
@@ -503,7 +507,9 @@ class Localizer:
             image = float(expit(-evidence.nats))
             hypotheses.append(Hypothesis(m.mean, m.storey, p * (1 - image)))
             hypotheses.append(Hypothesis(twin.apply(m.mean[None])[0], m.storey, p * image))
-        self._suggestion = self._suggester.suggest(hypotheses, self._believed_odom, share, self._converged)
+        self._suggestion = self._suggester.suggest(
+            hypotheses, self._believed_odom, share, self._converged, np.asarray(self._seen)
+        )
         return self._suggestion
 
     def run_of(self, frames: list[Frame], rows: list[LocalizerStep], snapshots: dict | None = None) -> LocalizationRun:

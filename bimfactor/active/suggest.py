@@ -37,7 +37,7 @@ from bimfactor.bim.navigation import PLANNING_CELL_M, NavGraph, build_nav_graph
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config
-from bimfactor.types import se2_compose, se2_inverse, wrap_angle
+from bimfactor.types import SequenceMeta, se2_compose, se2_inverse, wrap_angle
 
 HEADINGS = 8  # candidate headings per position, 45° apart (half the field of view)
 MIN_MODES_SHARE = 0.8  # below this share of the particle weight in the modes, the belief is not a few places
@@ -45,6 +45,7 @@ MIN_GAIN_NATS = 0.01  # a view that gains less than this tells the places apart 
 MIN_MOVE_M = 1.0  # a suggestion is a place to go: the view from where the robot stands the filter has just weighed
 SAME_PLACE_M = 2.0  # modes closer than this on one storey are one place (a wrong convergence is one > 2 m off)
 SNAP_M = 1.5 * PLANNING_CELL_M  # a candidate farther than this from a graph node is not on free space
+SEEN_VIEWS = 30  # the views already weighed that a candidate's evidence is counted beyond (the last 15 m or 450°)
 CLEARANCE_MARGIN_M = 0.1  # paths keep this much beyond the robot's radius from obstacles where they can
 
 
@@ -156,9 +157,11 @@ class Suggester:
     """Suggests the next viewpoint for a belief's hypotheses on one prior (`suggest`); navigation graphs are built
     per storey when first needed."""
 
-    def __init__(self, prior: BimPrior, visibility: VisibilityTable, cfg: Config) -> None:
+    def __init__(
+        self, prior: BimPrior, visibility: VisibilityTable, cfg: Config, meta: SequenceMeta | None = None
+    ) -> None:
         self.prior, self.cfg = prior, cfg
-        self.views = ViewPredictor(prior, visibility, cfg)
+        self.views = ViewPredictor(prior, visibility, cfg, meta)
         self._graphs: dict[int, NavGraph] = {}
 
     def graph(self, storey: int) -> NavGraph:
@@ -168,10 +171,16 @@ class Suggester:
         return self._graphs[storey]
 
     def suggest(
-        self, hypotheses: list[Hypothesis], odom_pose: np.ndarray, modes_share: float = 1.0, converged: bool = False
+        self,
+        hypotheses: list[Hypothesis],
+        odom_pose: np.ndarray,
+        modes_share: float = 1.0,
+        converged: bool = False,
+        seen_odom: np.ndarray | None = None,
     ) -> Suggestion:
         """The next goal for (K,) hypotheses (probabilities summing to 1, most probable first) at the robot's current
-        odometry pose; `modes_share` is the particle weight the hypotheses hold, `converged` the filter's flag."""
+        odometry pose; `modes_share` is the particle weight the hypotheses hold, `converged` the filter's flag,
+        `seen_odom` (V, 3) the odometry poses of the views the filter has weighed (the last `SEEN_VIEWS`)."""
         cfg = self.cfg.active
         hyps = distinct_places(hypotheses)
         odom_pose = np.asarray(odom_pose, float)
@@ -212,7 +221,7 @@ class Suggester:
         everywhere = np.isfinite(travel).all(axis=1)
         keep = everywhere if everywhere.any() else np.isfinite(travel[:, 0])
         gains = np.zeros(len(relative))
-        gains[keep] = information_gain(p, self.views.discrepancy(poses[keep], storeys))
+        gains[keep] = information_gain(p, self.unweighed_evidence(poses[keep], storeys, hyps, odom_pose, seen_odom))
         expected_travel = np.where(np.isfinite(travel), travel, 0.0) @ p / np.maximum(np.isfinite(travel) @ p, 1e-12)
         keyframes = self._keyframes(relative, expected_travel)
         informative = keep & (gains >= MIN_GAIN_NATS)
@@ -233,6 +242,24 @@ class Suggester:
         in_robot = se2_compose(se2_inverse(top.pose), np.column_stack([out.path_world, np.zeros(len(out.path_world))]))
         out.path_odom = se2_compose(odom_pose, in_robot)[:, :2]
         return out
+
+    def unweighed_evidence(
+        self,
+        poses: np.ndarray,
+        storeys: np.ndarray,
+        hyps: list[Hypothesis],
+        odom_pose: np.ndarray,
+        seen_odom: np.ndarray | None,
+    ) -> np.ndarray:
+        """(C, K, K) the evidence the candidates' views at (C, K, 3) poses give beyond the views already weighed:
+        D − max over the seen views of theirs, ≥ 0. The filter weighed those views and the places are still apart,
+        so the predicted evidence of views like them is what the filter does not realise."""
+        D = self.views.discrepancy(poses, storeys)
+        if seen_odom is None or not len(seen_odom):
+            return D
+        seen = se2_compose(se2_inverse(odom_pose), np.asarray(seen_odom, float).reshape(-1, 3)[-SEEN_VIEWS:])
+        in_places = np.stack([se2_compose(h.pose, seen) for h in hyps], axis=1)  # (V, K, 3)
+        return np.maximum(D - self.views.discrepancy(in_places, storeys).max(axis=0), 0.0)
 
     def _keyframes(self, relative: np.ndarray, travel_m: np.ndarray) -> np.ndarray:
         """(C,) keyframes the robot takes to reach each (C, 3) relative pose along paths of (C,) length: the distance

@@ -6,7 +6,8 @@ For a pose x on a storey the prediction holds what the filter weighs (`localizat
   cells of σ_d (the semantic term's distance scale), so two views differ by about the number of objects one of them
   has where the other has none of that label;
 - plates: the door-plate texts legible from x (in front of the plate, within `PLATE_LEGIBLE_M`, in view, nothing
-  between);
+  between, and far enough ahead that the plate is not above the image: its top at `sim.door_plates` height, seen
+  from the camera's mount height under the image's upper half-angle; 1.3 m for the simulated camera);
 - scan: the 2-D scan's endpoints, one per `SCAN_BEAM_DEG`, cast on the storey's obstacle layers.
 
 `discrepancy` turns the predictions at the poses of K places into D[k, j]: the log evidence expected against place j
@@ -28,7 +29,7 @@ from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config
 from bimfactor.localization.measurements.scan import LikelihoodField
-from bimfactor.types import wrap_angle
+from bimfactor.types import CameraIntrinsics, SequenceMeta, wrap_angle
 
 PLATE_LEGIBLE_M = 2.5  # a 15 cm plate is legible to ~2.4 m at 320 px over 90° (perception.text.sim_min_height_px)
 SCAN_BEAM_DEG = 6.0  # predicted scan: one beam per 6° (the filter weighs one per scan.beam_deg; this is a preview)
@@ -44,10 +45,28 @@ def bernoulli_divergence(p: float, f: float) -> float:
     return float(p * np.log(p / f) + (1 - p) * np.log((1 - p) / (1 - f)))
 
 
+def plate_near_m(cfg: Config, meta: SequenceMeta | None = None) -> float:
+    """How far ahead a door plate must be for its top to be in the image: the plate's top (`sim.door_plates`:
+    where plates hang, as buildings hang them) above the camera, over the tangent of the image's upper half-angle.
+    The camera is the sequence's (`meta`: intrinsics and mount), else the simulator's (`sim.camera`); its pitch is
+    taken as level."""
+    plates = cfg.sim.door_plates
+    if meta is None:
+        cam = cfg.sim.camera
+        intrinsics = CameraIntrinsics.from_hfov(cam.width, cam.height, cam.hfov_deg)
+        mount_m = cam.mount_height_m
+    else:
+        intrinsics, mount_m = meta.intrinsics, float(np.asarray(meta.T_base_camera)[2, 3])
+    top_m = plates.height_m + plates.size_m[1] / 2
+    return max(top_m - mount_m, 0.0) / (intrinsics.cy / intrinsics.fy)
+
+
 class ViewPredictor:
     """Predicted observations at poses of one prior, and the evidence they give between places."""
 
-    def __init__(self, prior: BimPrior, visibility: VisibilityTable, cfg: Config) -> None:
+    def __init__(
+        self, prior: BimPrior, visibility: VisibilityTable, cfg: Config, meta: SequenceMeta | None = None
+    ) -> None:
         self.prior, self.visibility, self.grid = prior, visibility, prior.grid
         smcl = cfg.smcl
         self.half_fov = np.deg2rad(smcl.semantic.fov_deg) / 2
@@ -67,6 +86,7 @@ class ViewPredictor:
         self.plate_xy = np.asarray([p.xy for p in plates], float).reshape(-1, 2)
         self.plate_normal = np.asarray([p.normal_xy for p in plates], float).reshape(-1, 2)
         self.plate_storey = np.asarray([p.storey_index for p in plates], np.int64)
+        self.plate_near_m = plate_near_m(cfg, meta)
         self.occupied = np.stack([layers.occupied for layers in prior.storeys]).reshape(len(prior.storeys), -1)
         self.field = LikelihoodField(prior, smcl.scan.sigma_m) if smcl.scan.enabled else None
         self.beams = np.deg2rad(np.arange(-smcl.semantic.fov_deg / 2, smcl.semantic.fov_deg / 2 + 1e-9, SCAN_BEAM_DEG))
@@ -115,6 +135,7 @@ class ViewPredictor:
         near = (
             (storeys[:, None] == self.plate_storey[None])
             & (dist <= PLATE_LEGIBLE_M)
+            & (dist * np.cos(bearing) >= self.plate_near_m)
             & (np.abs(bearing) <= self.half_fov)
             & facing
         )

@@ -286,8 +286,10 @@ def benchmark_suggest(prior: BimPrior, visibility: VisibilityTable, cfg: Config,
     """Milliseconds of one suggestion (`active.Suggester.suggest`) for `n_modes` hypotheses at random navigable poses of
     the storey with the most floor, probabilities falling from the first, and of the gain of exactly
     `active.candidates` candidate views over the hypotheses (the scoring, without the reachability test that drops
-    candidates some place cannot reach). The navigation graph is built before timing (once per building)."""
+    candidates some place cannot reach), both beyond the views of the last `SEEN_VIEWS` keyframes. The navigation
+    graph is built before timing (once per building)."""
     from bimfactor.active import Hypothesis, Suggester, information_gain
+    from bimfactor.active.suggest import SEEN_VIEWS
 
     rng = np.random.default_rng(seed)
     storey = int(np.argmax([layers.navigable.sum() for layers in prior.storeys]))
@@ -297,19 +299,22 @@ def benchmark_suggest(prior: BimPrior, visibility: VisibilityTable, cfg: Config,
     weights = np.arange(n_modes, 0, -1, dtype=float)
     weights /= weights.sum()
     n_candidates = cfg.active.candidates
+    # the views the filter weighed: the last SEEN_VIEWS keyframes of a straight drive to where the robot stands
+    seen = np.column_stack([np.linspace(-0.5 * SEEN_VIEWS, 0.0, SEEN_VIEWS), np.zeros((SEEN_VIEWS, 2))])
     suggest_ms, score_ms, scored = [], [], []
     for _ in range(repeats + 1):  # the first round warms caches and is dropped
         xy = prior.grid.cell_to_world(cells[rng.integers(len(cells), size=n_modes)])
         poses = np.column_stack([xy, rng.uniform(-np.pi, np.pi, n_modes)])
         hyps = [Hypothesis(p, storey, float(w)) for p, w in zip(poses, weights, strict=True)]
         t0 = time.perf_counter()
-        out = suggester.suggest(hyps, np.zeros(3))
+        out = suggester.suggest(hyps, np.zeros(3), seen_odom=seen)
         t1 = time.perf_counter()
         relative = np.column_stack([rng.uniform(-6, 6, (n_candidates, 2)), rng.uniform(-np.pi, np.pi, n_candidates)])
         views = np.stack([np.asarray(h.pose) for h in hyps])
         candidate_poses = np.stack([se2_compose(views[k], relative) for k in range(n_modes)], axis=1)
         t2 = time.perf_counter()
-        information_gain(weights, suggester.views.discrepancy(candidate_poses, np.full(n_modes, storey)))
+        storeys = np.full(n_modes, storey)
+        information_gain(weights, suggester.unweighed_evidence(candidate_poses, storeys, hyps, np.zeros(3), seen))
         t3 = time.perf_counter()
         suggest_ms.append((t1 - t0) * 1e3)
         score_ms.append((t3 - t2) * 1e3)

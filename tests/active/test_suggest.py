@@ -33,7 +33,7 @@ def _gain(suggester: Suggester, relative: np.ndarray) -> float:
 
 
 def test_a_view_of_the_plate_separates_the_twins_and_a_view_inside_them_does_not(twins: Suggester) -> None:
-    through_the_door_and_back = np.array([4.8, 0.0, np.pi])  # 4.8 m ahead (south), turned to face the door
+    through_the_door_and_back = np.array([5.5, 0.0, np.pi])  # 5.5 m ahead (south), turned to face the door 2 m off
     turned_round_inside = np.array([0.0, 0.0, np.pi])  # the room's far wall, its table: the same in both rooms
     plate_view, room_view = _gain(twins, through_the_door_and_back), _gain(twins, turned_round_inside)
     assert plate_view > 0.2  # of ln 2: a plate is read with probability 0.6, not surely (KL(0.6 ‖ ε) = 1.7 nats)
@@ -122,3 +122,23 @@ def test_the_suggestion_benchmark_times_the_whole_suggestion_and_the_scoring(twi
     assert row["modes"] == 3 and row["candidates"] == test_config.active.candidates
     assert row["suggest_ms_median"] > 0 and row["score_all_candidates_ms_median"] > 0
     assert 0 <= row["candidates_scored_median"] <= test_config.active.candidates
+
+
+def test_a_plate_too_close_is_above_the_image(twins: Suggester) -> None:
+    # Room B's plate hangs on the corridor side of its door (x ≈ 9.1, y = 3.0), 1.4 m up; the camera is 0.5 m up.
+    facing = np.pi / 2
+    far, close = np.array([[9.1, 1.0, facing]]), np.array([[9.1, 2.2, facing]])  # 2.0 m and 0.8 m ahead of it
+    assert twins.views.plate_near_m == pytest.approx(1.3, abs=0.05)
+    assert twins.views.plates(far, np.zeros(1, np.int64)).any()
+    assert not twins.views.plates(close, np.zeros(1, np.int64)).any()
+
+
+def test_a_view_the_filter_has_weighed_is_not_suggested_again(twins: Suggester) -> None:
+    # The plate is the only thing that tells the units apart: once the filter has weighed the plate's view and the
+    # belief is still even, no view is predicted to add anything, and the robot is left to its own route.
+    odom = np.array([1.0, -2.0, 0.3])
+    hyps = [Hypothesis(CORRIDOR_A, 0, 0.5), Hypothesis(CORRIDOR_B, 0, 0.5)]
+    first = twins.suggest(hyps, odom)
+    assert first.goal_odom is not None and first.gain_nats > 0.2
+    again = twins.suggest(hyps, odom, seen_odom=first.goal_odom[None])
+    assert again.goal_odom is None and "tells the places apart" in again.reason

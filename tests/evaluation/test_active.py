@@ -18,10 +18,10 @@ def test_the_active_run_follows_suggestions_and_is_the_passive_run_until_the_fir
 ) -> None:
     cfg = load_config(None, [*config_overrides, "evaluation.trajectory_length=16", "localization.variant=smcl+graph"])
     prior = BimPrior.load(paper_floor_prior)
-    run, frames, steer = active_route(paper_floor_prior, cfg, 1, 0, twin_motions(prior))
+    run, frames, steer = active_route(paper_floor_prior, cfg, 2, 0, twin_motions(prior))
     assert len(frames) == len(run.poses) == 16
     assert steer.first_suggestion is not None and steer.goals  # the belief narrowed to a few places and asked
-    (passive,), _ = simulate_routes(paper_floor_prior, cfg, [(1, 16)])
+    (passive,), _ = simulate_routes(paper_floor_prior, cfg, [(2, 16)])
     first = steer.first_suggestion + 1  # frames up to and including the one the first suggestion came after
     for mine, theirs in zip(frames[:first], passive.frames[:first], strict=True):
         np.testing.assert_allclose(mine.gt_pose, theirs.gt_pose)
