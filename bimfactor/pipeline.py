@@ -433,10 +433,10 @@ class Localizer:
                 "(a TUM RGB-D folder has none; convert a recording with an odometry topic)"
             )
         increment, frame, skipped = self._odometry_step(frame)
-        self._seen.append(self._believed_odom.copy())
         skipped = skipped or depth_problem(frame.depth_m, self.cfg)
         started = time.perf_counter()
         if skipped is None:
+            self._seen.append(self._believed_odom.copy())  # a view the filter weighs (`suggest`)
             observations: Observations = self.perception.step(frame).observations
             use_scan = self.cfg.smcl.scan.enabled or self.matcher
             scan = frame_endpoints(frame, self.meta, self.cfg) if use_scan else None

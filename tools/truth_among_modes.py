@@ -30,18 +30,16 @@ def main(argv: list[str] | None = None) -> int:
     from bimfactor.active.suggest import SAME_PLACE_M
     from bimfactor.bim.symmetry import twin_motions
     from bimfactor.config import load_config
-    from bimfactor.evaluation.paper import run_seed
+    from bimfactor.evaluation.paper import run_seed, simulate_routes
     from bimfactor.pipeline import Localizer, scan_matcher
-    from bimfactor.sim.simulate import build_world, load_world_inputs, simulate_sequence
 
     cfg = load_config("default", ["localization.variant=smcl+graph"])
     asked, among, truth_p, top_p = 0, 0, [], []
     with threadpool_limits(1):  # as the benchmark's runs: one BLAS thread
-        prior, model = load_world_inputs(args.prior_dir, cfg)
-        world = build_world(prior, model, cfg, cfg.seed)
+        routes = [(route, cfg.evaluation.trajectory_length) for route in range(args.routes)]
+        sims, prior = simulate_routes(args.prior_dir, cfg, routes)
         twins, matcher = twin_motions(prior), scan_matcher(prior, cfg)
-        for route in range(args.routes):
-            sim = simulate_sequence(prior, model, cfg, route, cfg.seed, progress=False, world=world)
+        for route, sim in enumerate(sims):
             seed = run_seed(cfg.seed, route, 0)
             localizer = Localizer(prior, sim.meta, cfg, seed, prior_dir=args.prior_dir, matcher=matcher, twins=twins)
             for frame in sim.frames:

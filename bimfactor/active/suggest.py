@@ -180,7 +180,8 @@ class Suggester:
     ) -> Suggestion:
         """The next goal for (K,) hypotheses (probabilities summing to 1, most probable first) at the robot's current
         odometry pose; `modes_share` is the particle weight the hypotheses hold, `converged` the filter's flag,
-        `seen_odom` (V, 3) the odometry poses of the views the filter has weighed (the last `SEEN_VIEWS`)."""
+        `seen_odom` (V, 3) the odometry poses of the views the filter has weighed (the localizer keeps the last
+        `SEEN_VIEWS`)."""
         cfg = self.cfg.active
         hyps = distinct_places(hypotheses)
         odom_pose = np.asarray(odom_pose, float)
@@ -257,7 +258,7 @@ class Suggester:
         D = self.views.discrepancy(poses, storeys)
         if seen_odom is None or not len(seen_odom):
             return D
-        seen = se2_compose(se2_inverse(odom_pose), np.asarray(seen_odom, float).reshape(-1, 3)[-SEEN_VIEWS:])
+        seen = se2_compose(se2_inverse(odom_pose), np.asarray(seen_odom, float).reshape(-1, 3))
         in_places = np.stack([se2_compose(h.pose, seen) for h in hyps], axis=1)  # (V, K, 3)
         return np.maximum(D - self.views.discrepancy(in_places, storeys).max(axis=0), 0.0)
 
