@@ -202,6 +202,13 @@ def _mode_rows(run: LocalizationRun, prior: BimPrior) -> list[list[object]]:
     return rows
 
 
+def _mode_file(rank: int, mode_id: int) -> str:
+    """The trajectory file of the refined mode listed `rank`-th (from 0, best fit first) in modes.json: one mode id
+    can name two candidates (a graph restarted at a scan match far from its prediction leaves its earlier graph as a
+    candidate too), and a mode can be refined over two stretches."""
+    return f"modes/{rank:02d}_mode_{mode_id}.txt"
+
+
 def write_refined(
     refined: RefinedRun,
     prior: BimPrior,
@@ -215,8 +222,8 @@ def write_refined(
     that reports it, empty where the forward pass's estimate stands), modes.json (the stretches, each with how it
     begins: at the start, where the filter relocalized or where refine parted a stretch offline; and every refined
     mode by stretch, best fit first, with its fit and forward probability: at the end, or when pruned) and
-    modes/mode_<id>.txt (each mode's refined trajectory over its stretch), metrics.json (with ground truth: the
-    refined metrics and the forward pass's), config.yaml, trajectory.png.
+    modes/NN_mode_<id>.txt (each mode's refined trajectory over its stretch, NN its rank in modes.json),
+    metrics.json (with ground truth: the refined metrics and the forward pass's), config.yaml, trajectory.png.
     """
     out_dir = Path(out_dir)
     ensure_run_destination(out_dir, inputs)
@@ -248,17 +255,17 @@ def write_refined(
             "iterations": m.batch.iterations,
             "reassociation_rounds": m.rounds,
             "matches": sum(len(a) for a in m.associations),
-            "trajectory": f"modes/mode_{m.mode_id}.txt",
+            "trajectory": _mode_file(rank, m.mode_id),
         }
-        for m, fit in zip(refined.modes, refined.fits, strict=True)
+        for rank, (m, fit) in enumerate(zip(refined.modes, refined.fits, strict=True))
     ]
     with output_dir(out_dir, "run", inputs=inputs) as tmp:
         (tmp / "config.yaml").write_text(config_yaml)
         write_tum_trajectory(tmp / "estimate.txt", run.timestamps_s, est.poses, comment="bimfactor refine")
         write_tum_trajectory(tmp / "forward.txt", run.timestamps_s, run.poses, comment=f"bimfactor {run.variant}")
-        for m in refined.modes:
+        for rank, m in enumerate(refined.modes):
             stamps = run.timestamps_s[m.start : m.start + len(m.poses)]
-            write_tum_trajectory(tmp / "modes" / f"mode_{m.mode_id}.txt", stamps, m.poses)
+            write_tum_trajectory(tmp / _mode_file(rank, m.mode_id), stamps, m.poses)
         (tmp / "steps.csv").write_text(_csv(REFINED_COLUMNS, rows))
         segments = [
             {
