@@ -18,6 +18,7 @@ import signal
 import sys
 import time
 import traceback
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
@@ -118,6 +119,15 @@ DetectionsOption = Annotated[
         metavar="FILE",
         help="A detector's detections of the frames (JSON Lines, docs/perception.md), for this run instead of "
         "SEQ_DIR/detections.jsonl or the simulator's.",
+    ),
+]
+IntrinsicsOption = Annotated[
+    str | None,
+    typer.Option(
+        "--intrinsics",
+        metavar="FX,FY,CX,CY",
+        help="A TUM folder's colour-camera intrinsics in pixels, instead of the Freiburg camera the folder's name "
+        "suggests.",
     ),
 ]
 SetOption = Annotated[
@@ -878,15 +888,7 @@ def convert(
             "odometry even when it has some; none: keep every frame without odometry (localize refuses it).",
         ),
     ] = "auto",
-    intrinsics_text: Annotated[
-        str | None,
-        typer.Option(
-            "--intrinsics",
-            metavar="FX,FY,CX,CY",
-            help="tum: the colour camera's intrinsics in pixels, instead of the Freiburg camera the folder's name "
-            "suggests.",
-        ),
-    ] = None,
+    intrinsics_text: IntrinsicsOption = None,
     detections: Annotated[
         Path | None,
         typer.Option(
@@ -1209,8 +1211,9 @@ def _perception_source(
     if backend == "sim":
         return cfg, None, f"perception: sim (the simulator's instance buffer, error preset {cfg.perception.sim_preset})"
     if backend == "vlm":
-        _check_vlm(cfg, None)  # auto chose it: checked here, before the models load
         return cfg, None, "perception: vlm (YOLO-World + SAM + CLIP on the colour frames)"
+    if backend == "yolox":
+        return cfg, None, "perception: yolox (the shipped YOLOX-Nano on the colour frames, COCO classes as labels)"
     table = read_detections(
         path,
         sequence.timestamps(),
@@ -1372,6 +1375,49 @@ def _suggestion_line(suggestion: Suggestion) -> str:
     )
 
 
+@app.command("scene-graph", short_help="Build the online open-set scene graph of an RGB-D recording with camera poses.")
+def scene_graph(
+    recording: Annotated[
+        Path,
+        typer.Argument(metavar="RECORDING", help="A TUM RGB-D folder with groundtruth.txt, or a sequence folder."),
+    ],
+    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Folder to write.")],
+    intrinsics_text: IntrinsicsOption = None,
+    config: ConfigOption = None,
+    overrides: SetOption = None,
+    verbose: VerboseOption = False,
+    debug: DebugOption = False,
+) -> None:
+    """Build the online open-set scene graph (the paper's Sec. II.B) of a recording from its camera poses: a TUM
+    RGB-D folder's motion-capture poses (6-DoF, a hand-held camera's too), or a sequence's ground-truth (else
+    odometry) poses through its camera mount. Each frame is detected (perception.backend; auto: the simulator's for a
+    simulated sequence, the folder's detections.jsonl, else the shipped YOLOX-Nano with COCO's class names), its
+    boxes segmented by depth, lifted and fused into the graph's nodes.
+
+    Writes OUT/scene_graph.json (each node's label, centre and extent in metres in the recording's world frame,
+    observations and voxels; the edges), OUT/scene_graph.png (the nodes over the fused point cloud, from above) and
+    OUT/config.yaml. OUT must be new, empty or an earlier scene graph.
+
+    \b
+    Examples:
+      bimfactor scene-graph ../shared/data/real/tum-fr1-rpy -o runs/sg-tum
+      bimfactor scene-graph ../shared/data/real/slambook-dining -o runs/sg-dining --intrinsics 518,519,325.5,253.5
+      bimfactor scene-graph runs/demo/sequence -o runs/sg-demo
+    """
+    with _cli_errors(debug):
+        cfg = _start(config, overrides, verbose)
+        from bimfactor.evaluation.mapping import scene_graph_run
+
+        intrinsics = None if intrinsics_text is None else _tum_intrinsics(intrinsics_text, recording)
+        done = scene_graph_run(recording, output, cfg, intrinsics, show_progress=True)
+        counts = Counter(node["label"] for node in done.record["nodes"])
+        listing = ", ".join(f"{n} {label}" for label, n in counts.most_common())
+        typer.echo(
+            f"wrote {output}: {len(done.record['nodes'])} nodes from {done.record['frames_used']} frames "
+            f"({done.record['detector']}, {done.record['poses']} poses): {listing or 'none'}; figure {done.figure.name}"
+        )
+
+
 @app.command(short_help="Localize with pose graphs, then smooth each surviving mode's whole trajectory (offline).")
 def refine(
     prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
@@ -1395,7 +1441,7 @@ def refine(
     forward pass's accepted ICP fits enter as pose factors); the most probable mode is the estimate.
 
     Writes OUT/estimate.txt (refined, TUM), forward.txt (the forward pass, TUM), steps.csv (refined pose and
-    covariance per step), modes.json and modes/mode_<id>.txt (every refined mode), metrics.json (with ground
+    covariance per step), modes.json and modes/NN_mode_<id>.txt (every refined mode), metrics.json (with ground
     truth: refined and forward metrics), config.yaml and trajectory.png, as one folder written atomically. OUT
     must be new, empty or an earlier run.
 

@@ -127,6 +127,11 @@ class EmbedConfig(_Strict):
 class SimPerceptionErrors(_Strict):
     """One named error preset of the simulated perception backend (bimfactor/configs/perception_sim.yaml)."""
 
+    detector: Literal["open_vocabulary", "yolox"] = Field(
+        description="The detector it emulates. open_vocabulary: the paper's YOLO-World + SAM + CLIP, every class the "
+        "BIM holds, with masks and crop embeddings (the mask_* and embedding_* keys); yolox: the shipped YOLOX-Nano, "
+        "only the classes it reports under the vocabulary, boxes segmented by depth and embedded by their label."
+    )
     range_half_m: float = Field(gt=0.0, description="Distance at which the detection quality falls to one half.")
     range_width_m: float = Field(gt=0.0, description="Width of that logistic fall-off with distance.")
     visible_half: float = Field(ge=0.0, le=1.0, description="Visible fraction at which the quality halves.")
@@ -146,16 +151,39 @@ class SimPerceptionErrors(_Strict):
     false_positive_side_px: list[float] = Field(
         min_length=2, max_length=2, description="Side range of a false-positive box (log-uniform)."
     )
-    mask_dilate_prob: float = Field(ge=0.0, le=1.0, description="Share of masks grown into the background ...")
-    mask_erode_prob: float = Field(ge=0.0, le=1.0, description="... or shrunk, each by 1..mask_radius_px pixels.")
-    mask_radius_px: int = Field(ge=0, description="Largest dilation / erosion radius.")
-    mask_bleed: float = Field(ge=0.0, le=1.0, description="Random background pixels of the box added, share of mask.")
-    embedding_dprime: float = Field(
-        gt=0.0, description="d' = Δμ/σ of matched vs unmatched crop-to-text cosines (CLIP ViT-L/14: ≈ 3)."
+    mask_dilate_prob: float | None = Field(
+        default=None, ge=0.0, le=1.0, description="Share of masks grown into the background ..."
     )
-    embedding_same_instance: float = Field(gt=0.0, lt=1.0, description="Crop-to-crop cosine, same object.")
-    embedding_same_class: float = Field(gt=0.0, lt=1.0, description="Crop-to-crop cosine, same class, other object.")
-    embedding_other_class: float = Field(gt=0.0, lt=1.0, description="Crop-to-crop cosine, other class.")
+    mask_erode_prob: float | None = Field(
+        default=None, ge=0.0, le=1.0, description="... or shrunk, each by 1..mask_radius_px pixels."
+    )
+    mask_radius_px: int | None = Field(default=None, ge=0, description="Largest dilation / erosion radius.")
+    mask_bleed: float | None = Field(
+        default=None, ge=0.0, le=1.0, description="Random background pixels of the box added, share of mask."
+    )
+    embedding_dprime: float | None = Field(
+        default=None, gt=0.0, description="d' = Δμ/σ of matched vs unmatched crop-to-text cosines (CLIP ViT-L/14: ≈ 3)."
+    )
+    embedding_same_instance: float | None = Field(
+        default=None, gt=0.0, lt=1.0, description="Crop-to-crop cosine, same object."
+    )
+    embedding_same_class: float | None = Field(
+        default=None, gt=0.0, lt=1.0, description="Crop-to-crop cosine, same class, other object."
+    )
+    embedding_other_class: float | None = Field(
+        default=None, gt=0.0, lt=1.0, description="Crop-to-crop cosine, other class."
+    )
+
+    @model_validator(mode="after")
+    def _masks_and_embeddings_for_the_open_vocabulary_detector(self) -> SimPerceptionErrors:
+        extra = [f for f in type(self).model_fields if f.startswith(("mask_", "embedding_"))]
+        given = [f for f in extra if getattr(self, f) is not None]
+        if self.detector == "open_vocabulary" and len(given) < len(extra):
+            missing = ", ".join(f for f in extra if f not in given)
+            raise ValueError(f"detector open_vocabulary needs its masks' and crop embeddings' keys: {missing}")
+        if self.detector == "yolox" and given:
+            raise ValueError(f"detector yolox has no masks or crop embeddings to model: drop {', '.join(given)}")
+        return self
 
 
 class VlmConfig(_Strict):
@@ -212,13 +240,17 @@ class TextReadingConfig(_Strict):
 
 
 class PerceptionConfig(_Strict):
-    backend: Literal["auto", "sim", "detections", "vlm"] = Field(
+    backend: Literal["auto", "sim", "detections", "yolox", "vlm"] = Field(
         description="auto: from what the sequence holds (sim for a simulated one, else detections when it has a "
-        "detections file, else vlm when its weights are set); sim: the simulator's instance buffer with an error "
-        "model; detections: a detector's detections file (docs/perception.md); vlm: YOLO-World + SAM + CLIP."
+        "detections file, else yolox); sim: the simulator's instance buffer with an error model; detections: a "
+        "detector's detections file (docs/perception.md); yolox: the shipped YOLOX-Nano (COCO classes); vlm: "
+        "YOLO-World + SAM + CLIP (weights you provide)."
     )
     device: str = Field(description="torch device of the vlm backend ('cpu', 'cuda', 'cuda:1').")
-    sim_preset: str = Field(description="Error preset of the sim backend: a name in `sim_presets_file`.")
+    sim_preset: str = Field(
+        description="Error preset of the sim backend: a name in `sim_presets_file` (yolox: the shipped detector's "
+        "eyes; paper: the paper's open-vocabulary ones)."
+    )
     sim_presets_file: str = Field(description="Table of sim error presets, relative to bimfactor/configs/.")
     vlm: VlmConfig
     box_threshold: float = Field(ge=0.0, le=1.0, description="Detector box score threshold (paper: 0.25).")

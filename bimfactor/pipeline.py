@@ -70,6 +70,7 @@ from bimfactor.localization.stats import (
 )
 from bimfactor.odometry import odometry_increment
 from bimfactor.perception.detections import DetectionsTable
+from bimfactor.perception.ocr import plate_columns
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
 from bimfactor.registration.correlative import CorrelativeMatcher
@@ -92,6 +93,10 @@ ODOMETRY_JUMP_SLACK_M = 0.5
 same timestamp, or stamped late, still move a keyframe's spacing."""
 SKIP_KINDS = ("empty_depth", "saturated_depth", "odometry_jump")
 """Why a frame is skipped, in the order the summary lists them."""
+PLATE_FORECAST_SHARE = 1e-3
+"""A real frame's text is read only in the image columns where at least this share of the belief (one particle in a
+thousand) holds a door plate in reading range: a spread belief reads wherever plates can be, a settled one only
+where its place has one (`Localizer._plate_columns`)."""
 
 
 class _PerStep:
@@ -437,7 +442,7 @@ class Localizer:
         started = time.perf_counter()
         if skipped is None:
             self._seen.append(self._believed_odom.copy())  # a view the filter weighs (`suggest`)
-            observations: Observations = self.perception.step(frame).observations
+            observations: Observations = self.perception.step(frame, self._plate_columns(increment)).observations
             use_scan = self.cfg.smcl.scan.enabled or self.matcher
             scan = frame_endpoints(frame, self.meta, self.cfg) if use_scan else None
         else:
@@ -483,6 +488,21 @@ class Localizer:
         if skipped is None:
             self._recent.append(frame)
         return out
+
+    def _plate_columns(self, increment: np.ndarray | None) -> np.ndarray | None:
+        """(W,) bool: the image columns where the belief, moved by this step's odometry, holds a door plate in reading
+        range with at least `PLATE_FORECAST_SHARE` of its weight (`perception.ocr.plate_columns`); None where the text
+        reader reads everywhere anyway (the simulator's)."""
+        reader = self.perception.reader
+        if reader is None or not reader.wants_columns:
+            return None
+        plates, weights = self.filter.models.plates, self.filter.estimation_weights()
+        poses = se2_compose(self.filter.particles, np.zeros(3) if increment is None else increment)
+        share = plate_columns(
+            plates.ends, plates.normal, plates.storey, poses, self.filter.storeys, weights, self.meta.intrinsics,
+            self.meta.T_base_camera,
+        )  # fmt: skip
+        return share >= PLATE_FORECAST_SHARE * weights.sum()
 
     def suggest(self) -> Suggestion:
         """Where to look next from the belief after the last step (`bimfactor.active`): the viewpoint, as a goal in the

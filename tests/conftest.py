@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import pytest
 
 from bimfactor.config import Config, load_config
-from bimfactor.evaluation.bench import SHARED_IFC_DIR, find_shared_ifc_dir
+from bimfactor.evaluation.bench import SHARED_IFC_DIR, SHARED_REAL_DIR, find_shared_ifc_dir
 from tests.sim import conftest as sim_fixtures
 
 if TYPE_CHECKING:
@@ -34,6 +34,19 @@ def ifc_dir() -> Path:
     if found is None:
         pytest.skip(f"real IFC buildings not available: {SHARED_IFC_DIR} is missing")
     return found
+
+
+@pytest.fixture(scope="session")
+def real_recording():
+    """`real_recording("tum-fr1-rpy")` → the real RGB-D recording in ../shared/data/real; skips when it is absent."""
+
+    def get(name: str) -> Path:
+        path = SHARED_REAL_DIR / name
+        if not (path / "rgb.txt").is_file():
+            pytest.skip(f"real recording not available: {path}")
+        return path
+
+    return get
 
 
 @pytest.fixture(scope="session")

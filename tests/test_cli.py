@@ -547,7 +547,9 @@ def test_localize_moves_a_belief_started_in_the_look_alike_room_next_door(
 ) -> None:
     # A pose guess 9.3 m west of the truth is the room next door along the corridor, a room of the same shape: the
     # belief converged there explains the scans, so the lost monitor stays quiet for most of the run. The
-    # challenger drawn from the observations out-predicts it within a few steps; without it the belief stays.
+    # challenger drawn from the observations out-predicts it within a few steps; without it the belief stays. With the
+    # paper's open-vocabulary eyes: the objects the challenger is drawn from (the shipped detector's see few of them
+    # on this floor, and the belief moves only after 15 steps).
     frames = read_sequence(short_sequence)
     x, y, yaw = frames[0].gt_pose
     guess = f"{x - 9.3},{y},{np.degrees(yaw)}"
@@ -555,7 +557,8 @@ def test_localize_moves_a_belief_started_in_the_look_alike_room_next_door(
     for challenger in (True, False):
         run = tmp_path / f"run-{challenger}"
         result = invoke("localize", demo_prior, short_sequence, "-o", run, "--initial-pose", guess,
-                        "--set", f"smcl.challenger.enabled={str(challenger).lower()}")  # fmt: skip
+                        "--set", f"smcl.challenger.enabled={str(challenger).lower()}",
+                        "--set", "perception.sim_preset=paper")  # fmt: skip
         assert result.exit_code == 0, result.output
         rows = list(csv.DictReader((run / "steps.csv").read_text().splitlines()))
         moved = [int(r["step"]) for r in rows if r["challenged"] == "1"]

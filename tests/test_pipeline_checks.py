@@ -56,10 +56,12 @@ class OneHot:
 class StubPerception:
     """Records the frames it is stepped with and sees nothing in them."""
 
+    reader = None  # reads no text
+
     def __init__(self) -> None:
         self.frames: list[Frame] = []
 
-    def step(self, frame: Frame) -> SimpleNamespace:
+    def step(self, frame: Frame, plate_columns: np.ndarray | None = None) -> SimpleNamespace:
         self.frames.append(frame)
         empty = Observations(np.zeros((0, OneHot.dim), np.float32), np.zeros(0), np.zeros(0))
         return SimpleNamespace(observations=empty)

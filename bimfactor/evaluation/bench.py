@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 SHARED_IFC_DIR = PROJECT_ROOT.parent / "shared" / "data" / "ifc"
+SHARED_REAL_DIR = PROJECT_ROOT.parent / "shared" / "data" / "real"
+"""Real RGB-D recordings with camera poses (TUM folders) beside the project: the detector's and the scene graph's
+real-frame checks."""
 DEFAULT_PRIOR_BENCH_FILES = ("AC11-Institute-Var-2-IFC.ifc",)
 
 

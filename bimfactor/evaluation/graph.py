@@ -483,7 +483,7 @@ def benchmark_graph_update(
         graph = perception.graph
         for frame, (detections, masks, emb) in zip(sim.frames, fronts, strict=True):
             t0 = time.perf_counter()
-            stats = graph.update(frame, detections, masks, emb, frame.odom_pose)
+            stats = graph.update(frame, detections, masks, emb)
             total = (time.perf_counter() - t0) * 1e3
             totals.append(total)
             lifts.append(stats.lift_ms)

@@ -325,3 +325,46 @@ def save_suggestion_figure(prior: BimPrior, suggestion: Suggestion, path: str | 
     )
     fig.suptitle(f"{title}\n{what}" if title else what, fontsize=10)
     return save_figure(fig, path, dpi=110)
+
+
+def save_scene_graph_figure(record: dict, cloud: np.ndarray, up: np.ndarray, path: str | Path, title: str = "") -> Path:
+    """A recording's scene graph seen from above (along `up`): the fused depth cloud in grey, shaded by height, and
+    each node as its box in its label's colour with a dot at its centre, the larger the more often it was seen; a
+    legend gives the labels and their node counts, the axes metres."""
+    from collections import Counter
+
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    seed = np.eye(3)[int(np.argmin(np.abs(up)))]
+    e1 = np.cross(up, seed)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    fig, ax = plt.subplots(figsize=(7.5, 6.5))
+    if len(cloud):
+        height = cloud @ up
+        lo, hi = np.percentile(height, [2, 98])
+        ax.scatter(cloud @ e1, cloud @ e2, c=np.clip(height, lo, hi), cmap="Greys", s=1.0, alpha=0.5, linewidths=0,
+                   rasterized=True)  # fmt: skip
+    counts = Counter(n["label"] for n in record["nodes"])
+    labels = sorted(counts, key=lambda label: (-counts[label], label))
+    cmap = plt.get_cmap("tab10" if len(labels) <= 10 else "tab20")
+    colour = {label: cmap(i % cmap.N) for i, label in enumerate(labels)}
+    for node in record["nodes"]:
+        centre, half = np.asarray(node["centre_m"]), np.asarray(node["extent_m"]) / 2
+        corners = centre + np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+        u, v = corners @ e1, corners @ e2
+        c = colour[node["label"]]
+        ax.add_patch(
+            plt.Rectangle((u.min(), v.min()), np.ptp(u), np.ptp(v), lw=1.4, edgecolor=c, facecolor=(*c[:3], 0.12))
+        )
+        ax.scatter([centre @ e1], [centre @ e2], s=12 + 4 * min(node["n_observations"], 30), color=c,
+                   edgecolors="black", linewidths=0.5, zorder=3)  # fmt: skip
+    handles = [plt.Line2D([], [], color=colour[label], lw=2, label=f"{label} ({counts[label]})") for label in labels]
+    if handles:
+        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="nodes")
+    ax.set_aspect("equal")
+    ax.set_xlabel("m")
+    ax.set_ylabel("m")
+    nodes = len(record["nodes"])
+    what = f"{nodes} nodes from {record['frames_used']} frames ({record['detector']}, {record['poses']} poses)"
+    ax.set_title(f"{title}\n{what}" if title else what, fontsize=10)
+    return save_figure(fig, path, dpi=120)

@@ -33,7 +33,7 @@ from bimfactor.errors import InputError
 log = logging.getLogger(__name__)
 
 MARKER = ".bimfactor.json"
-ATOMIC_KINDS = ("prior", "sequence", "run")
+ATOMIC_KINDS = ("prior", "sequence", "run", "scene-graph")
 CONTAINER_KINDS = ("demo", "bench", "sequences")
 
 

@@ -179,3 +179,17 @@ def _read_file_list(folder: Path, name: str) -> tuple[np.ndarray, list[Path]]:
     if not times:
         raise FormatError(f"{path}: no images listed")
     return np.array(times), files
+
+
+def tum_camera_poses(folder: str | Path, timestamps_s: np.ndarray, max_sync_dt_s: float) -> np.ndarray:
+    """(N, 4, 4) T_world_camera of the frames stamped `timestamps_s`: the folder's groundtruth.txt pose nearest in
+    time (within `max_sync_dt_s`; NaN where none is). The full 6-DoF pose, as the motion capture gave it.
+    InputError when the folder has no groundtruth.txt."""
+    gt_file = Path(folder) / "groundtruth.txt"
+    if not gt_file.is_file():
+        raise InputError(f"{folder}: no groundtruth.txt (the camera poses a scene graph is built from)")
+    gt_times, T_world_camera = read_tum_poses(gt_file)
+    i_frame, i_gt = associate_nearest(np.asarray(timestamps_s, float), gt_times, max_sync_dt_s, one_to_one=False)
+    poses = np.full((len(timestamps_s), 4, 4), np.nan)
+    poses[i_frame] = T_world_camera[i_gt]
+    return poses

@@ -78,10 +78,14 @@ class TextReading:
 
 @runtime_checkable
 class TextReader(Protocol):
-    """Image → the text it shows, with where (a scene-text reader: OCR)."""
+    """Image → the text it shows, with where (a scene-text reader: OCR). `wants_columns`: whether it reads less when
+    told where plates can be (then the localizer forecasts the columns from its belief)."""
 
-    def read(self, frame: Frame) -> list[TextReading]:
-        """The readings of one frame whose score passes the reader's threshold."""
+    wants_columns: bool
+
+    def read(self, frame: Frame, columns: np.ndarray | None = None) -> list[TextReading]:
+        """The readings of one frame whose score passes the reader's threshold; `columns` (W,) bool, where given, are
+        the image columns a plate can be in (the belief's forecast): a reader may read only there."""
         ...
 
 

@@ -20,17 +20,19 @@ from bimfactor.config import Config, PerceptionConfig, config_file, updated
 from bimfactor.embed.text import TextEmbedder
 from bimfactor.errors import DependencyError, InputError
 from bimfactor.perception.base import Detection, Detector, Embedder, Segmenter, TextReader, TextReading
-from bimfactor.perception.detections import (
-    DetectionsTable,
-    FileDetector,
-    FileEmbedder,
-    FileSegmenter,
-    detection_records,
-    write_detections,
-)
+from bimfactor.perception.boxes import BoxSegmenter, LabelEmbedder
+from bimfactor.perception.detections import DetectionsTable, FileDetector, detection_records, write_detections
 from bimfactor.perception.scene_graph import OnlineSceneGraph, UpdateStats
-from bimfactor.perception.sim import LabelConfusion, SimDetector, SimEmbedder, SimSegmenter, load_sim_errors
+from bimfactor.perception.sim import (
+    LabelConfusion,
+    SimDetector,
+    SimEmbedder,
+    SimSegmenter,
+    load_sim_errors,
+    reported_labels,
+)
 from bimfactor.perception.text import SimTextReader, locate_readings
+from bimfactor.perception.yolox import LabelTable, YoloxDetector, coco_label_table
 from bimfactor.progress import progress
 from bimfactor.types import Frame, Observations, SequenceMeta
 
@@ -41,9 +43,14 @@ _WARNED = {"no_ocr": False}  # a missing RapidOCR is said once a process, not on
 DETECTOR_STREAM, SEGMENTER_STREAM, EMBEDDER_STREAM, READER_STREAM = 0xDE7, 0x5E6, 0xE3B, 0x7E7
 
 
+def vocabulary_of(cfg: Config) -> Vocabulary:
+    """The object vocabulary the prior's labels come from (`bim.objects.vocabulary_file`)."""
+    return Vocabulary.load(config_file(cfg.bim.objects.vocabulary_file))
+
+
 def household_vocabulary(cfg: Config) -> list[str]:
     """The open-vocabulary detector's classes: the labels of bimfactor/configs/vocabulary.yaml, in table order."""
-    return Vocabulary.load(config_file(cfg.bim.objects.vocabulary_file)).labels
+    return vocabulary_of(cfg).labels
 
 
 @dataclass
@@ -85,14 +92,16 @@ class Perception:
         embeddings = self.embedder.embed(frame, detections, masks)
         return detections, masks, embeddings
 
-    def step(self, frame: Frame) -> FrameResult:
-        """Perceive one frame, update the graph at the frame's odometry pose, and list the nodes in view."""
+    def step(self, frame: Frame, plate_columns: np.ndarray | None = None) -> FrameResult:
+        """Perceive one frame, update the graph at the frame's odometry pose, and list the nodes in view; read text
+        where the reader can (`plate_columns` (W,) bool: the image columns a plate can be in, None: anywhere)."""
         detections, masks, embeddings = self.perceive(frame)
-        stats = self.graph.update(frame, detections, masks, embeddings, frame.odom_pose)
-        view = self.graph.view(frame.depth_m, frame.odom_pose)
+        T_odom_cam = self.graph.camera_pose(frame.odom_pose)
+        stats = self.graph.update(frame, detections, masks, embeddings, T_odom_cam)
+        view = self.graph.view(frame.depth_m, T_odom_cam)
         since = frame.index if self.graph.cfg.observation_nodes == "detected" else None
         observations = self.graph.observations(frame.odom_pose, view=view, since_frame=since)
-        readings = self.reader.read(frame) if self.reader is not None else []
+        readings = self.reader.read(frame, plate_columns) if self.reader is not None else []
         if readings:
             g = self.graph
             observations.texts = locate_readings(
@@ -114,7 +123,7 @@ def sim_rng(seed: int, meta: SequenceMeta, stream: int) -> np.random.Generator:
 
 def choose_backend(p: PerceptionConfig, meta: SequenceMeta, has_detections: bool) -> str:
     """The backend `perception.backend` names; `auto` picks from what the sequence holds: the simulator's instance
-    table → sim, a detections file → detections, vlm weights configured → vlm. InputError when nothing fits."""
+    table → sim, a detections file → detections, else the shipped detector (yolox)."""
     if p.backend == "detections" and not has_detections:
         raise InputError(
             f"sequence {meta.name}: perception.backend=detections needs a detections file "
@@ -124,16 +133,7 @@ def choose_backend(p: PerceptionConfig, meta: SequenceMeta, has_detections: bool
         return p.backend
     if meta.instances:
         return "sim"
-    if has_detections:
-        return "detections"
-    if p.vlm.yolo_world_weights.strip() or p.vlm.sam_weights.strip():
-        return "vlm"
-    raise InputError(
-        f"sequence {meta.name} gives perception nothing to work with (no simulator instance table, no detections "
-        "file, no vlm weights): put a detector's detections.jsonl in the sequence folder, pass localize --detections "
-        "FILE, or set perception.vlm.yolo_world_weights, perception.vlm.sam_weights and embed.clip_weights "
-        "(docs/perception.md)"
-    )
+    return "detections" if has_detections else "yolox"
 
 
 def make_perception(
@@ -144,6 +144,7 @@ def make_perception(
     sim_preset: str | None = None,
     detections: DetectionsTable | None = None,
     read_text: bool | None = None,
+    mapping: bool = False,
 ) -> Perception:
     """The perception stack `cfg.perception.backend` names for a sequence (`choose_backend`); `seed` defaults to
     `cfg.seed`.
@@ -152,6 +153,8 @@ def make_perception(
     The detections backend reads `detections` (`detections.read_detections`). `read_text` (default
     `perception.text.enabled`) says whether door plates are read: the localizer reads none when its prior has none.
     With `perception.text.reader: auto` on real frames and RapidOCR not installed, it reads none and says so once.
+    `mapping`: a recording's graph from 6-DoF camera poses with no prior to match (`perception.mapping`): the shipped
+    detector keeps COCO's class names, and boxes are segmented with no floor cut (a hand-held camera has no base).
     """
     p = cfg.perception
     seed = cfg.seed if seed is None else seed
@@ -161,10 +164,10 @@ def make_perception(
     reader: TextReader | None = None
     read_text = p.text.enabled if read_text is None else read_text
     if read_text and (p.text.reader == "rapidocr" or (p.text.reader == "auto" and backend != "sim")):
-        from bimfactor.perception.ocr import RapidOcrReader
+        from bimfactor.perception.ocr import PlateReader
 
         try:
-            reader = RapidOcrReader(p.text.min_score)
+            reader = PlateReader(meta.intrinsics, meta.T_base_camera, p.text.min_score)
         except DependencyError as exc:
             if p.text.reader == "rapidocr":
                 raise
@@ -178,22 +181,38 @@ def make_perception(
 
         vlm = make_vlm_backends(cfg, vocabulary, text_embedder)
         return Perception(vlm.detector, vlm.segmenter, vlm.embedder, graph, reader, backend)
-    if backend == "detections":
-        assert detections is not None  # choose_backend checked it
-        if detections.embedding_dim not in (None, text_embedder.dim):
-            raise InputError(
-                f"{detections.path}: embeddings have {detections.embedding_dim} values, the text encoder "
-                f"({text_embedder.name}) gives {text_embedder.dim}"
+    if backend in ("detections", "yolox"):
+        detector: Detector
+        if backend == "detections":
+            assert detections is not None  # choose_backend checked it
+            if detections.embedding_dim not in (None, text_embedder.dim):
+                raise InputError(
+                    f"{detections.path}: embeddings have {detections.embedding_dim} values, the text encoder "
+                    f"({text_embedder.name}) gives {text_embedder.dim}"
+                )
+            detector = FileDetector(detections, p.box_threshold, p.text_threshold)
+        else:
+            table = (
+                LabelTable.coco() if mapping else coco_label_table(vocabulary_of(cfg), text_embedder, p.sim_threshold)
             )
+            detector = YoloxDetector(table, max(p.box_threshold, p.text_threshold))
         return Perception(
-            FileDetector(detections, p.box_threshold, p.text_threshold),
-            FileSegmenter(meta.intrinsics, meta.T_base_camera, p, cfg.sensor.min_z_m),
-            FileEmbedder(text_embedder),
+            detector,
+            box_segmenter(cfg, meta, mapping),
+            LabelEmbedder(text_embedder),
             graph,
             reader,
             backend,
         )
     errors = load_sim_errors(p, sim_preset)
+    if errors.detector == "yolox":  # the shipped detector's eyes: its classes, boxes segmented by depth, labels
+        emitted = coco_label_table(vocabulary_of(cfg), text_embedder, p.sim_threshold).vocabulary_labels
+        reported = reported_labels([str(r["label"]) for r in meta.instances], emitted, text_embedder, p.sim_threshold)
+        confusion = LabelConfusion(emitted, text_embedder, errors.confusion_temperature)
+        detector = SimDetector(
+            meta, errors, confusion, p.box_threshold, p.text_threshold, sim_rng(seed, meta, DETECTOR_STREAM), reported
+        )
+        return Perception(detector, box_segmenter(cfg, meta), LabelEmbedder(text_embedder), graph, reader, backend)
     confusion = LabelConfusion(vocabulary, text_embedder, errors.confusion_temperature)
     detector = SimDetector(
         meta, errors, confusion, p.box_threshold, p.text_threshold, sim_rng(seed, meta, DETECTOR_STREAM)
@@ -201,6 +220,12 @@ def make_perception(
     segmenter = SimSegmenter(errors, sim_rng(seed, meta, SEGMENTER_STREAM))
     embedder = SimEmbedder(meta, text_embedder, vocabulary, errors, seed, sim_rng(seed, meta, EMBEDDER_STREAM))
     return Perception(detector, segmenter, embedder, graph, reader, backend)
+
+
+def box_segmenter(cfg: Config, meta: SequenceMeta, mapping: bool = False) -> BoxSegmenter:
+    """The depth segmentation of a box detector's boxes: above the floor of a robot's base frame, or (`mapping`, a
+    camera with no base) every return."""
+    return BoxSegmenter(meta.intrinsics, meta.T_base_camera, cfg.perception, None if mapping else cfg.sensor.min_z_m)
 
 
 def write_sim_detections(

@@ -180,6 +180,12 @@ class UpdateStats:
     new_node_ids: list[int] = field(default_factory=list)
 
 
+def _voxel_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Shared voxels of two sorted key sets over their union's count."""
+    shared = len(np.intersect1d(a, b, assume_unique=True))
+    return shared / max(len(a) + len(b) - shared, 1)
+
+
 def aabb(points: np.ndarray, padding_m: float) -> np.ndarray:
     """(2, 3) min and max corners of (N, 3) points, grown by `padding_m` on every side."""
     return np.stack([points.min(axis=0) - padding_m, points.max(axis=0) + padding_m])
@@ -216,10 +222,13 @@ class OnlineSceneGraph:
 
     # -------------------------------------------------------------------------------- the update
 
-    def view(self, depth_m: np.ndarray, T_odom_base: np.ndarray) -> CameraView:
-        """The camera view of a frame's depth at odometry pose (3,) T_odom_base."""
-        T = T_odom_camera(T_odom_base, self.T_base_camera)
-        return CameraView(self.intrinsics, T, depth_m, self.cfg.occlusion_tolerance_m)
+    def camera_pose(self, T_odom_base: np.ndarray) -> np.ndarray:
+        """(4, 4) T_odom_camera of a ground robot at (3,) planar odometry pose T_odom_base, through the mount."""
+        return T_odom_camera(T_odom_base, self.T_base_camera)
+
+    def view(self, depth_m: np.ndarray, T_odom_cam: np.ndarray) -> CameraView:
+        """The camera view of a frame's depth from the (4, 4) camera pose T_odom_camera."""
+        return CameraView(self.intrinsics, np.asarray(T_odom_cam, float), depth_m, self.cfg.occlusion_tolerance_m)
 
     def lift(
         self,
@@ -227,16 +236,21 @@ class OnlineSceneGraph:
         detections: Sequence[Detection],
         masks: np.ndarray,
         embeddings: np.ndarray,
-        T_odom_base: np.ndarray,
+        T_odom_cam: np.ndarray,
     ) -> list[Instance3D]:
-        """Lift each detection's mask to a denoised voxel set; instances under `min_instance_voxels` are dropped."""
+        """Lift each detection's mask from the (4, 4) camera pose to a denoised voxel set; instances under
+        `min_instance_voxels` are dropped, and so is an instance whose voxels are one volume with a better-scored
+        one's of the same frame (their voxel sets' IoU reaches δ_IoU): one object is one detection in a frame, and a
+        box detector's second box on it (a table's box whose depth cluster is the chair in front of it) is not a
+        second object, while a chair whose voxels lie inside a table's larger set is."""
         c = self.cfg
-        T = T_odom_camera(T_odom_base, self.T_base_camera)
-        out = []
-        for detection, mask, embedding in zip(detections, masks, embeddings, strict=True):
-            keys = lift_mask(depth_m, mask, self.intrinsics, T, c)
-            if len(keys) >= c.min_instance_voxels:
-                out.append(Instance3D(keys, np.asarray(embedding, np.float32), detection.label, detection.box_score))
+        out: list[Instance3D] = []
+        for k in np.argsort([-d.box_score for d in detections], kind="stable"):
+            detection, mask, embedding = detections[k], masks[k], embeddings[k]
+            keys = lift_mask(depth_m, mask, self.intrinsics, T_odom_cam, c)
+            if len(keys) < c.min_instance_voxels or any(_voxel_iou(keys, i.keys) >= c.iou_threshold for i in out):
+                continue
+            out.append(Instance3D(keys, np.asarray(embedding, np.float32), detection.label, detection.box_score))
         return out
 
     def update(
@@ -245,14 +259,15 @@ class OnlineSceneGraph:
         detections: Sequence[Detection],
         masks: np.ndarray,
         embeddings: np.ndarray,
-        T_odom_base: np.ndarray | None = None,
+        T_odom_cam: np.ndarray | None = None,
     ) -> UpdateStats:
-        """Lift, associate, fuse and (every `prune_every` frames) prune; `T_odom_base` defaults to the frame's."""
-        pose = frame.odom_pose if T_odom_base is None else T_odom_base
+        """Lift, associate, fuse and (every `prune_every` frames) prune, from the (4, 4) camera pose T_odom_camera: any
+        6-DoF pose (a hand-held camera's), by default the ground robot's at the frame's odometry pose."""
+        T = self.camera_pose(frame.odom_pose) if T_odom_cam is None else np.asarray(T_odom_cam, float)
         t0 = time.perf_counter()
-        instances = self.lift(frame.depth_m, detections, masks, embeddings, pose)
+        instances = self.lift(frame.depth_m, detections, masks, embeddings, T)
         t1 = time.perf_counter()
-        stats = self.integrate(instances, frame.index, self.view(frame.depth_m, pose))
+        stats = self.integrate(instances, frame.index, self.view(frame.depth_m, T))
         t2 = time.perf_counter()
         stats.n_detections = len(detections)
         stats.lift_ms, stats.associate_ms = (t1 - t0) * 1e3, (t2 - t1) * 1e3
@@ -372,6 +387,9 @@ class OnlineSceneGraph:
             merged.append(pair)
 
     def _best_duplicate_pair(self) -> tuple[int, int] | None:
+        """The pair of nodes most alike (cosine + overlap) among those that pass both thresholds, or whose boxes are
+        one volume (IoU_3 ≥ δ_IoU whatever their labels: a closed-set detector calls one screen "tv" in one frame and
+        "laptop" in the next, while a chair tucked under a table fills a fraction of its box)."""
         node_ids = list(self.nodes)
         if len(node_ids) < 2:
             return None
@@ -381,9 +399,10 @@ class OnlineSceneGraph:
         sims = embeddings @ embeddings.T
         touching = np.all((boxes[:, None, 0] < boxes[None, :, 1]) & (boxes[:, None, 1] > boxes[None, :, 0]), axis=2)
         best, best_score = None, -np.inf
-        for a, b in zip(*np.nonzero(np.triu(touching & (sims >= self.cfg.sim_threshold), k=1)), strict=True):
+        for a, b in zip(*np.nonzero(np.triu(touching, k=1)), strict=True):
             overlap = self._overlap(boxes[a], boxes[b])
-            if overlap >= self.cfg.iou_threshold and sims[a, b] + overlap > best_score:
+            alike = sims[a, b] >= self.cfg.sim_threshold and overlap >= self.cfg.iou_threshold
+            if (alike or aabb_iou(boxes[a], boxes[b]) >= self.cfg.iou_threshold) and sims[a, b] + overlap > best_score:
                 best, best_score = (node_ids[a], node_ids[b]), sims[a, b] + overlap
         return best
 

@@ -202,8 +202,30 @@ def _require_buffer(frame: Frame) -> np.ndarray:
     return frame.instance_ids
 
 
+def reported_labels(
+    labels: Sequence[str], emitted: Sequence[str], text_embedder: TextEmbedder, min_similarity: float
+) -> dict[str, str]:
+    """What a closed-set detector that reports only the `emitted` labels calls an object of each of `labels`: the
+    label itself when emitted, else the emitted label nearest by the text encoder where their cosine reaches
+    `min_similarity` (an armchair is a chair to YOLOX); a label left out of the dict is never detected (a door, a
+    radiator, a cabinet)."""
+    emitted = list(dict.fromkeys(emitted))
+    others = [label for label in dict.fromkeys(labels) if label not in emitted]
+    out = {label: label for label in emitted}
+    if others and emitted:
+        sims = text_embedder.encode(others) @ text_embedder.encode(emitted).T
+        for row, label in enumerate(others):
+            best = int(np.argmax(sims[row]))
+            if sims[row, best] >= min_similarity:
+                out[label] = emitted[best]
+    return out
+
+
 class SimDetector:
-    """Detector driven by the instance buffer, with range / occlusion / area misses, confusions, false positives."""
+    """Detector driven by the instance buffer, with range / occlusion / area misses, confusions, false positives.
+
+    `reported` (a closed-set detector's eyes, `reported_labels`) maps the label of each object class it can see to
+    the label it reports; objects of other classes are never detected. None: every object, under its own label."""
 
     def __init__(
         self,
@@ -213,13 +235,17 @@ class SimDetector:
         box_threshold: float,
         text_threshold: float,
         rng: np.random.Generator,
+        reported: dict[str, str] | None = None,
     ) -> None:
         self.errors = errors
         self.confusion = confusion
         self.box_threshold = box_threshold
         self.text_threshold = text_threshold
         self.rng = rng
+        self.reported = reported
         self._object_ids, self._labels, self._is_object = _instance_tables(meta)
+        if reported is not None:
+            self._is_object &= np.asarray([label in reported for label in self._labels])
 
     def detect(self, frame: Frame) -> list[Detection]:
         """Thresholded detections of the objects in view plus false positives; see the module docstring."""
@@ -252,7 +278,7 @@ class SimDetector:
         q = float(detection_quality(np.median(depth), visible, area_px, e))
         box_score = float(np.clip(e.box_score_max * q + e.box_score_std * z_box, 0.0, 1.0))
         text_score = float(np.clip(e.text_score_mean + e.text_score_std * z_text, 0.0, 1.0))
-        label = self._labels[iid]
+        label = self._labels[iid] if self.reported is None else self.reported[self._labels[iid]]
         if u_conf < e.confusion_rate or label not in self.confusion.vocabulary:
             label = self.confusion.sample(label, rng)  # clutter has no vocabulary label: always a guess
         box = np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], float)

@@ -38,13 +38,16 @@ def read_probability(char_px: np.ndarray | float, most: float, half_px: float, s
 class SimTextReader:
     """Reads the simulator's door plates in view, with legibility, misses and character errors."""
 
+    wants_columns = False
+
     def __init__(self, meta: SequenceMeta, cfg: TextReadingConfig, rng: np.random.Generator) -> None:
         self.cfg = cfg
         self.rng = rng
         self.plates = {int(r["id"]): str(r["text"]) for r in meta.instances if r.get("label") == DOOR_PLATE_LABEL}
 
-    def read(self, frame: Frame) -> list[TextReading]:
-        """The plates of this frame that are legible and read, as `TextReading`s with their pixel boxes."""
+    def read(self, frame: Frame, columns: np.ndarray | None = None) -> list[TextReading]:
+        """The plates of this frame that are legible and read, as `TextReading`s with their pixel boxes (`columns`
+        is not looked at: the simulator's reader costs nothing to run everywhere)."""
         if not self.plates or frame.instance_ids is None:
             return []
         ids, cfg = frame.instance_ids, self.cfg

@@ -18,12 +18,12 @@ from bimfactor.config import Config, load_config, updated
 from bimfactor.errors import InputError
 from bimfactor.evaluation.graph import GraphEvalParams, evaluate_graph, observed_objects
 from bimfactor.io.sequence import Sequence, read_sequence
+from bimfactor.perception.boxes import box_mask
 from bimfactor.perception.detections import (
     DETECTIONS_FILE,
     DetectionRecord,
     FrameRecord,
     attach_detections,
-    box_mask,
     read_detections,
     rle_decode,
     rle_encode,
@@ -233,18 +233,16 @@ def test_attach_copies_a_checked_file_into_a_sequence_and_can_drop_unkept_frames
 # ------------------------------------------------------------------------------------------ choosing the backend
 
 
-def test_auto_picks_sim_then_detections_then_vlm_and_says_what_is_missing(test_config: Config) -> None:
+def test_auto_picks_sim_then_detections_then_the_shipped_detector(test_config: Config) -> None:
     p = test_config.perception
     simulated = SequenceMeta("sim", "sim", K, np.eye(4), instances=[{"id": 0, "object_id": 0, "label": "chair"}])
     real = SequenceMeta("bag", "rosbag", K, np.eye(4))
     assert p.backend == "auto"
     assert choose_backend(p, simulated, has_detections=True) == "sim"
     assert choose_backend(p, real, has_detections=True) == "detections"
-    assert choose_backend(updated(p, {"vlm.yolo_world_weights": "yw.pt"}), real, has_detections=False) == "vlm"
-    with pytest.raises(
-        InputError, match=r"detections\.jsonl in the sequence folder, pass localize --detections FILE, or"
-    ):
-        choose_backend(p, real, has_detections=False)
+    assert choose_backend(p, real, has_detections=False) == "yolox"  # never an error for lack of weights
+    assert choose_backend(updated(p, {"vlm.yolo_world_weights": "yw.pt"}), real, has_detections=False) == "yolox"
+    assert choose_backend(updated(p, {"backend": "vlm"}), real, has_detections=False) == "vlm"
     assert choose_backend(updated(p, {"backend": "detections"}), simulated, has_detections=True) == "detections"
     with pytest.raises(InputError, match=r"perception\.backend=detections needs a detections file"):
         choose_backend(updated(p, {"backend": "detections"}), simulated, has_detections=False)
@@ -342,7 +340,7 @@ def sim_run(
 
 def test_a_simulated_sequence_localizes_with_the_sim_backend_by_default(sim_run: tuple[str, np.ndarray]) -> None:
     first, errors = sim_run
-    assert first == "perception: sim (the simulator's instance buffer, error preset paper)"
+    assert first == "perception: sim (the simulator's instance buffer, error preset yolox)"
     assert errors[-1] < 1.0
 
 
@@ -382,20 +380,24 @@ def test_a_sequence_without_instances_picks_its_detections_even_box_and_label_on
     assert errors[-1] < 1.0
 
 
-def test_a_sequence_with_nothing_to_perceive_is_refused_in_one_line(
+def test_a_converted_recording_without_detections_localizes_through_the_shipped_detector(
     paper_floor_prior: Path, simulated: Path, tmp_path: Path
 ) -> None:
+    """No instance table and no detections file, as a recording converted from a bag without a detector topic:
+    `auto` runs YOLOX-Nano on the colour frames (the run's config records it) and the run completes."""
     real = tmp_path / "real"
     shutil.copytree(simulated, real)
     meta = json.loads((real / "sequence.json").read_text())
     meta["instances"] = []
     (real / "sequence.json").write_text(json.dumps(meta))
     (real / DETECTIONS_FILE).unlink()
-    missing = invoke("localize", paper_floor_prior, real, "-o", tmp_path / "run")
-    line = assert_one_line_error(missing, contains="gives perception nothing to work with")
-    assert "detections.jsonl in the sequence folder" in line and "--detections FILE" in line
-    assert "perception.vlm.yolo_world_weights" in line
-    assert missing.stdout == "" and not (tmp_path / "run").exists()
+    converted = tmp_path / "converted"
+    result = invoke("convert", "sequence", real, "-o", converted, "--all-frames")
+    assert result.exit_code == 0, result.output
+    first, errors = _localize(paper_floor_prior, converted, tmp_path / "run")
+    assert first.startswith("perception: yolox"), first
+    assert load_config(tmp_path / "run" / "config.yaml").perception.backend == "yolox"
+    assert len(errors) == 20 and np.all(np.isfinite(errors))
 
 
 def _frame0(**detection) -> dict:

@@ -10,8 +10,18 @@ import pytest
 
 from bimfactor.errors import DependencyError
 from bimfactor.perception.base import TextReader
-from bimfactor.perception.ocr import RapidOcrReader, quad_to_box
-from bimfactor.types import Frame
+from bimfactor.perception.ocr import (
+    OCR_FOCAL_PX,
+    PAD_PX,
+    PLATE_HEIGHTS_M,
+    READ_RANGE_M,
+    PlateReader,
+    RapidOcrReader,
+    plate_columns,
+    plate_region,
+    quad_to_box,
+)
+from bimfactor.types import CameraIntrinsics, Frame
 
 
 class FakeEngine:
@@ -115,3 +125,76 @@ def test_rapidocr_reads_a_drawn_room_number() -> None:
     # the box covers the drawn digits (a few pixels of slack: the detector's quad hugs the glyphs)
     assert x0 <= ink[0] + 4 and y0 <= ink[1] + 4 and x1 >= ink[2] - 4 and y1 >= ink[3] - 4
     assert 0 <= x0 < x1 <= 320 and 0 <= y0 < y1 <= 240
+
+
+# ------------------------------------------------------------------------------------------ reading where plates are
+
+SIM_K = CameraIntrinsics(320, 240, 160.0, 160.0, 159.5, 119.5)  # the simulator's 90° camera
+LEVEL_MOUNT = np.array([[0.0, 0.0, 1.0, 0.15], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.5], [0.0, 0.0, 0.0, 1.0]])
+
+
+def wall_depth(distance_m: float, k: CameraIntrinsics = SIM_K) -> np.ndarray:
+    """The depth of a wall straight ahead of the level camera, `distance_m` from it."""
+    return np.full((k.height, k.width), distance_m, np.float32)
+
+
+@pytest.mark.parametrize("distance_m", [1.5, 2.0, 2.6])
+def test_the_plate_region_is_the_wall_band_at_plate_heights(distance_m: float) -> None:
+    """A wall ahead: the region spans the image's width and the rows where the wall is 1.15–1.75 m up (the camera is
+    0.5 m up, so 0.65–1.25 m above its axis: rows cy − fy·h/d), grown by the pad."""
+    x0, y0, x1, y1 = plate_region(wall_depth(distance_m), SIM_K, LEVEL_MOUNT)
+    top = SIM_K.cy - SIM_K.fy * (PLATE_HEIGHTS_M[1] - 0.5) / distance_m
+    bottom = SIM_K.cy - SIM_K.fy * (PLATE_HEIGHTS_M[0] - 0.5) / distance_m
+    assert (x0, x1) == (0, SIM_K.width)
+    assert y0 == pytest.approx(max(top - PAD_PX, 0), abs=1.5) and y1 == pytest.approx(bottom + PAD_PX, abs=1.5)
+
+
+def test_a_wall_beyond_reading_range_or_a_floor_alone_gives_no_region() -> None:
+    assert plate_region(wall_depth(READ_RANGE_M + 0.5), SIM_K, LEVEL_MOUNT) is None
+    floor = wall_depth(2.0)
+    floor[:] = np.nan  # nothing at plate height: only the floor's lower rows return
+    floor[180:] = 1.0
+    assert plate_region(floor, SIM_K, LEVEL_MOUNT) is None
+
+
+def test_the_belief_s_columns_narrow_the_region_and_none_skip_the_frame() -> None:
+    columns = np.zeros(SIM_K.width, bool)
+    columns[100:140] = True
+    x0, _, x1, _ = plate_region(wall_depth(2.0), SIM_K, LEVEL_MOUNT, columns)
+    assert (x0, x1) == (100 - PAD_PX, 140 + PAD_PX)
+    engine = FakeEngine(None)
+    reader = PlateReader(SIM_K, LEVEL_MOUNT, engine=engine)
+    frame = Frame(0, 0.0, np.full((240, 320, 3), 200, np.uint8), wall_depth(2.0), np.zeros(3))
+    assert reader.read(frame, np.zeros(SIM_K.width, bool)) == [] and engine.images == []
+
+
+def test_the_plate_reader_reads_the_region_and_reports_frame_pixels() -> None:
+    """The region goes to the engine as it is (its detector told to scale it to the OCR focal length: 160 px → 490
+    px, × 3.06); a quad read in the region comes back in the frame's pixels."""
+    engine = FakeEngine([[[[30.0, 10.0], [60.0, 10.0], [60.0, 20.0], [30.0, 20.0]], "204", 0.9]])
+    reader = PlateReader(SIM_K, LEVEL_MOUNT, engine=engine)
+    assert isinstance(reader, TextReader) and reader.wants_columns
+    assert reader.scale == pytest.approx(OCR_FOCAL_PX / 160.0)
+    rgb = np.full((240, 320, 3), 200, np.uint8)
+    (reading,) = reader.read(Frame(0, 0.0, rgb, wall_depth(2.0), np.zeros(3)))
+    x0, y0, x1, y1 = plate_region(wall_depth(2.0), SIM_K, LEVEL_MOUNT)
+    (image,) = engine.images
+    assert image.shape[:2] == (y1 - y0, x1 - x0)
+    np.testing.assert_allclose(reading.box_xyxy, [x0 + 30, y0 + 10, x0 + 60, y0 + 20])
+    assert PlateReader(CameraIntrinsics(640, 480, 600.0, 600.0, 320, 240), LEVEL_MOUNT, engine=engine).scale == 1.0
+    engine.images.clear()
+    assert reader.read(Frame(0, 0.0, rgb, wall_depth(5.0), np.zeros(3))) == [] and engine.images == []
+
+
+def test_the_belief_forecasts_the_columns_of_a_plate_ahead() -> None:
+    """A plate 2 m straight ahead of one pose (facing it) lands in the image's middle columns; the poses behind its
+    wall, on another storey or turned away hold none, and the columns carry each pose's weight."""
+    ends = np.array([[[2.15, -0.5], [2.15, 0.5]]])  # a wall segment 2 m ahead of the camera (15 cm ahead of the base)
+    normals = np.array([[-1.0, 0.0]])  # facing back at the robot
+    poses = np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [0.0, 0.0, np.pi], [0.0, 0.0, 0.0]])
+    weights = np.array([0.4, 0.3, 0.2, 0.1])
+    columns = plate_columns(ends, normals, np.array([0]), poses, np.array([0, 0, 0, 1]), weights, SIM_K, LEVEL_MOUNT)
+    span = np.flatnonzero(columns > 0)
+    half = SIM_K.fx * 0.5 / 2.0  # ±0.5 m at 2 m
+    assert span[0] == pytest.approx(SIM_K.cx - half, abs=2) and span[-1] == pytest.approx(SIM_K.cx + half, abs=2)
+    np.testing.assert_allclose(columns[span], 0.4)

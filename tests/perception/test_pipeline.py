@@ -40,7 +40,9 @@ def test_short_paper_floor_sequence_finds_the_meeting_table_group(
     chairs, and a confused crop looks like its confused class, so it fuses apart; 0.23 when confusion changed only
     the label), recall 0.83 (5 of the 6 objects seen), label accuracy 1.0."""
     figure = tmp_path / "graph.png"
-    report = evaluate_sequence(meeting_orbit, paper_floor.prior, test_config, text_embedder, figure_path=figure)
+    report = evaluate_sequence(
+        meeting_orbit, paper_floor.prior, test_config, text_embedder, sim_preset="paper", figure_path=figure
+    )
     assert report["n_objects"] == 6
     assert report["recall"] >= 0.5
     assert report["precision"] >= 0.1
@@ -119,7 +121,7 @@ def test_the_text_reader_is_the_one_perception_text_reader_names(
     ocr = pytest.importorskip("bimfactor.perception.ocr")
     pytest.importorskip("rapidocr_onnxruntime")
     # RapidOCR on the simulated colour frames, with the sim backend's objects.
-    assert isinstance(reader("perception.text.enabled=true", "perception.text.reader=rapidocr"), ocr.RapidOcrReader)
+    assert isinstance(reader("perception.text.enabled=true", "perception.text.reader=rapidocr"), ocr.PlateReader)
 
 
 def test_real_frames_without_rapidocr_read_no_plates_unless_rapidocr_is_asked_for(

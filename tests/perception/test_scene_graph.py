@@ -193,9 +193,9 @@ def test_update_lifts_masks_and_fuses_two_views_of_a_wall_patch(config_overrides
     assert (stats.n_detections, stats.n_lifted, stats.n_merged, len(g.nodes)) == (1, 1, 1, 1)
     centroid = g.nodes[0].centroid_m
     assert centroid[0] == pytest.approx(3.0, abs=0.05) and centroid[2] == pytest.approx(0.5, abs=0.05)
-    view = g.view(depth, np.array([0.0, 0.0, 0.0]))
+    view = g.view(depth, g.camera_pose(np.zeros(3)))
     assert isinstance(view, CameraView) and view.visible(g.nodes[0].points_m).all()
-    hidden = g.view(np.full((240, 320), 1.0, np.float32), np.zeros(3))  # a closer surface now hides it
+    hidden = g.view(np.full((240, 320), 1.0, np.float32), g.camera_pose(np.zeros(3)))  # a closer surface hides it
     assert not hidden.visible(g.nodes[0].points_m).any()
     assert len(g.observations(np.zeros(3), view=hidden)) == 0 and len(g.observations(np.zeros(3), view=view)) == 1
 

@@ -62,10 +62,52 @@ def test_embedding_coefficients_give_the_preset_statistics_in_closed_form(test_c
 
 
 def test_presets_load_and_unknown_ones_are_named(test_config: Config) -> None:
-    for name in ("clean", "paper", "harsh"):
+    for name in ("yolox", "clean", "paper", "harsh"):
         assert isinstance(load_sim_errors(test_config.perception, name), SimPerceptionErrors)
-    with pytest.raises(ConfigError, match="valid presets: clean, paper, harsh"):
+    assert test_config.perception.sim_preset == "yolox"  # the benchmark sees with the shipped detector's eyes
+    with pytest.raises(ConfigError, match="valid presets: yolox, clean, paper, harsh"):
         load_sim_errors(test_config.perception, "perfect")
+    paper = load_sim_errors(test_config.perception, "paper").model_dump()
+    with pytest.raises(ValueError, match="detector yolox has no masks or crop embeddings to model: drop mask_"):
+        SimPerceptionErrors.model_validate({**paper, "detector": "yolox"})
+    with pytest.raises(ValueError, match="open_vocabulary needs its masks' and crop embeddings' keys: mask_bleed"):
+        SimPerceptionErrors.model_validate({k: v for k, v in paper.items() if k != "mask_bleed"})
+
+
+def test_the_shipped_detectors_eyes_see_only_its_classes_as_boxes_embedded_by_label(
+    test_config: Config, text_embedder, meeting_orbit: SimResult
+) -> None:
+    """The `yolox` preset: every detection carries a label the shipped detector can report under the vocabulary (an
+    armchair is a chair, a door or a cabinet is never seen), its mask comes from the depth in its box, and its
+    embedding is its label's text embedding (no crop embedding of the true class)."""
+    from bimfactor.perception.boxes import BoxSegmenter, LabelEmbedder
+    from bimfactor.perception.pipeline import vocabulary_of
+    from bimfactor.perception.sim import reported_labels
+    from bimfactor.perception.yolox import coco_label_table
+
+    p = test_config.perception
+    emitted = set(coco_label_table(vocabulary_of(test_config), text_embedder, p.sim_threshold).vocabulary_labels)
+    perception = make_perception(test_config, meeting_orbit.meta, text_embedder, sim_preset="yolox")
+    assert isinstance(perception.segmenter, BoxSegmenter) and isinstance(perception.embedder, LabelEmbedder)
+    labels, true_labels = [], []
+    truth = {int(r["id"]): str(r["label"]) for r in meeting_orbit.meta.instances}
+    for frame in meeting_orbit.frames:
+        detections, masks, embeddings = perception.perceive(frame)
+        for d, mask in zip(detections, masks, strict=True):  # segmented by depth inside the box alone
+            outside = mask.copy()
+            outside[
+                int(d.box_xyxy[1]) : int(np.ceil(d.box_xyxy[3])), int(d.box_xyxy[0]) : int(np.ceil(d.box_xyxy[2]))
+            ] = False
+            assert not outside.any()
+        labels += [d.label for d in detections]
+        true_labels += [
+            truth[d.gt_instance_id] for d in detections if d.gt_instance_id is not None and d.gt_instance_id >= 0
+        ]
+        np.testing.assert_allclose(embeddings, text_embedder.encode([d.label for d in detections]), atol=1e-6)
+    assert labels and set(labels) <= emitted
+    assert not {"door", "window", "cabinet", "radiator", "stairs"} & set(true_labels)
+    seen = reported_labels(["armchair", "door", "chair"], sorted(emitted), text_embedder, p.sim_threshold)
+    assert seen == {**{label: label for label in emitted}, "armchair": "chair"}
 
 
 def test_sim_backends_satisfy_the_protocols_and_are_reproducible(

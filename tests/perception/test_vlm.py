@@ -211,16 +211,17 @@ def test_localize_without_a_vlm_library_names_setup(
     assert f"'{module}' ({LIBRARIES[module]})" in line
 
 
-def test_auto_choosing_vlm_checks_before_loading(config_overrides, tmp_path: Path) -> None:
-    """auto picks vlm for a recorded sequence without detections when vlm weights are set: the same check runs."""
+def test_auto_never_picks_vlm_it_takes_the_shipped_detector(config_overrides, tmp_path: Path) -> None:
+    """A recorded sequence without detections runs the shipped detector under auto, even where vlm weights are set
+    (missing ones here): vlm is asked for by name, and auto is never an error for lack of weights."""
     from bimfactor.cli import _perception_source
 
     class Recorded:
         meta = SequenceMeta("office", "tum", CameraIntrinsics.from_hfov(160, 120, 90.0), np.eye(4))
 
     cfg = load_config(None, [*config_overrides, f"perception.vlm.yolo_world_weights={tmp_path / 'yw.pt'}"])
-    with pytest.raises(DependencyError, match=re.escape(f"YOLO-World weights file not found: {tmp_path / 'yw.pt'}")):
-        _perception_source(cfg, Recorded(), tmp_path, None, None)
+    resolved, table, line = _perception_source(cfg, Recorded(), tmp_path, None, None)
+    assert resolved.perception.backend == "yolox" and table is None and line.startswith("perception: yolox")
 
 
 def test_a_library_that_does_not_load_is_a_dependency_error(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bimfactor.bim.plates import door_plates, look_alikes, normalise_text
+from bimfactor.bim.plates import PLATE_REACH_M, door_plates, look_alikes, normalise_text
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import SmclConfig
 from bimfactor.localization.measurements.base import FrameData, Term
@@ -92,6 +92,10 @@ class PlateLikelihood:
         self.xy = np.asarray([p.xy for p in plates], float).reshape(-1, 2)
         self.normal = np.asarray([p.normal_xy for p in plates], float).reshape(-1, 2)
         self.storey = np.asarray([p.storey_index for p in plates], np.int64)
+        # where on its door's wall face each plate can hang: the door's width and `PLATE_REACH_M` beyond either edge
+        axis = np.asarray([p.axis_xy for p in plates], float).reshape(-1, 2)
+        reach = np.asarray([p.door_width_m / 2 + PLATE_REACH_M for p in plates], float)[:, None] * axis
+        self.ends = np.stack([self.xy - reach, self.xy + reach], axis=1)  # (P, 2, 2)
         self.first_landmark_id = len(prior.object_positions())
         self._matches: dict[str, np.ndarray] = {}  # text → `text_match`: refine weighs one reading at many poses
 
