@@ -1266,8 +1266,8 @@ def localize(
     debug: DebugOption = False,
 ) -> None:
     """Run perception (the config's backend; auto: the simulator's for a simulated sequence, else the detector's
-    detections in SEQ_DIR/detections.jsonl or --detections FILE, else YOLO-World + SAM + CLIP when their weights are
-    set) and the semantic particle filter over every frame of a sequence;
+    detections in SEQ_DIR/detections.jsonl or --detections FILE, else the shipped YOLOX-Nano) and the semantic
+    particle filter over every frame of a sequence;
     with --variant smcl+graph the filter's modes each update a GTSAM pose graph and the most probable mode is
     the estimate; --variant full also registers each keyframe's depth scan against the BIM walls (ICP) from the
     most probable mode and feeds accepted fits into its graph.
@@ -1824,7 +1824,8 @@ def bench_speed(
     debug: DebugOption = False,
 ) -> None:
     """Every speed figure in one table, measured in one run on this machine (bimfactor.evaluation.speedtable):
-    the full variant per keyframe on the paper floor and each --ifc building (simulated trajectory 0); the fine
+    the full variant per keyframe on the paper floor and each --ifc building (simulated trajectory 0), with the sim
+    perception and with the real one (the shipped YOLOX-Nano, door plates read by RapidOCR); the fine
     registrars side by side on its keyframes (median time, ratio to Open3D point-to-plane, success over
     compare-registrars' sweep); the filter step at M = 1000 and 20000; and, each in a fresh process, bimfactor
     --help, a 50-keyframe localize, the demo and the prior of AC11-Institute-Var-2 cold and with its geometry cached.
@@ -1844,6 +1845,7 @@ def bench_speed(
             filter_rows,
             format_speed_table,
             keyframe_times,
+            real_perception_rows,
             registrar_rows,
             wall_clock_rows,
         )
@@ -1875,8 +1877,9 @@ def bench_speed(
                     paper_prior = prior
                     with output_dir(output / "sequence", "sequence", replace=True) as folder:
                         write_sequence_files(folder, meta, frames, label=str(output / "sequence"))
+                real = real_perception_rows(cfg, name, prior, frames, meta, cfg.seed)
                 registrars, summaries[name] = registrar_rows(cfg, name, prior, model, frames, meta, cfg.seed)
-                rows += times + registrars
+                rows += times + real + registrars
             typer.echo(
                 f"[{len(buildings) + 1}/{len(buildings) + 1}] the filter step, then commands in fresh processes",
                 err=True,

@@ -93,10 +93,10 @@ ODOMETRY_JUMP_SLACK_M = 0.5
 same timestamp, or stamped late, still move a keyframe's spacing."""
 SKIP_KINDS = ("empty_depth", "saturated_depth", "odometry_jump")
 """Why a frame is skipped, in the order the summary lists them."""
-PLATE_FORECAST_SHARE = 1e-3
-"""A real frame's text is read only in the image columns where at least this share of the belief (one particle in a
-thousand) holds a door plate in reading range: a spread belief reads wherever plates can be, a settled one only
-where its place has one (`Localizer._plate_columns`)."""
+PLATE_FORECAST_PARTICLES = 256
+"""A real frame's text is read only in the image columns where one of this many particles, drawn from the belief by
+weight, holds a door plate in reading range: a spread belief reads wherever plates can be, a settled one only where
+its place has one (`Localizer._plate_columns`); a particle with 1/256 of the weight is drawn for sure."""
 
 
 class _PerStep:
@@ -215,6 +215,8 @@ class LocalizerStep:
     twin_pose: np.ndarray | None = None
     twin_share: float = float("nan")
     skipped: FrameSkip | None = None
+    perception_parts: dict[str, float] = field(default_factory=dict)
+    """How `perception_ms` divides: `plate forecast` (`Localizer._plate_columns`) and `FrameResult.timing_ms`."""
 
 
 @dataclass
@@ -440,9 +442,14 @@ class Localizer:
         increment, frame, skipped = self._odometry_step(frame)
         skipped = skipped or depth_problem(frame.depth_m, self.cfg)
         started = time.perf_counter()
+        parts: dict[str, float] = {}
         if skipped is None:
             self._seen.append(self._believed_odom.copy())  # a view the filter weighs (`suggest`)
-            observations: Observations = self.perception.step(frame, self._plate_columns(increment)).observations
+            columns = self._plate_columns(increment)
+            parts["plate forecast"] = (time.perf_counter() - started) * 1000
+            perceived = self.perception.step(frame, columns)
+            observations: Observations = perceived.observations
+            parts.update(perceived.timing_ms)
             use_scan = self.cfg.smcl.scan.enabled or self.matcher
             scan = frame_endpoints(frame, self.meta, self.cfg) if use_scan else None
         else:
@@ -465,6 +472,7 @@ class Localizer:
             perception_ms,
             scan,
             skipped=skipped,
+            perception_parts=parts,
         )
         if self.backend is not None:
             self._graph_step(out)
@@ -491,18 +499,22 @@ class Localizer:
 
     def _plate_columns(self, increment: np.ndarray | None) -> np.ndarray | None:
         """(W,) bool: the image columns where the belief, moved by this step's odometry, holds a door plate in reading
-        range with at least `PLATE_FORECAST_SHARE` of its weight (`perception.ocr.plate_columns`); None where the text
-        reader reads everywhere anyway (the simulator's)."""
+        range (`perception.ocr.plate_columns`) at one of `PLATE_FORECAST_PARTICLES` particles drawn by weight
+        (systematically, with no random number: the filter's stream is not touched); None where the text reader
+        reads everywhere anyway (the simulator's)."""
         reader = self.perception.reader
         if reader is None or not reader.wants_columns:
             return None
         plates, weights = self.filter.models.plates, self.filter.estimation_weights()
-        poses = se2_compose(self.filter.particles, np.zeros(3) if increment is None else increment)
+        cumulative = np.cumsum(weights)
+        marks = (np.arange(PLATE_FORECAST_PARTICLES) + 0.5) * (cumulative[-1] / PLATE_FORECAST_PARTICLES)
+        drawn = np.unique(np.minimum(np.searchsorted(cumulative, marks), len(weights) - 1))
+        poses = se2_compose(self.filter.particles[drawn], np.zeros(3) if increment is None else increment)
         share = plate_columns(
-            plates.ends, plates.normal, plates.storey, poses, self.filter.storeys, weights, self.meta.intrinsics,
-            self.meta.T_base_camera,
+            plates.ends, plates.normal, plates.storey, poses, self.filter.storeys[drawn], np.ones(len(drawn)),
+            self.meta.intrinsics, self.meta.T_base_camera,
         )  # fmt: skip
-        return share >= PLATE_FORECAST_SHARE * weights.sum()
+        return share > 0
 
     def suggest(self) -> Suggestion:
         """Where to look next from the belief after the last step (`bimfactor.active`): the viewpoint, as a goal in the

@@ -3,14 +3,12 @@ snippet up to the one-line errors it promises without weight files, with its key
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from bimfactor.errors import ConfigError, DependencyError
 from bimfactor.io.sequence import write_sequence
 from bimfactor.odometry import keyframe_indices
 from bimfactor.sim.simulate import simulate_sequence
@@ -60,20 +58,23 @@ def test_the_online_loop_localizes_the_demo_sequence(
     assert f"converged {step.filtered.converged}" in capsys.readouterr().out
 
 
-def test_the_live_snippet_fails_with_the_errors_it_promises(demo_folder: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Without weight files: a prior embedded by MiniLM is a ConfigError; a CLIP prior then needs the CLIP file."""
+def test_the_live_snippet_runs_the_shipped_detector(demo_folder: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With no weight files and no detections file, the live localizer's eyes are the shipped YOLOX-Nano, and one
+    camera frame steps it."""
     monkeypatch.chdir(demo_folder)
     first, live = python_blocks()[:2]
     scope: dict = {}
     exec(first.split("localizer = ")[0], scope)  # the imports, without running the loop again
-    prior = demo_folder / "runs/prior/my-building-clip"
-    scope["BimPrior"].load("runs/demo/prior").save(prior)
-    with pytest.raises(ConfigError, match="embedded with all-MiniLM-L6-v2, but this run embeds with clip:ViT-L-14"):
-        exec(live, scope)
-    meta = json.loads((prior / "prior.json").read_text())
-    (prior / "prior.json").write_text(json.dumps({**meta, "embedding_model": "clip:ViT-L-14"}))
-    with pytest.raises(DependencyError, match=re.escape("CLIP weights file not found: weights/ViT-L-14.pt")):
-        exec(live, scope)
+    scope["BimPrior"].load("runs/demo/prior").save(demo_folder / "runs/prior/my-building")
+    exec(live, scope)
+    robot = scope["robot"]
+    assert robot.perception.backend == "yolox"
+    k = scope["meta"].intrinsics
+    frame = scope["Frame"](
+        0, 0.0, np.zeros((k.height, k.width, 3), np.uint8), np.full((k.height, k.width), 2.0, np.float32), np.zeros(3)
+    )
+    step = robot.step(frame)
+    assert step.skipped is None and step.perception_parts["detector"] > 0
 
 
 def test_the_live_callback_steps_the_localizer_at_keyframes_only(

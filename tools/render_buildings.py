@@ -24,15 +24,38 @@ PAGE = ROOT / "docs" / "buildings.md"
 RESULTS = {
     name: ROOT / "docs" / "results" / f"{name}.json"
     for name in (
-        "buildings",  # the defaults
-        "buildings-150",  # the defaults, 150-keyframe routes
-        "buildings-active",  # the defaults, --scenario active: each route passive and following the suggestions
-        "buildings-before",  # the benchmark's earlier defaults: the IFC model's world, no plates, confusion on labels
-        "buildings-before-plates",
-        "buildings-before-150",
-        "buildings-before-150-plates",
+        "buildings",  # the defaults: the shipped detector's eyes (perception.sim_preset: yolox)
+        "buildings-paper-eyes",  # the same with the paper's open-vocabulary eyes (perception.sim_preset: paper)
+        "buildings-150",  # the paper's eyes, 150-keyframe routes
+        "buildings-active",  # the paper's eyes, --scenario active: each route passive and following the suggestions
     )
 }
+EYES = ("buildings", "buildings-paper-eyes")  # the side-by-side table: the shipped detector's eyes, the paper's
+CELLS = (  # (column, key in a variant's average, format)
+    ("translation [m]", "trans_err_m", "{:.2f}"),
+    ("room", "room_acc", "{:.0%}"),
+    ("storey", "storey_acc", "{:.0%}"),
+    ("success", "success_rate", "{:.0%}"),
+    ("wrong conv.", "wrong_convergence_rate", "{:.0%}"),
+)
+
+
+def side_by_side(new: dict, old: dict) -> str:
+    """Per building and variant, each cell as `shipped detector's eyes / paper's eyes`."""
+    lines = [
+        "| building | variant | " + " | ".join(c for c, _, _ in CELLS) + " |",
+        "|---|---|" + "---|" * len(CELLS),
+    ]
+    for name, run in new["buildings"].items():
+        before = old["buildings"].get(name)
+        for variant in run["variants"]:
+            cells = []
+            for _, key, fmt in CELLS:
+                now = fmt.format(run[variant]["average"][key])
+                was = before[variant]["average"][key] if before and variant in before else None
+                cells.append(now if was is None else f"{now} / {fmt.format(was)}")
+            lines.append(f"| {name} | {variant} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def render(name: str) -> str:
@@ -49,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, path in RESULTS.items():
         if path.is_file():
             page = replace_block(page, render(name), f"<!-- {name}:begin -->", f"<!-- {name}:end -->")
+    new, old = (json.loads(RESULTS[name].read_text()) for name in EYES)
+    page = replace_block(page, side_by_side(new, old), "<!-- eyes:begin -->", "<!-- eyes:end -->")
     return write_or_check({PAGE: page}, args.check, "tools/render_buildings.py")
 
 

@@ -42,6 +42,13 @@ MIN_REGION_PX = 20
 """A frame with fewer plate-surface pixels than this is not read."""
 SAMPLE_PX = 2
 """The plate region is found from every this-many-th row and column of the depth (a box, padded: no finer needed)."""
+STROKE_M = 0.03
+"""Text strokes are at most this wide at 1 m: the top-hat and black-hat kernel that finds them (5 px at f = 160 px)."""
+STROKE_CONTRAST = 40
+"""A stroke differs from the plate around it by at least this many grey levels (of 255): printed, legible text."""
+MIN_STROKE_PX = 20
+"""A plate region with fewer stroke pixels than this holds no legible text and is not read (a few characters' worth
+at the simulator's resolution; a flat or smoothly shaded wall has none)."""
 
 
 def quad_to_box(quad: Sequence[Sequence[float]], width: int, height: int) -> np.ndarray:
@@ -179,6 +186,21 @@ def plate_region(
     return x0, max(int(v.min()) - PAD_PX, 0), x1, min(int(v.max()) + 1 + PAD_PX, height)
 
 
+def has_strokes(rgb: np.ndarray, focal_px: float) -> bool:
+    """Whether an image region holds the thin, high-contrast strokes of printed text: at least `MIN_STROKE_PX` pixels
+    whose grey level stands `STROKE_CONTRAST` above or below their neighbourhood's (morphological top-hat and black-hat
+    with a kernel of a stroke's width, `STROKE_M` at 1 m). About 0.1 ms: the text detector is run only where it can
+    find something."""
+    import cv2
+
+    size = max(3, int(focal_px * STROKE_M) | 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (size, size))
+    grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+    light = cv2.morphologyEx(grey, cv2.MORPH_TOPHAT, kernel)
+    dark = cv2.morphologyEx(grey, cv2.MORPH_BLACKHAT, kernel)
+    return int(np.count_nonzero(np.maximum(light, dark) >= STROKE_CONTRAST)) >= MIN_STROKE_PX
+
+
 class PlateReader:
     """Door plates read where they can be (module docstring): the `TextReader` of real frames.
 
@@ -211,6 +233,8 @@ class PlateReader:
         if region is None:
             return []
         x0, y0, x1, y1 = region
+        if not has_strokes(frame.rgb[y0:y1, x0:x1], self.intrinsics.fx):
+            return []
         detector = getattr(self.engine, "text_det", None)
         if detector is not None:  # RapidOCR's detector scales an image's shorter side to this many pixels
             detector.limit_side_len = round(min(y1 - y0, x1 - x0) * self.scale)

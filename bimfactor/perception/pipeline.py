@@ -8,6 +8,7 @@ did and what the localizer should see.
 from __future__ import annotations
 
 import logging
+import time
 import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -56,7 +57,9 @@ def household_vocabulary(cfg: Config) -> list[str]:
 @dataclass
 class FrameResult:
     """One frame through perception: the detections, masks (N, H, W), embeddings (N, D), graph stats, view
-    (with the text read, placed in the robot frame), and the text readings as the reader gave them."""
+    (with the text read, placed in the robot frame), the text readings as the reader gave them, and the milliseconds
+    each part took: `detector`, `lifting` (segmentation, embeddings and the scene graph) and `plates` (reading and
+    placing text)."""
 
     detections: list[Detection]
     masks: np.ndarray
@@ -64,6 +67,7 @@ class FrameResult:
     stats: UpdateStats
     observations: Observations
     readings: list[TextReading]
+    timing_ms: dict[str, float]
 
 
 class Perception:
@@ -95,19 +99,30 @@ class Perception:
     def step(self, frame: Frame, plate_columns: np.ndarray | None = None) -> FrameResult:
         """Perceive one frame, update the graph at the frame's odometry pose, and list the nodes in view; read text
         where the reader can (`plate_columns` (W,) bool: the image columns a plate can be in, None: anywhere)."""
-        detections, masks, embeddings = self.perceive(frame)
+        started = time.perf_counter()
+        detections = self.detector.detect(frame)
+        detected = time.perf_counter()
+        masks = self.segmenter.segment(frame, detections)
+        embeddings = self.embedder.embed(frame, detections, masks)
         T_odom_cam = self.graph.camera_pose(frame.odom_pose)
         stats = self.graph.update(frame, detections, masks, embeddings, T_odom_cam)
         view = self.graph.view(frame.depth_m, T_odom_cam)
         since = frame.index if self.graph.cfg.observation_nodes == "detected" else None
         observations = self.graph.observations(frame.odom_pose, view=view, since_frame=since)
+        lifted = time.perf_counter()
         readings = self.reader.read(frame, plate_columns) if self.reader is not None else []
         if readings:
             g = self.graph
             observations.texts = locate_readings(
                 readings, frame.depth_m, g.intrinsics, g.T_base_camera, g.cfg.max_depth_m
             )
-        return FrameResult(detections, masks, embeddings, stats, observations, readings)
+        ms = {
+            "detector": detected - started,
+            "lifting": lifted - detected,
+            "plates": time.perf_counter() - lifted,
+        }
+        timing_ms = {k: 1000 * v for k, v in ms.items()}
+        return FrameResult(detections, masks, embeddings, stats, observations, readings, timing_ms)
 
     def run(self, frames: Iterable[Frame], show_progress: bool = False) -> list[FrameResult]:
         """`step` over a sequence of frames."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 
+import cv2
 import numpy as np
 import pytest
 
@@ -17,6 +18,7 @@ from bimfactor.perception.ocr import (
     READ_RANGE_M,
     PlateReader,
     RapidOcrReader,
+    has_strokes,
     plate_columns,
     plate_region,
     quad_to_box,
@@ -175,15 +177,37 @@ def test_the_plate_reader_reads_the_region_and_reports_frame_pixels() -> None:
     reader = PlateReader(SIM_K, LEVEL_MOUNT, engine=engine)
     assert isinstance(reader, TextReader) and reader.wants_columns
     assert reader.scale == pytest.approx(OCR_FOCAL_PX / 160.0)
-    rgb = np.full((240, 320, 3), 200, np.uint8)
-    (reading,) = reader.read(Frame(0, 0.0, rgb, wall_depth(2.0), np.zeros(3)))
     x0, y0, x1, y1 = plate_region(wall_depth(2.0), SIM_K, LEVEL_MOUNT)
+    rgb = plate_on_wall(((x0 + x1) // 2, (y0 + y1) // 2))
+    (reading,) = reader.read(Frame(0, 0.0, rgb, wall_depth(2.0), np.zeros(3)))
     (image,) = engine.images
     assert image.shape[:2] == (y1 - y0, x1 - x0)
     np.testing.assert_allclose(reading.box_xyxy, [x0 + 30, y0 + 10, x0 + 60, y0 + 20])
     assert PlateReader(CameraIntrinsics(640, 480, 600.0, 600.0, 320, 240), LEVEL_MOUNT, engine=engine).scale == 1.0
     engine.images.clear()
     assert reader.read(Frame(0, 0.0, rgb, wall_depth(5.0), np.zeros(3))) == [] and engine.images == []
+
+
+def plate_on_wall(at: tuple[int, int]) -> np.ndarray:
+    """A flat light wall with a room number printed at pixel `at` (its text's bottom left)."""
+    rgb = np.full((240, 320, 3), 200, np.uint8)
+    cv2.putText(rgb, "204", at, cv2.FONT_HERSHEY_SIMPLEX, 0.4, (20, 20, 20), 1, cv2.LINE_AA)
+    return rgb
+
+
+def test_a_region_without_strokes_of_text_is_not_read() -> None:
+    """A flat wall, or one smoothly shaded, holds no legible text: the text detector is not run; printed digits are
+    strokes, at the simulator's resolution as at a Kinect's."""
+    engine = FakeEngine([[[[30.0, 10.0], [60.0, 10.0], [60.0, 20.0], [30.0, 20.0]], "204", 0.9]])
+    reader = PlateReader(SIM_K, LEVEL_MOUNT, engine=engine)
+    shaded = np.repeat(np.linspace(120, 220, 320).astype(np.uint8)[None, :, None], 240, axis=0).repeat(3, axis=2)
+    for rgb in (np.full((240, 320, 3), 200, np.uint8), shaded):
+        assert reader.read(Frame(0, 0.0, rgb, wall_depth(2.0), np.zeros(3))) == [] and engine.images == []
+    x0, y0, x1, y1 = plate_region(wall_depth(2.0), SIM_K, LEVEL_MOUNT)
+    assert has_strokes(plate_on_wall((x0 + 20, y1 - 10))[y0:y1, x0:x1], SIM_K.fx)
+    kinect = np.full((480, 640, 3), 200, np.uint8)
+    cv2.putText(kinect, "204", (300, 100), cv2.FONT_HERSHEY_SIMPLEX, 1.2, (20, 20, 20), 3, cv2.LINE_AA)
+    assert has_strokes(kinect[60:120, 250:450], 525.0) and not has_strokes(kinect[200:300, 250:450], 525.0)
 
 
 def test_the_belief_forecasts_the_columns_of_a_plate_ahead() -> None:
