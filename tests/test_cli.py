@@ -487,6 +487,24 @@ def test_localize_graph_variant_writes_the_modes(demo_prior: Path, short_sequenc
     )
 
 
+def test_a_copy_of_a_run_under_its_backup_name_keeps_the_user_s_file(
+    demo_prior: Path, short_sequence: Path, tmp_path: Path
+) -> None:
+    """A hidden `.run.old` the user made (a copy of the run and a NOTES.txt of theirs) is never deleted: the next
+    localize into `run` stops with one line, exit 2, before its work, and leaves both folders as they were."""
+    run, backup = tmp_path / "run", tmp_path / ".run.old"
+    assert invoke("localize", demo_prior, short_sequence, "-o", run, "--variant", "smcl").exit_code == 0
+    shutil.copytree(run, backup)
+    (backup / "NOTES.txt").write_text("n\n")
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    assert_one_line_error(
+        invoke("localize", demo_prior, short_sequence, "-o", run, "--variant", "smcl"), contains=".run.old"
+    )
+    assert (backup / "NOTES.txt").read_text() == "n\n"
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".run.old", "run"]
+
+
 def test_localize_full_variant_writes_icp_columns(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
     metrics, steps = _localize_graph_run(demo_prior, short_sequence, tmp_path / "run", "full")
     accepted = [row["icp_accepted"] for row in steps]

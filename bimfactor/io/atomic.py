@@ -114,8 +114,8 @@ def check_output_dir(
 
     Allowed: an absent or empty folder in a writable place, or a folder of the same kind that bimfactor wrote (every
     file in it listed in its marker; for an atomic kind only with `replace`). Refused: a file, any other non-empty
-    folder, and a place that holds one of `inputs` (an IFC, a prior, a sequence) or lies inside one that would
-    be replaced.
+    folder, a place that holds one of `inputs` (an IFC, a prior, a sequence) or lies inside one that would
+    be replaced, and a replacement whose backup name (`.NAME.old`) something of the user's holds.
     """
     path = Path(path)
     for given in map(Path, inputs):
@@ -141,6 +141,8 @@ def check_output_dir(
                 )
             if not replace:
                 raise InputError(f"{path}: exists already ({flag} replaces it)")
+            if not os.path.ismount(path):
+                _check_backup_free(path)
     _check_writable(path if os.path.ismount(path) else path.parent)
 
 
@@ -196,7 +198,7 @@ def recover(path: str | Path) -> None:
     one that the replacement had already superseded, and remove dead writers' temporaries."""
     path = Path(path)
     backup = _backup(path)
-    if backup.is_dir() and read_marker(backup) is not None:
+    if _own_backup(backup):
         if path.exists():
             shutil.rmtree(backup, ignore_errors=True)
         else:
@@ -205,6 +207,26 @@ def recover(path: str | Path) -> None:
     remove_stale_temporaries(path)
     if os.path.ismount(path):
         remove_stale_temporaries(path / "bimfactor")
+
+
+def _own_backup(backup: Path) -> bool:
+    """Whether `backup` is a folder bimfactor moved aside: a real folder with a marker listing every file in it (the
+    rule by which a command replaces a folder at all); anything else under that name is the user's."""
+    if backup.is_symlink() or not backup.is_dir():
+        return False
+    marker = read_marker(backup)
+    return marker is not None and _unlisted(backup, marker) is None
+
+
+def _check_backup_free(path: Path) -> None:
+    """InputError when `path` is to be replaced and the name its old output moves to is taken by something
+    bimfactor did not write (one it did write, `recover` restores or drops)."""
+    backup = _backup(path)
+    if path.exists() and (backup.exists() or backup.is_symlink()) and not _own_backup(backup):
+        raise InputError(
+            f"{backup}: is in the way of replacing {path} and is not an output bimfactor moved aside (it holds files "
+            "its marker does not list, or none); move or remove it"
+        )
 
 
 def remove_stale_temporaries(path: Path) -> None:

@@ -137,6 +137,21 @@ def test_a_backup_name_that_bimfactor_did_not_write_is_left_alone(tmp_path: Path
     assert _tree(tmp_path / ".run.old") == {"mine.txt": "mine"}
 
 
+def test_a_backup_holding_a_file_bimfactor_did_not_write_is_never_deleted(tmp_path: Path) -> None:
+    """A copy of an output under the backup name, with a file of the user's added: neither the recovery nor the
+    next replacement deletes it; the replacement is refused before its work, the output left as it was."""
+    run, backup = tmp_path / "run", tmp_path / ".run.old"
+    _write_run(run, "first")
+    shutil.copytree(run, backup)
+    (backup / "NOTES.txt").write_text("n")
+    recover(run)
+    with pytest.raises(InputError, match=r"\.run\.old: is in the way of replacing"):
+        _write_run(run, "second")
+    assert _tree(backup)["NOTES.txt"] == "n" and _tree(backup)["estimate.txt"] == "first"
+    assert _tree(run)["estimate.txt"] == "first"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".run.old", "run"]  # no temporary left
+
+
 def test_temporaries_of_a_killed_writer_are_removed_by_the_next_write(tmp_path: Path) -> None:
     script = textwrap.dedent(
         f"""
