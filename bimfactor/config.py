@@ -875,7 +875,7 @@ class ActiveConfig(_Strict):
 
 
 class Config(_Strict):
-    seed: int = Field(description="Seed of every random generator in a run.")
+    seed: int = Field(ge=0, description="Seed of every random generator in a run (numpy takes no negative seed).")
     bim: BimConfig
     embed: EmbedConfig
     perception: PerceptionConfig

@@ -183,3 +183,9 @@ def test_the_configuration_pages_are_current() -> None:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     assert module.main(["--check"]) == 0
+
+
+def test_a_negative_seed_is_refused_when_the_config_is_read() -> None:
+    """numpy takes no negative seed: `--set seed=-1` is one line and exit 2 at `config`, not a crash in every run."""
+    assert_one_line_error(invoke("config", "--set", "seed=-1"), contains="seed")
+    assert invoke("config", "--set", "seed=0").exit_code == 0
