@@ -1352,7 +1352,7 @@ def localize(
             )
         skipped = skipped_frames_note(run)
         if skipped is not None:
-            typer.echo(f"{skipped} (steps.csv: skipped)")
+            typer.echo(f"warning: {skipped} (steps.csv: skipped)", err=True)
         metrics = run_metrics(run)
         if metrics is not None:
             typer.echo(_metrics_line(metrics))
@@ -1492,7 +1492,7 @@ def refine(
         )
         skipped = skipped_frames_note(run)
         if skipped is not None:
-            typer.echo(f"{skipped} (forward pass)")
+            typer.echo(f"warning: {skipped} (forward pass)", err=True)
         refined = refine_run(run, prior, cfg, matcher, show_progress=True)
         title = f"{sequence.meta.name} refined against {prior_dir}"
         write_refined(refined, prior, output, cfg.dump_yaml(), title=title, inputs=[prior_dir, sequence_dir])

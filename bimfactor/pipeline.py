@@ -756,7 +756,8 @@ def localize_sequence(
     graph variants' scan matcher (`scan_matcher`; built when not given); `twins` the building's twin motions
     (`bim.symmetry.twin_motions`; found when not given); `detections` a detector's detections of the frames
     (`perception.detections.read_detections`) for the detections backend. The frames are checked against the prior first
-    (`check_sequence_against_prior`: InputError); implausible frames are skipped (`LocalizationRun.skipped`).
+    (`check_sequence_against_prior`: InputError); implausible frames are skipped (`LocalizationRun.skipped`), and a
+    sequence whose every frame is skipped is an InputError.
     """
     if not isinstance(frames, SequenceFolder):  # a sequence folder answers without loading its images
         frames = list(frames)
@@ -774,6 +775,8 @@ def localize_sequence(
         if i in snapshot_steps:
             snapshots[i] = (localizer.filter.particles.copy(), localizer.filter.weights.copy())
     run = localizer.run_of(frames, rows, snapshots)
+    if rows and all(step.skipped is not None for step in rows):
+        raise InputError(f"sequence {meta.name}: no frame could be used, {skipped_frames_note(run)}")
     run.suggestion = localizer.suggest() if suggest else None
     return run
 

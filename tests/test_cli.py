@@ -505,6 +505,21 @@ def test_a_copy_of_a_run_under_its_backup_name_keeps_the_user_s_file(
     assert sorted(p.name for p in tmp_path.iterdir()) == [".run.old", "run"]
 
 
+def test_a_sequence_of_empty_depth_frames_is_refused_with_no_output(
+    demo_prior: Path, short_sequence: Path, tmp_path: Path
+) -> None:
+    """Every depth frame all zeros: one line (exit 2) that says no frame could be used, and no run folder."""
+    import cv2
+
+    sequence = tmp_path / "seq"
+    shutil.copytree(short_sequence, sequence)
+    for png in (sequence / "depth").glob("*.png"):
+        cv2.imwrite(str(png), np.zeros_like(cv2.imread(str(png), cv2.IMREAD_UNCHANGED)))
+    line = assert_one_line_error(invoke("localize", demo_prior, sequence, "-o", tmp_path / "run"), contains="empty")
+    assert "no frame could be used" in line
+    assert not (tmp_path / "run").exists()
+
+
 def test_localize_full_variant_writes_icp_columns(demo_prior: Path, short_sequence: Path, tmp_path: Path) -> None:
     metrics, steps = _localize_graph_run(demo_prior, short_sequence, tmp_path / "run", "full")
     accepted = [row["icp_accepted"] for row in steps]

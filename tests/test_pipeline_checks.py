@@ -203,6 +203,18 @@ def test_steps_csv_says_why_a_step_was_skipped(
     ]  # fmt: skip
 
 
+def test_a_sequence_whose_every_frame_is_skipped_is_an_input_error(
+    box: BimPrior, cfg: Config, perception: StubPerception
+) -> None:
+    """All-zero or all-saturated depth in every frame: no estimate to report, an InputError that says why."""
+    frames = _frames()
+    for k, frame in enumerate(frames):
+        frame.depth_m = np.zeros_like(frame.depth_m) if k % 2 else np.full_like(frame.depth_m, 65.535)
+    with pytest.raises(InputError, match=r"no frame could be used, skipped 10 frames: 5 with empty depth"):
+        _localize(box, cfg, frames)
+    assert perception.frames == []
+
+
 def test_depth_problems(test_config: Config) -> None:
     depth = np.full((4, 5), 2.5, np.float32)
     assert depth_problem(depth, test_config) is None  # a wall straight ahead: one depth, but within range
