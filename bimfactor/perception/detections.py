@@ -483,12 +483,13 @@ def _parse_embedding(values: Any, where: str, checks: _Checks) -> np.ndarray:
         raise InputError(f"{where}: embedding has {len(vector)} values, {source}")
     if checks.embedding_dim is None:
         checks.embedding_dim, checks.first_dim_line = len(vector), where.split(", detection")[0]
-    norm = float(np.linalg.norm(vector))
-    if norm == 0.0:
+    largest = float(np.abs(vector).max())
+    if largest == 0.0:
         raise InputError(f"{where}: embedding is all zeros (it has no direction to compare)")
-    if abs(norm - 1.0) <= UNIT_TOLERANCE:
+    if abs(float(np.linalg.norm(vector / largest)) * largest - 1.0) <= UNIT_TOLERANCE:
         return vector.astype(np.float32)  # a unit vector already: kept as written, bit for bit
-    return (vector / norm).astype(np.float32)
+    scaled = vector / largest  # no overflow in the norm of values up to 1.8e308, no underflow of tiny ones
+    return (scaled / np.linalg.norm(scaled)).astype(np.float32)
 
 
 def attach_detections(

@@ -207,6 +207,17 @@ def test_embeddings_of_one_file_must_share_a_width_when_no_prior_says_it(tmp_pat
         read_detections(path, TIMES, INDICES, K)
 
 
+@pytest.mark.parametrize("scale", [1e308, 1e-300])
+def test_an_embedding_of_huge_or_tiny_values_keeps_its_direction(tmp_path: Path, scale: float) -> None:
+    """Values near float64's limits: normalised without overflow or underflow (no warning), the direction kept."""
+    path = tmp_path / "d.jsonl"
+    path.write_text(json.dumps(_line(embedding=[scale, scale, 0.0, 0.0])) + "\n")
+    with np.errstate(all="raise"):
+        table = read_detections(path, TIMES, INDICES, K, embedding_dim=4, encoder="enc")
+    (detection,) = table.detections[0]
+    np.testing.assert_allclose(detection.embedding, [2**-0.5, 2**-0.5, 0.0, 0.0], rtol=1e-6)
+
+
 def test_attach_copies_a_checked_file_into_a_sequence_and_can_drop_unkept_frames(
     meeting_orbit: SimResult, tmp_path: Path
 ) -> None:
