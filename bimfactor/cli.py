@@ -1845,6 +1845,7 @@ def bench_speed(
             filter_rows,
             format_speed_table,
             keyframe_times,
+            real_frames_rows,
             real_perception_rows,
             registrar_rows,
             wall_clock_rows,
@@ -1884,6 +1885,7 @@ def bench_speed(
                 f"[{len(buildings) + 1}/{len(buildings) + 1}] the filter step, then commands in fresh processes",
                 err=True,
             )
+            rows += real_frames_rows(cfg)
             rows += filter_rows(cfg, paper_prior)
             prior_file = shared / PRIOR_BENCH_FILE if shared is not None else None
             rows += wall_clock_rows(output, output / "prior", output / "sequence", prior_file)

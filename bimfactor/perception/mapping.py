@@ -46,24 +46,21 @@ def sequence_camera_poses(frames: Sequence[Frame], T_base_camera: np.ndarray) ->
 
 def map_recording(
     frames: Sequence[Frame], T_world_cameras: np.ndarray, perception: Perception, show_progress: bool = False
-) -> tuple[OnlineSceneGraph, int]:
+) -> tuple[OnlineSceneGraph, list[dict[str, float]]]:
     """The scene graph of `frames` seen from (N, 4, 4) camera poses (a frame whose pose is not finite is left out),
-    and the number of frames used."""
+    and per frame used the milliseconds of its detector and lifting (`Perception.fuse`)."""
     graph = perception.graph
-    used = 0
+    timing = []
     rows = list(zip(frames, T_world_cameras, strict=True))
     for frame, T in progress(rows, desc="scene graph", unit="frame") if show_progress else rows:
-        if not np.all(np.isfinite(T)):
-            continue
-        detections, masks, embeddings = perception.perceive(frame)
-        graph.update(frame, detections, masks, embeddings, T)
-        used += 1
-    if used == 0:
+        if np.all(np.isfinite(T)):
+            timing.append(perception.fuse(frame, T)[-1])
+    if not timing:
         raise InputError("no frame of the recording has a camera pose")
     last = max(f.index for f in frames)
     graph.merge_nodes()
     graph.prune(last + graph.cfg.prune_stale_frames)  # the end of the recording: a single sighting is stale
-    return graph, used
+    return graph, timing
 
 
 def fused_cloud(

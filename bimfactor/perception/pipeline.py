@@ -96,32 +96,39 @@ class Perception:
         embeddings = self.embedder.embed(frame, detections, masks)
         return detections, masks, embeddings
 
-    def step(self, frame: Frame, plate_columns: np.ndarray | None = None) -> FrameResult:
-        """Perceive one frame, update the graph at the frame's odometry pose, and list the nodes in view; read text
-        where the reader can (`plate_columns` (W,) bool: the image columns a plate can be in, None: anywhere)."""
+    def fuse(
+        self, frame: Frame, T_world_camera: np.ndarray
+    ) -> tuple[list[Detection], np.ndarray, np.ndarray, UpdateStats, dict[str, float]]:
+        """Detect, lift and fuse one frame into the graph seen from the (4, 4) camera pose: the detections, masks,
+        embeddings and graph stats, and the milliseconds of the `detector` and of the `lifting` (segmentation,
+        embeddings, graph update)."""
         started = time.perf_counter()
         detections = self.detector.detect(frame)
         detected = time.perf_counter()
         masks = self.segmenter.segment(frame, detections)
         embeddings = self.embedder.embed(frame, detections, masks)
+        stats = self.graph.update(frame, detections, masks, embeddings, T_world_camera)
+        timing = {"detector": (detected - started) * 1000, "lifting": (time.perf_counter() - detected) * 1000}
+        return detections, masks, embeddings, stats, timing
+
+    def step(self, frame: Frame, plate_columns: np.ndarray | None = None) -> FrameResult:
+        """Perceive one frame, update the graph at the frame's odometry pose, and list the nodes in view; read text
+        where the reader can (`plate_columns` (W,) bool: the image columns a plate can be in, None: anywhere)."""
         T_odom_cam = self.graph.camera_pose(frame.odom_pose)
-        stats = self.graph.update(frame, detections, masks, embeddings, T_odom_cam)
+        detections, masks, embeddings, stats, timing_ms = self.fuse(frame, T_odom_cam)
+        started = time.perf_counter()
         view = self.graph.view(frame.depth_m, T_odom_cam)
         since = frame.index if self.graph.cfg.observation_nodes == "detected" else None
         observations = self.graph.observations(frame.odom_pose, view=view, since_frame=since)
-        lifted = time.perf_counter()
+        viewed = time.perf_counter()
         readings = self.reader.read(frame, plate_columns) if self.reader is not None else []
         if readings:
             g = self.graph
             observations.texts = locate_readings(
                 readings, frame.depth_m, g.intrinsics, g.T_base_camera, g.cfg.max_depth_m
             )
-        ms = {
-            "detector": detected - started,
-            "lifting": lifted - detected,
-            "plates": time.perf_counter() - lifted,
-        }
-        timing_ms = {k: 1000 * v for k, v in ms.items()}
+        timing_ms["lifting"] += (viewed - started) * 1000
+        timing_ms["plates"] = (time.perf_counter() - viewed) * 1000
         return FrameResult(detections, masks, embeddings, stats, observations, readings, timing_ms)
 
     def run(self, frames: Iterable[Frame], show_progress: bool = False) -> list[FrameResult]:
