@@ -212,10 +212,10 @@ def read_rosbag(
     path = Path(path)
     if not path.exists():
         raise InputError(f"no such bag: {path}")
+    kind = "ROS 1" if path.suffix == ".bag" and not path.is_dir() else "ROS 2"
     not_a_bag = _not_a_bag(path)
     if not_a_bag:
-        raise InputError(f"{path}: not a readable ROS 2 bag: {not_a_bag}")
-    kind = "ROS 1" if path.suffix == ".bag" else "ROS 2"
+        raise InputError(f"{path}: not a readable {kind} bag: {not_a_bag}")
     try:
         with AnyReader([path], default_typestore=default_typestore) as reader:
             return _read(reader, path, config, intrinsics, T_base_camera, mount_source, max_tilt_deg, needs_odometry)
@@ -1095,6 +1095,10 @@ def _pixels(msg: Any, dtype: np.dtype, channels: int, where: str) -> np.ndarray:
     return values.reshape(h, w, channels) if channels > 1 else values.reshape(h, w)
 
 
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+"""The first line of a ROS 1 bag (format 2.0, the only one rosbags reads)."""
+
+
 def _not_a_bag(path: Path) -> str | None:
     """Why an existing path cannot be a bag the reader opens (None: it may be one): a folder needs the metadata.yaml
     that `ros2 bag record` writes; a single file must be a ROS 1 .bag or a ROS 2 .db3 or .mcap storage file."""
@@ -1113,6 +1117,14 @@ def _not_a_bag(path: Path) -> str | None:
             f"a {path.suffix or 'suffix-less'} file; expected a bag folder with metadata.yaml, a .db3 or .mcap file, "
             "or a ROS 1 .bag file"
         )
+    if path.suffix == ".bag":
+        try:
+            with path.open("rb") as f:
+                head = f.read(len(ROS1_MAGIC))
+        except OSError as exc:
+            return f"cannot be read ({exc.strerror or exc})"
+        if head != ROS1_MAGIC:
+            return "it does not begin with '#ROSBAG V2.0' (the first line of every ROS 1 bag of format 2.0)"
     return None
 
 

@@ -453,6 +453,16 @@ def test_not_a_bag(tmp_path: Path, config: RosbagConfig) -> None:
     with pytest.raises(InputError, match=r"broken\.bag: not a readable ROS 1 bag \(") as exc_info:
         read_rosbag(tmp_path / "broken.bag", config)
     assert "\n" not in str(exc_info.value)
+    (tmp_path / "latin.bag").write_bytes(b"\xff\xfe not a bag at all\n")  # not UTF-8: was a UnicodeDecodeError
+    with pytest.raises(
+        InputError, match=r"latin\.bag: not a readable ROS 1 bag: it does not begin with '#ROSBAG V2.0'"
+    ):
+        read_rosbag(tmp_path / "latin.bag", config)
+    from tests.cli import assert_one_line_error, invoke
+
+    result = invoke("convert", "rosbag", tmp_path / "latin.bag", "-o", tmp_path / "seq")
+    assert_one_line_error(result, contains="does not begin with '#ROSBAG V2.0'")
+    assert not (tmp_path / "seq").exists()
 
 
 def _message(encoding: str, data: np.ndarray, *, bigendian: bool, h: int, w: int) -> SimpleNamespace:
