@@ -367,11 +367,17 @@ MOUNT_TOLERANCE = 1e-3
 0 0 0 1. A rotation written with four decimals passes; a scaled, sheared or mirrored one does not."""
 
 
+MIN_FOV_DEG, MAX_FOV_DEG = 10.0, 170.0
+"""The field of view a pinhole RGB-D camera's intrinsics may give along each image axis (a Kinect's is 62° × 49°, a
+RealSense D435's depth 87° × 58°, an Azure Kinect's wide mode 120°): anything else is a focal length in the wrong
+unit (3.6 mm read as 3.6 px gives 178°) or a typo (1e12 px gives 0°)."""
+
+
 def intrinsics_problem(values: dict[str, Any]) -> str | None:
     """What is wrong with pinhole intrinsics given as {"width", "height", "fx", "fy", "cx", "cy"} (as read from JSON,
     or `dataclasses.asdict` of a `CameraIntrinsics`), e.g. "intrinsics.fx must be a positive finite number, got 0";
     None when they describe a camera: width and height positive integers, fx and fy positive and finite, cx and cy
-    finite."""
+    finite and in the image, and a field of view along each axis within `MIN_FOV_DEG`–`MAX_FOV_DEG`."""
     if not isinstance(values, dict):
         return f"intrinsics must be an object with width, height, fx, fy, cx, cy, got {values!r}"
     for key in ("width", "height", "fx", "fy", "cx", "cy"):
@@ -392,6 +398,13 @@ def intrinsics_problem(values: dict[str, Any]) -> str | None:
     w, h, cx, cy = (values[k] for k in ("width", "height", "cx", "cy"))
     if not (0 <= cx <= w and 0 <= cy <= h):
         return f"intrinsics: the principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image"
+    for key, side in (("fx", w), ("fy", h)):
+        fov = math.degrees(2 * math.atan(side / (2 * values[key])))
+        if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
+            return (
+                f"intrinsics.{key} = {values[key]:g} px gives a {side} px image a field of view of {fov:.3g}°, not a "
+                f"camera's ({MIN_FOV_DEG:g}–{MAX_FOV_DEG:g}°; focal lengths are in pixels)"
+            )
     return None
 
 

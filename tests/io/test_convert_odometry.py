@@ -47,6 +47,8 @@ def test_a_tum_folder_without_odometry_gets_rgbd_odometry_and_keeps_its_ground_t
     for flag, value, says in (
         ("--intrinsics", "518,519", "--intrinsics '518,519': expected FX,FY,CX,CY"),
         ("--intrinsics", "518,519,900,253.5", "principal point"),
+        ("--intrinsics", "3.6,3.6,325.5,253.5", "intrinsics.fx = 3.6 px gives a 640 px image a field of view of 179°"),
+        ("--intrinsics", "1e12,1e12,325.5,253.5", "field of view of 3.67e-08°"),
         ("--odometry", "lidar", "--odometry lidar: expected auto, rgbd or none"),
     ):
         bad = invoke("convert", "tum", slambook, "-o", tmp_path / "bad", flag, value)
