@@ -52,6 +52,12 @@ BOX_SLACK_PX = 1.0
 """A box may pass the image border by this much (then it is clipped); farther out it is refused."""
 UNIT_TOLERANCE = 1e-6
 """An embedding whose norm is this close to 1 is kept as written (float32 rounding); any other is normalised."""
+MAX_DETECTIONS = 1000
+"""A line with more detections than this is refused before any is parsed: ten times what COCO detectors keep (100,
+300 at most), and each costs a mask of the image in the front end."""
+MAX_RUN = 2**40
+"""No mask has a run longer than this (a 1-megapixel image has 2^20 pixels); longer is a broken file, refused before
+the runs are summed."""
 
 
 # ------------------------------------------------------------------------------------------ COCO run-length encoding
@@ -71,6 +77,8 @@ def rle_runs(counts: str | bytes | Sequence[int]) -> np.ndarray:
     else:
         if any(isinstance(c, bool) or not isinstance(c, int | np.integer) for c in counts):
             raise ValueError("uncompressed counts must be whole numbers")
+        if any(abs(int(c)) > MAX_RUN for c in counts):
+            raise ValueError(f"a run is longer than any image ({MAX_RUN} pixels)")
         runs = np.asarray(list(counts), np.int64)
     if np.any(runs < 0):
         raise ValueError("counts decode to a negative run")
@@ -405,6 +413,10 @@ def _parse_line(line: dict, where: str, checks: _Checks) -> tuple[int | None, li
     entries = line["detections"]
     if not isinstance(entries, list):
         raise InputError(f"{where}: 'detections' must be a list, not {type(entries).__name__}")
+    if len(entries) > MAX_DETECTIONS:
+        raise InputError(
+            f"{where}: {len(entries)} detections in one frame, more than {MAX_DETECTIONS}; keep a detector's best"
+        )
     return row, [_parse_detection(entry, f"{where}, detection {k}", checks) for k, entry in enumerate(entries)]
 
 
@@ -462,6 +474,8 @@ def _parse_mask(mask: Any, where: str, checks: _Checks) -> np.ndarray:
         runs = rle_runs(counts)
     except ValueError as exc:
         raise InputError(f"{where}: mask does not decode: {exc}") from None
+    if len(runs) and int(runs.max()) > size[0] * size[1]:
+        raise InputError(f"{where}: mask counts hold a run of {int(runs.max())} pixels, its size {size} has fewer")
     if int(runs.sum()) != size[0] * size[1]:
         covered, pixels = int(runs.sum()), size[0] * size[1]
         raise InputError(f"{where}: mask counts cover {covered} pixels, its size {size} has {pixels}")

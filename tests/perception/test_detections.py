@@ -183,6 +183,12 @@ BAD_LINES = [
     (_line(mask={"size": [24, 32], "counts": [700]}), "mask counts cover 700 pixels"),
     (_line(mask={"size": [24, 32], "counts": "0a"}), "mask does not decode"),
     (_line(mask=[1, 2]), "mask must be COCO RLE"),
+    (_line(mask={"size": [24, 32], "counts": [2**70, 1]}), "a run is longer than any image"),  # was OverflowError
+    (_line(mask={"size": [24, 32], "counts": [2**39, 2**39]}), "mask counts hold a run of 549755813888 pixels"),
+    (
+        {"timestamp": 0.5, "detections": _line()["detections"] * 1001},
+        "line 2: 1001 detections in one frame, more than 1000",
+    ),
     (_line(embedding=[0.1] * 5), "line 2, detection 0: embedding has 5 values, the prior's text encoder (enc) gives 8"),
     (_line(embedding=[0.0] * 8), "embedding is all zeros"),
 ]
