@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from bimfactor.errors import InputError
+
 log = logging.getLogger(__name__)
 
 
@@ -127,6 +129,11 @@ class TfTree:
                 continue
             self.frames_seen.update((parent, child))
             edge = self._edges.get(child)
+            if edge is not None and edge.static and static and edge.parent != parent:
+                raise InputError(
+                    f"tf: frame {child} has two parents on /tf_static, {edge.parent} and {parent} (a tf tree gives "
+                    "each frame one); give --camera-mount x,y,z,roll,pitch,yaw"
+                )
             if edge is not None and edge.static and not static:
                 continue  # a mount published on /tf_static and again on /tf: the static one wins
             if edge is None or edge.parent != parent or edge.static != static:
@@ -182,10 +189,18 @@ class TfTree:
         return T
 
     def _ancestors(self, frame: str) -> list[str]:
-        """`frame`, its parent, its grandparent, ... up to the root (a cycle stops the walk)."""
+        """`frame`, its parent, its grandparent, ... up to the root; InputError when the walk comes back to a frame
+        (a cycle: no transform between two of its frames is defined)."""
         out = [frame]
-        while out[-1] in self._edges and self._edges[out[-1]].parent not in out:
-            out.append(self._edges[out[-1]].parent)
+        while out[-1] in self._edges:
+            parent = self._edges[out[-1]].parent
+            if parent in out:
+                cycle = [*out[out.index(parent) :], parent]
+                raise InputError(
+                    f"tf: the frames {' → '.join(cycle)} form a cycle (each a child of the next); a tf tree has "
+                    "none: give --camera-mount x,y,z,roll,pitch,yaw"
+                )
+            out.append(parent)
         return out
 
 

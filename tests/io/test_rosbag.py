@@ -289,6 +289,38 @@ def test_odometry_of_another_frame_is_moved_onto_the_base(tmp_path: Path, config
     np.testing.assert_allclose(read_sequence(tmp_path / "seq").meta.T_base_camera[:3, 3], [0.1, 0.0, 0.05])
 
 
+@pytest.mark.parametrize(
+    ("edges", "says"),
+    [
+        (
+            [("odom", "base_link", rigid()), ("map", "base_link", rigid()), ("base_link", CAMERA, rigid())],
+            "tf: frame base_link has two parents on /tf_static, odom and map",
+        ),
+        (
+            [("base_link", "cam_link", rigid()), ("cam_link", "base_link", rigid()), ("cam_link", CAMERA, rigid())],
+            "form a cycle",
+        ),
+    ],
+    ids=["two parents", "cycle"],
+)
+def test_a_tf_graph_that_is_no_tree_is_refused(tmp_path: Path, config: RosbagConfig, edges: list, says: str) -> None:
+    """A frame with two parents, or frames that are each other's parents: no mount can be read from them (before,
+    the last parent won and an inverted edge became the mount); one line, exit 2, no output."""
+    from tests.cli import assert_one_line_error, invoke
+
+    bag = TestBag(tmp_path / "bag")
+    bag.camera_info(INFO, T0_NS, CAMERA, (W, H), K)
+    bag.tf("/tf_static", T0_NS, edges)
+    for k in range(3):
+        t_ns = T0_NS + k * FRAME_NS
+        bag.odometry(ODOM, t_ns, np.array([1.0, 2.0, 0.0]))
+        bag.image(RGB, t_ns, np.zeros((H, W, 3), np.uint8), "rgb8", CAMERA)
+        bag.image(DEPTH, t_ns, np.ones((H, W), np.uint16), "16UC1", CAMERA)
+    bag.write()
+    assert_one_line_error(invoke("convert", "rosbag", tmp_path / "bag", "-o", tmp_path / "seq"), contains=says)
+    assert not (tmp_path / "seq").exists()
+
+
 # ------------------------------------------------------------------------------------------ distortion
 
 
