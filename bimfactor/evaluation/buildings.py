@@ -36,30 +36,42 @@ def default_buildings() -> list[str | Path]:
     return [PAPER_FLOOR, *(sorted(shared.glob("*.ifc")) if shared is not None else [])]
 
 
-def building_name(building: str | Path) -> str:
-    """The key of a building in results.json: its IFC file name ("paper-floor.ifc" for the preset)."""
-    return f"{PAPER_FLOOR}.ifc" if str(building) == PAPER_FLOOR else Path(building).name
+def building_names(buildings: list[str | Path]) -> list[str]:
+    """The key of each building in results.json: its IFC file name ("paper-floor.ifc" for the preset), or, where two
+    files share a name, as many of their folders before it as tell them apart ("a/model.ifc", "b/model.ifc")."""
+    paths = [Path(f"{PAPER_FLOOR}.ifc") if str(b) == PAPER_FLOOR else Path(b).resolve() for b in buildings]
+    names = []
+    for path in paths:
+        depth = 1
+        while depth < len(path.parts) and any(
+            other != path and other.parts[-depth:] == path.parts[-depth:] for other in paths
+        ):
+            depth += 1
+        names.append("/".join(path.parts[-depth:]))
+    return names
 
 
 def build_priors(buildings: list[str | Path], cfg: Config, out_dir: Path) -> dict[str, Path]:
-    """Each building's prior in OUT/priors/<stem>/ (the preset written to OUT first), by building name; a prior an
+    """Each building's prior in OUT/priors/<name without .ifc>/ (`building_names`; the preset written to OUT first),
+    by building name; a prior an
     earlier run left there is kept when it is this IFC's with the same prior settings (`reusable_prior`)."""
     from bimfactor.bim.prior import build_prior
     from bimfactor.bim.synth import write_building
     from bimfactor.progress import progress
 
     priors = {}
+    names = dict(zip(map(str, buildings), building_names(buildings), strict=True))
     for building in progress(buildings, desc="priors", unit="building"):
         ifc = Path(building)
         if str(building) == PAPER_FLOOR:
             ifc = out_dir / f"{PAPER_FLOOR}.ifc"
             write_building(PAPER_FLOOR, cfg.seed, ifc)
-        prior_dir = out_dir / "priors" / ifc.stem
+        prior_dir = out_dir / "priors" / Path(names[str(building)]).with_suffix("")
         if reusable_prior(prior_dir, ifc, cfg):
             log.info("%s: the prior in %s is kept (same IFC, same prior settings)", ifc.name, prior_dir)
         else:
             build_prior(ifc, cfg).save(prior_dir, config_yaml=cfg.dump_yaml())
-        priors[building_name(building)] = prior_dir
+        priors[names[str(building)]] = prior_dir
     return priors
 
 

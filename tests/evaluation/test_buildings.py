@@ -74,12 +74,19 @@ def test_ray_runs_equal_the_process_pool_runs(paper_floor_prior: Path, config_ov
 def test_bench_buildings_writes_a_block_per_ifc_file_name(
     paper_floor_prior: Path, cli_config_args: list[str], tmp_path: Path
 ) -> None:
+    """One block per building; two files of one name in different folders are both run, each named by its folder."""
+    import shutil
+
     ifc = paper_floor_prior.parent / "paper-floor.ifc"
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        shutil.copy(ifc, tmp_path / folder / ifc.name)
     out = tmp_path / "bench"
     result = CliRunner().invoke(
         app,
         [
-            "bench", "buildings", str(ifc), "-o", str(out), "--runner", "processes", "--workers", "1",
+            "bench", "buildings", str(tmp_path / "a" / ifc.name), str(tmp_path / "b" / ifc.name), "-o", str(out),
+            "--runner", "processes", "--workers", "1",
             "--variant", "smcl+graph", *cli_config_args,
             "--set", "evaluation.num_trajectories=1", "--set", "evaluation.repeats=1",
             "--set", "evaluation.trajectory_length=4", "--set", "evaluation.warmup_max_steps=2",
@@ -87,12 +94,14 @@ def test_bench_buildings_writes_a_block_per_ifc_file_name(
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     report = json.loads((out / "results.json").read_text())
-    block = report["buildings"]["paper-floor.ifc"]["smcl+graph"]["average"]
+    assert sorted(report["buildings"]) == ["a/paper-floor.ifc", "b/paper-floor.ifc"]
+    block = report["buildings"]["a/paper-floor.ifc"]["smcl+graph"]["average"]
     for key in ("trans_err_m", "orient_err_deg", "room_acc", "storey_acc", "success_rate", "wrong_convergence_rate"):
         assert key in block
     assert 0.0 <= block["success_rate"] <= 1.0 and block["top3_rate"] is not None
-    assert report["worst"]["building"] == "paper-floor.ifc"
-    assert "## paper-floor.ifc" in (out / "report.md").read_text() and (out / "buildings.png").stat().st_size > 0
+    assert report["worst"]["building"] in report["buildings"]
+    assert "## b/paper-floor.ifc" in (out / "report.md").read_text() and (out / "buildings.png").stat().st_size > 0
+    assert sorted(p.name for p in (out / "priors").iterdir()) == ["a", "b"]
 
 
 def test_bench_buildings_refuses_bad_input_before_any_prior(tmp_path: Path) -> None:
