@@ -1688,7 +1688,7 @@ def bench_buildings(
         from bimfactor.evaluation.paper import check_protocol, check_runner
 
         check_protocol(cfg)
-        check_runner(runner)
+        check_runner(runner, address)
         # "paper-floor" (not a file of that name) is the preset, as in the default set
         given = [PAPER_FLOOR if str(b) == PAPER_FLOOR and not b.exists() else b for b in buildings or []]
         chosen: list[str | Path] = given or default_buildings()

@@ -35,6 +35,7 @@ import json
 import logging
 import multiprocessing
 import os
+import re
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -507,10 +508,21 @@ RUNNERS = ("processes", "ray")
 (a local Ray instance, or the cluster at an address)."""
 
 
-def check_runner(runner: str) -> None:
-    """ConfigError for a runner not in `RUNNERS`."""
+RAY_ADDRESS = re.compile(r"^(auto|local|(ray://)?[A-Za-z0-9_.\-]+:\d{1,5})$")
+"""What `ray.init(address=...)` takes: auto, local, HOST:PORT of a cluster's head, or ray://HOST:PORT (Ray Client)."""
+
+
+def check_runner(runner: str, address: str | None = None) -> None:
+    """ConfigError for a runner not in `RUNNERS`, an `address` that is no Ray address (`RAY_ADDRESS`), or an address
+    given to a runner other than Ray."""
     if runner not in RUNNERS:
         raise ConfigError(f"unknown runner '{runner}' (known: {', '.join(RUNNERS)})")
+    if address is None:
+        return
+    if runner != "ray":
+        raise ConfigError(f"--address {address} names a Ray cluster; it applies to --runner ray, not {runner}")
+    if not RAY_ADDRESS.match(address):
+        raise ConfigError(f"--address {address!r}: expected ray://HOST:PORT, HOST:PORT or auto")
 
 
 Job = tuple[str, str, int, int, dict]
@@ -527,7 +539,7 @@ def run_jobs(
     jobs: list[Job], desc: str, runner: str = "processes", workers: int | None = None, address: str | None = None
 ) -> list[list[RunResult]]:
     """Each job's `_run_one` results, in the jobs' order, whichever runner ran them (they do not depend on it)."""
-    check_runner(runner)
+    check_runner(runner, address)
     if runner == "ray":
         return _ray_jobs(jobs, desc, workers, address)
     workers = workers or min(len(jobs), os.cpu_count() or 1)

@@ -112,6 +112,8 @@ def test_bench_buildings_refuses_bad_input_before_any_prior(tmp_path: Path) -> N
         ([str(tmp_path / "gone.ifc")], "no such IFC file"),
         ([str(broken)], "not an IFC file"),
         ([str(broken), "--runner", "slurm"], "unknown runner"),
+        ([str(broken), "--address", "garbage"], "--address 'garbage': expected ray://HOST:PORT, HOST:PORT or auto"),
+        ([str(broken), "--runner", "processes", "--address", "head:6379"], "it applies to --runner ray"),
     ):
         result = runner.invoke(app, ["bench", "buildings", *args, "-o", str(tmp_path / "out")])
         assert result.exit_code == 2 and message in result.output, result.output
