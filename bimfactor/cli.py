@@ -204,31 +204,40 @@ def _fail(message: str, exit_code: int) -> typer.Exit:
 
 
 class _Terminated(BaseException):
-    """SIGTERM (`timeout`, `docker stop`, systemd), raised in the command so that its outputs are cleaned up."""
+    """SIGTERM (`timeout`, `docker stop`, systemd) or SIGHUP (the terminal closed), raised in the command so that its
+    outputs are cleaned up; `signum` says which."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
 
 
-def _on_sigterm(signum: int, frame: Any) -> None:
+TERMINATING = {signal.SIGTERM: "terminated", signal.SIGHUP: "hung up"}
+"""The signals that end a command as Ctrl-C does, and the error line each gives (exit 128 + the signal)."""
+
+
+def _on_terminate(signum: int, frame: Any) -> None:
     if os.getpid() != _MAIN_PID:  # a worker process of a benchmark pool: end as the default handler would
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        os.kill(os.getpid(), signal.SIGTERM)
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
         return
-    raise _Terminated
+    raise _Terminated(signum)
 
 
 _MAIN_PID = os.getpid()
-SIGTERM_EXIT = 143  # 128 + SIGTERM
 
 
 @contextlib.contextmanager
 def _cli_errors(debug: bool) -> Iterator[None]:
     """Turn exceptions into one `error:` line on stderr and an exit code; tracebacks only with --debug.
 
-    SIGTERM is handled like Ctrl-C: temporary outputs are removed and nothing half-written is left.
+    SIGTERM and SIGHUP are handled like Ctrl-C: temporary outputs are removed and nothing half-written is left.
     """
     global _MAIN_PID
     _MAIN_PID = os.getpid()
     with contextlib.suppress(ValueError):  # only the main thread may set handlers (CliRunner in a thread)
-        signal.signal(signal.SIGTERM, _on_sigterm)
+        for signum in TERMINATING:
+            signal.signal(signum, _on_terminate)
     try:
         yield
     except (
@@ -246,8 +255,8 @@ def _cli_errors(debug: bool) -> Iterator[None]:
         raise _fail(str(exc), exc.exit_code) from None
     except KeyboardInterrupt:
         raise _fail("interrupted", 130) from None
-    except _Terminated:
-        raise _fail("terminated", SIGTERM_EXIT) from None
+    except _Terminated as exc:
+        raise _fail(TERMINATING[signal.Signals(exc.signum)], 128 + exc.signum) from None
     except BrokenPipeError:
         # The reader of stdout went away (`bimfactor ... | head`): files are already written atomically, so stop
         # quietly with the shell's SIGPIPE status, and point stdout at /dev/null so the exit flush cannot fail again.

@@ -153,8 +153,12 @@ def test_usage_errors_are_one_line(args: tuple[str, ...]) -> None:
     assert line.endswith("(see --help)")
 
 
-def test_sigterm_is_handled_like_ctrl_c(tmp_path: Path, config_overrides: list[str]) -> None:
-    """`timeout`, `docker stop` and systemd send SIGTERM: the demo stops with one line and leaves no temporaries."""
+@pytest.mark.parametrize(("signum", "says"), [(signal.SIGTERM, "terminated"), (signal.SIGHUP, "hung up")])
+def test_sigterm_and_sighup_are_handled_like_ctrl_c(
+    tmp_path: Path, config_overrides: list[str], signum: int, says: str
+) -> None:
+    """`timeout`, `docker stop` and systemd send SIGTERM, a closed terminal SIGHUP: the demo stops with one line
+    (exit 128 + the signal) and leaves no temporaries."""
     out = tmp_path / "demo"
     proc = subprocess.Popen(
         [
@@ -173,10 +177,10 @@ def test_sigterm_is_handled_like_ctrl_c(tmp_path: Path, config_overrides: list[s
     deadline = time.monotonic() + 120
     while not (out / "paper-floor.ifc").is_file() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(signum)
     _, stderr = proc.communicate(timeout=120)
-    assert proc.returncode == 143, stderr
-    assert stderr.strip() == "error: terminated"
+    assert proc.returncode == 128 + signum, stderr
+    assert stderr.strip() == f"error: {says}"
     leftovers = [p for p in out.rglob("*") if ".part" in p.name]
     assert leftovers == []
     assert read_marker(out) is not None and read_marker(out)["complete"] is False
