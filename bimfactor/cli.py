@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import logging
 import math
@@ -225,6 +226,9 @@ def _on_terminate(signum: int, frame: Any) -> None:
 
 
 _MAIN_PID = os.getpid()
+PLACE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.ENAMETOOLONG, errno.ELOOP, errno.EBUSY})
+"""Errors of the place written to (a full disk or quota, a read-only file system, a name too long, a loop of links, a
+busy mount): the user's to fix, so one line naming the path and exit 2, not an internal error."""
 
 
 @contextlib.contextmanager
@@ -263,6 +267,13 @@ def _cli_errors(debug: bool) -> Iterator[None]:
         with contextlib.suppress(OSError, ValueError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         raise typer.Exit(SIGPIPE_EXIT) from None
+    except OSError as exc:
+        if debug:
+            traceback.print_exc(file=sys.stderr)
+        if exc.errno not in PLACE_ERRNOS:
+            raise _fail(f"internal: {type(exc).__name__}: {exc}", 1) from None
+        where = f"{exc.filename}: " if exc.filename else ""
+        raise _fail(f"{where}{exc.strerror or os.strerror(exc.errno)}", 2) from None
     except Exception as exc:
         if debug:
             traceback.print_exc(file=sys.stderr)

@@ -186,3 +186,39 @@ def test_sigterm_and_sighup_are_handled_like_ctrl_c(
     assert read_marker(out) is not None and read_marker(out)["complete"] is False
     assert not (out / "prior").exists() or read_marker(out / "prior")["complete"] is True
     assert os.path.isfile(out / "config.yaml")
+
+
+@pytest.mark.skipif(not SLAMBOOK.is_dir(), reason="needs ../shared/data/real")
+@pytest.mark.parametrize("kind", ["dangling link", "loop of links", "name too long"])
+def test_an_output_path_that_cannot_be_a_folder_is_refused_before_the_work(tmp_path: Path, kind: str) -> None:
+    """A dangling link, a link to itself or a name past the file system's limit: one line and exit 2 before the
+    recording is read, the link left as it was."""
+    out = tmp_path / ("x" * 300 if kind == "name too long" else "out")
+    if kind == "dangling link":
+        out.symlink_to(tmp_path / "gone")
+    elif kind == "loop of links":
+        out.symlink_to(out)
+    says = {"dangling link": "is a link to nothing", "loop of links": "is a link to nothing"}.get(kind, "longer than")
+    started = time.perf_counter()
+    result = invoke("scene-graph", SLAMBOOK, "-o", out, "--intrinsics", "518,519,325.5,253.5")
+    assert_one_line_error(result, contains=says)
+    assert time.perf_counter() - started < 5.0  # before YOLOX runs on the frames
+    assert sorted(p.name for p in tmp_path.iterdir()) == ([] if kind == "name too long" else ["out"])
+    assert kind == "name too long" or out.is_symlink()
+
+
+def test_a_full_disk_is_one_line_naming_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """ENOSPC (and the other errors of the place written to) while writing: exit 2 and the path, not 'internal'."""
+    import errno
+
+    import bimfactor.evaluation.mapping as mapping
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp_path / "out" / "scene_graph.json"))
+
+    monkeypatch.setattr(mapping, "output_dir", full)
+    if not SLAMBOOK.is_dir():
+        pytest.skip("needs ../shared/data/real")
+    result = invoke("scene-graph", SLAMBOOK, "-o", tmp_path / "out", "--intrinsics", "518,519,325.5,253.5")
+    line = assert_one_line_error(result, contains="scene_graph.json: No space left on device")
+    assert "internal" not in line and not (tmp_path / "out").exists()

@@ -107,6 +107,20 @@ def read_marker(folder: str | Path) -> dict | None:
     return data
 
 
+def is_mount_point(path: Path) -> bool:
+    """Whether `path` is a mount point, a bind mount of a folder of the same file system included (which
+    `os.path.ismount` misses, and which cannot be renamed: EBUSY)."""
+    if os.path.ismount(path):
+        return True
+    try:
+        target = str(Path(path).resolve())
+        with open("/proc/self/mountinfo", encoding="utf-8", errors="replace") as f:
+            points = {line.split()[4].replace("\\040", " ") for line in f if len(line.split()) > 4}
+    except OSError:
+        return False
+    return target in points
+
+
 def check_output_dir(
     path: str | Path, kind: str, *, inputs: Iterable[str | Path] = (), replace: bool = True, flag: str = "--overwrite"
 ) -> None:
@@ -118,6 +132,16 @@ def check_output_dir(
     be replaced, and a replacement whose backup name (`.NAME.old`) something of the user's holds.
     """
     path = Path(path)
+    name_max = _name_max(path.parent)
+    if len(path.name.encode()) > name_max:
+        raise InputError(
+            f"{path.parent / path.name[:40]}…: a name of {len(path.name.encode())} bytes, longer than this file "
+            f"system's {name_max}"
+        )
+    if path.is_symlink() and not path.exists():
+        raise InputError(
+            f"{path}: is a link to nothing (a missing target or a loop of links); remove it or choose another"
+        )
     for given in map(Path, inputs):
         if _same(path, given) or (kind in ATOMIC_KINDS and _inside(given, path)):
             raise InputError(f"{path}: holds this command's input {given}; write the output to another folder")
@@ -141,9 +165,9 @@ def check_output_dir(
                 )
             if not replace:
                 raise InputError(f"{path}: exists already ({flag} replaces it)")
-            if not os.path.ismount(path):
+            if not is_mount_point(path):
                 _check_backup_free(path)
-    _check_writable(path if os.path.ismount(path) else path.parent)
+    _check_writable(path if is_mount_point(path) else path.parent)
 
 
 @contextlib.contextmanager
@@ -159,7 +183,7 @@ def output_dir(
     path = Path(path)
     recover(path)
     check_output_dir(path, kind, inputs=inputs, replace=replace, flag=flag)
-    if os.path.ismount(path):
+    if is_mount_point(path):
         with _in_place(path, kind) as tmp:
             yield tmp
         return
@@ -205,7 +229,7 @@ def recover(path: str | Path) -> None:
             os.replace(backup, path)
             log.warning("%s: restored the previous output, which an interrupted run had moved aside", path)
     remove_stale_temporaries(path)
-    if os.path.ismount(path):
+    if is_mount_point(path):
         remove_stale_temporaries(path / "bimfactor")
 
 
@@ -309,6 +333,16 @@ def _same(a: Path, b: Path) -> bool:
 
 def _inside(child: Path, parent: Path) -> bool:
     return child.resolve().is_relative_to(parent.resolve())
+
+
+def _name_max(folder: Path) -> int:
+    """The longest file name the file system of `folder` (or its nearest existing ancestor) takes, in bytes."""
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        return 255
 
 
 def _check_writable(where: Path) -> None:
