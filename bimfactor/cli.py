@@ -969,6 +969,10 @@ def convert(
         if not source.exists():
             raise InputError(f"no such file or folder: {source}")
         check_output_dir(output, "sequence", inputs=[source], replace=overwrite)
+        if detections is not None:
+            from bimfactor.perception.detections import check_detections_file
+
+            check_detections_file(detections)  # before the recording is read (and warned about)
         report: list[str] = []
         if kind == "tum":
             intrinsics = None if intrinsics_text is None else _tum_intrinsics(intrinsics_text, source)
@@ -1021,11 +1025,10 @@ def _recording_detections(sequence: Any, source_sequence: Path | None, file: Pat
     """The detections a converted sequence keeps, checked against every recorded frame before anything is written:
     `--detections FILE`, else a bag's Detection2DArray topic, else a source sequence's detections.jsonl; with where
     they came from. None: no detections."""
-    from bimfactor.perception.detections import DETECTIONS_FILE, read_detections
+    from bimfactor.perception.detections import DETECTIONS_FILE, check_detections_file, read_detections
 
     if file is not None:
-        if not file.is_file():
-            raise InputError(f"no such detections file: {file}")
+        check_detections_file(file)
         path, origin = file, str(file)
     elif getattr(sequence, "detections", None) is not None:
         topic = sequence.meta.extras["topics"]["detections"]
@@ -1217,8 +1220,9 @@ def _perception_source(
     from bimfactor.perception.pipeline import choose_backend
 
     if detections is not None:
-        if not detections.is_file():
-            raise InputError(f"no such detections file: {detections}")
+        from bimfactor.perception.detections import check_detections_file
+
+        check_detections_file(detections)
         if cfg.perception.backend not in ("auto", "detections"):
             raise ConfigError(
                 f"--detections reads a detector's detections, but perception.backend is {cfg.perception.backend}: "

@@ -978,6 +978,8 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     """The mapping a config file holds; a ConfigError of one line for whatever else the file is."""
     if path.is_dir():
         raise ConfigError(f"{path} is a folder, not a config file")
+    if path.exists() and not path.is_file():
+        raise ConfigError(f"{path} is not a regular file (a device or a pipe), not a config file")
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
     text = read_utf8(path, ConfigError, hint="save the file as UTF-8")
@@ -1092,6 +1094,8 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
     (`resources.check_particle_memory`).
     """
     data = _read_yaml(DEFAULT_CONFIG)
+    if path is not None and not str(path).strip():
+        raise ConfigError(f"the config is named by an empty text: give a preset ({', '.join(PRESETS)}) or a YAML file")
     if path is not None:
         candidate = Path(path)
         if not candidate.exists() and not candidate.suffix:

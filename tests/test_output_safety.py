@@ -222,3 +222,18 @@ def test_a_full_disk_is_one_line_naming_the_file(tmp_path: Path, monkeypatch: py
     result = invoke("scene-graph", SLAMBOOK, "-o", tmp_path / "out", "--intrinsics", "518,519,325.5,253.5")
     line = assert_one_line_error(result, contains="scene_graph.json: No space left on device")
     assert "internal" not in line and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (("config", "-c", ""), "the config is named by an empty text"),
+        (("config", "-c", "/dev/null"), "/dev/null is not a regular file"),
+        (("convert", "tum", str(SLAMBOOK), "-o", "OUT", "--detections", "."), "is a folder, not a detections file"),
+    ],
+    ids=["empty config", "device as config", "folder as detections"],
+)
+def test_each_wrong_kind_of_path_is_named_for_what_it_is(tmp_path: Path, args: tuple[str, ...], says: str) -> None:
+    args = tuple(str(tmp_path / "out") if a == "OUT" else a for a in args)
+    assert_one_line_error(invoke(*args), contains=says)
+    assert not (tmp_path / "out").exists()

@@ -303,8 +303,7 @@ def read_detections(
     problem is one InputError naming the file and line; the whole file is checked before anything else is done.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"no such detections file: {path}")
+    check_detections_file(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -504,6 +503,16 @@ def _parse_embedding(values: Any, where: str, checks: _Checks) -> np.ndarray:
         return vector.astype(np.float32)  # a unit vector already: kept as written, bit for bit
     scaled = vector / largest  # no overflow in the norm of values up to 1.8e308, no underflow of tiny ones
     return (scaled / np.linalg.norm(scaled)).astype(np.float32)
+
+
+def check_detections_file(path: Path) -> None:
+    """InputError unless `path` is a regular file: a folder, a device or a missing file each said as such."""
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a detections file (a JSON-lines file, docs/perception.md)")
+    if path.exists() and not path.is_file():
+        raise InputError(f"{path}: is not a regular file (a device or a pipe), not a detections file")
+    if not path.is_file():
+        raise InputError(f"no such detections file: {path}")
 
 
 def attach_detections(
