@@ -855,10 +855,11 @@ def _simulate_to_disk(
             dense_xy,
             keyframes,
             odom,
-            title=f"{meta.name}: {len(frames)} keyframes, {len(rooms)} rooms",
+            title=f"{meta.name}: {len(frames)} keyframes, {len(rooms)} room{'' if len(rooms) == 1 else 's'}",
         )
     return (
-        f"wrote {output}: {len(frames)} keyframes of {account} (seed {seed}), {len(rooms)} rooms visited; "
+        f"wrote {output}: {len(frames)} keyframes of {account} (seed {seed}), "
+        f"{len(rooms)} room{'' if len(rooms) == 1 else 's'} visited; "
         f"figures {preview.name}, trajectory.png"
     )
 
@@ -1259,7 +1260,7 @@ def _metrics_line(metrics: Any) -> str:
     )
 
 
-@app.command(short_help="Localize a sequence against a prior (semantic MCL, optionally with per-mode pose graphs).")
+@app.command(short_help="Localize a sequence against a prior: semantic MCL, per-mode pose graphs, ICP (by default).")
 def localize(
     prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
     sequence_dir: Annotated[Path, typer.Argument(metavar="SEQ_DIR", help="A sequence folder.")],
@@ -1309,7 +1310,7 @@ def localize(
     Examples:
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-graph --variant smcl+graph
-      bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-full --variant full
+      bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-filter --variant smcl
       bimfactor localize runs/prior/duplex runs/duplex-k0 -o runs/loc-duplex --set smcl.num_particles=5000
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0-guess --initial-pose 63.5,7.9,-97
       bimfactor localize runs/prior/ac11 runs/ac11-k2 -o runs/loc-ac11-k2 --storey 2

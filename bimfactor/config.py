@@ -1099,11 +1099,11 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
     if path is not None:
         candidate = Path(path)
         if not candidate.exists() and not candidate.suffix:
-            candidate = CONFIG_DIR / f"{path}.yaml"
-            if not candidate.is_file():
+            if str(path) not in PRESETS:  # the folder's data tables (vocabulary, room categories) are no presets
                 raise ConfigError(
                     f"config file not found: {path} (no such file, and the presets are {', '.join(PRESETS)})"
                 )
+            candidate = CONFIG_DIR / f"{path}.yaml"
         data = _merge(data, _read_yaml(candidate))
     for assignment in overrides:
         _apply_override(data, assignment)
