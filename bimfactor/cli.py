@@ -807,13 +807,8 @@ def _simulate_to_disk(
 
     import numpy as np
 
-    from bimfactor.embed.text import make_text_embedder, text_model_name
-    from bimfactor.evaluation.plots import save_trajectory_plot
-    from bimfactor.io.atomic import output_dir
-    from bimfactor.io.preview import write_preview
-    from bimfactor.io.sequence import read_sequence, write_sequence_files
-    from bimfactor.perception.detections import DETECTIONS_FILE
-    from bimfactor.perception.pipeline import write_sim_detections
+    from bimfactor.demo import write_simulation
+    from bimfactor.embed.text import text_model_name
     from bimfactor.sim.simulate import build_world, kidnap, load_world_inputs, simulate_sequence
 
     prior, model = load_world_inputs(prior_dir, cfg)
@@ -839,28 +834,11 @@ def _simulate_to_disk(
         keyframes = np.asarray([f.gt_pose for f in frames])
         dense_xy = keyframes[:, :2]
         account = f"trajectory {trajectory}, carried after keyframe {ev.kidnap_at} to trajectory {kidnap_to}"
-    rooms = {int(r) for r in prior.room_at(dense_xy, drive.storey_index) if r >= 0}
-    odom = np.asarray([f.odom_pose for f in frames])
-    with output_dir(output, "sequence", inputs=[prior_dir], replace=overwrite) as folder:
-        write_sequence_files(folder, meta, frames, label=str(output))
-        # from the frames as stored (depth in millimetres), so they are what the sim backend sees in this folder
-        stored = read_sequence(folder)
-        write_sim_detections(folder / DETECTIONS_FILE, cfg, meta, stored, make_text_embedder(cfg.embed), seed)
-        (folder / "config.yaml").write_text(cfg.dump_yaml())
-        preview = write_preview(read_sequence(folder), folder / "preview.png")
-        save_trajectory_plot(
-            prior,
-            drive.storey_index,
-            folder / "trajectory.png",
-            dense_xy,
-            keyframes,
-            odom,
-            title=f"{meta.name}: {len(frames)} keyframes, {len(rooms)} room{'' if len(rooms) == 1 else 's'}",
-        )
+    route = (drive.storey_index, dense_xy, keyframes)
+    n_rooms, preview = write_simulation(output, prior, prior_dir, cfg, meta, frames, route, seed, overwrite)
     return (
         f"wrote {output}: {len(frames)} keyframes of {account} (seed {seed}), "
-        f"{len(rooms)} room{'' if len(rooms) == 1 else 's'} visited; "
-        f"figures {preview.name}, trajectory.png"
+        f"{n_rooms} room{'' if n_rooms == 1 else 's'} visited; figures {preview.name}, trajectory.png"
     )
 
 

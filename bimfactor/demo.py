@@ -16,8 +16,11 @@ from bimfactor.config import Config
 from bimfactor.io.atomic import check_output_dir, container_dir, write_text_atomic
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from bimfactor.bim.prior import BimPrior
     from bimfactor.bim.synth import BuildingSpec
+    from bimfactor.types import Frame, SequenceMeta
 
 DEMO_PRESET = "paper-floor"
 
@@ -74,20 +77,58 @@ def _prior(ctx: DemoContext) -> str:
     )
 
 
-def _simulate(ctx: DemoContext) -> str:
+def write_simulation(
+    output: Path,
+    prior: BimPrior,
+    prior_dir: Path,
+    cfg: Config,
+    meta: SequenceMeta,
+    frames: list[Frame],
+    route: tuple[int, np.ndarray, np.ndarray],
+    seed: int,
+    overwrite: bool = True,
+) -> tuple[int, Path]:
+    """A simulated sequence folder as `bimfactor simulate` writes it, atomically: the sequence, detections.jsonl (the
+    sim perception's detections of the frames as stored), config.yaml, preview.png and trajectory.png of the `route`
+    (storey, (N, 2) dense xy, (K, 3) keyframe poses). Returns the number of rooms the route visits and the preview."""
+    import numpy as np
+
+    from bimfactor.embed.text import make_text_embedder
+    from bimfactor.evaluation.plots import save_trajectory_plot
     from bimfactor.io.atomic import output_dir
     from bimfactor.io.preview import write_preview
     from bimfactor.io.sequence import read_sequence, write_sequence_files
+    from bimfactor.perception.detections import DETECTIONS_FILE
+    from bimfactor.perception.pipeline import write_sim_detections
+
+    storey, dense_xy, keyframes = route
+    rooms = {int(r) for r in prior.room_at(dense_xy, storey) if r >= 0}
+    odom = np.asarray([f.odom_pose for f in frames])
+    with output_dir(output, "sequence", inputs=[prior_dir], replace=overwrite) as folder:
+        write_sequence_files(folder, meta, frames, label=str(output))
+        # from the frames as stored (depth in millimetres), so they are what the sim backend sees in this folder
+        stored = read_sequence(folder)
+        write_sim_detections(folder / DETECTIONS_FILE, cfg, meta, stored, make_text_embedder(cfg.embed), seed)
+        (folder / "config.yaml").write_text(cfg.dump_yaml())
+        preview = write_preview(stored, folder / "preview.png")
+        title = f"{meta.name}: {len(frames)} keyframes, {len(rooms)} room{'' if len(rooms) == 1 else 's'}"
+        save_trajectory_plot(prior, storey, folder / "trajectory.png", dense_xy, keyframes, odom, title=title)
+    return len(rooms), output / preview.name
+
+
+def _simulate(ctx: DemoContext) -> str:
     from bimfactor.sim.simulate import load_world_inputs, simulate_sequence
 
     assert ctx.prior_dir is not None, "the simulate step needs the prior step's folder"
     prior, model = load_world_inputs(ctx.prior_dir, ctx.cfg)
     result = simulate_sequence(prior, model, ctx.cfg, trajectory_index=0, seed=ctx.cfg.seed)
     ctx.sequence_dir = ctx.out_dir / "sequence"
-    with output_dir(ctx.sequence_dir, "sequence", inputs=[ctx.prior_dir]) as folder:
-        write_sequence_files(folder, result.meta, result.frames, label=str(ctx.sequence_dir))
-        write_preview(read_sequence(folder), folder / "preview.png")
-    ctx.figures.append(ctx.sequence_dir / "preview.png")
+    drive = result.trajectory
+    route = (drive.storey_index, drive.poses[:, :2], drive.keyframe_poses)
+    _, preview = write_simulation(
+        ctx.sequence_dir, prior, ctx.prior_dir, ctx.cfg, result.meta, result.frames, route, ctx.cfg.seed
+    )
+    ctx.figures += [preview, ctx.sequence_dir / "trajectory.png"]
     return f"wrote {ctx.sequence_dir}/: {len(result.frames)} RGB-D keyframes with odometry and ground truth"
 
 

@@ -307,6 +307,8 @@ def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: 
     assert f"figure: {out / 'sequence' / 'preview.png'}" in result.stdout
     sequence = read_sequence(out / "sequence")
     assert len(sequence) == 50 and sequence.ground_truth() is not None
+    for name in ("detections.jsonl", "config.yaml", "trajectory.png"):  # what simulate --help promises, as simulate
+        assert (out / "sequence" / name).is_file(), name
 
 
 def test_bench_prior_writes_results(tmp_path: Path, ifc_file, cli_config_args: list[str]) -> None:
