@@ -244,3 +244,44 @@ def test_any_config_file_and_override_is_loaded_or_refused(tmp_path: Path, conte
     for args in ((path, []), (None, override), (path, override)):
         with contextlib.suppress(BimfactorError):
             load_config(*args)
+
+
+# ------------------------------------------------------------------------------------------------ detections files
+
+DETECTION_LINES = [
+    {
+        "timestamp": 0.0,
+        "detections": [
+            {
+                "label": "chair",
+                "score": 0.9,
+                "box": [1, 2, 10, 12],
+                "mask": {"size": [24, 32], "counts": [100, 20, 648]},
+                "embedding": [1.0, 0.0, 0.0, 0.0],
+            }
+        ],
+    },
+    {"frame": 1, "detections": [{"label": "table", "score": 0.5, "box": [0, 0, 32, 24]}]},
+]
+
+
+@given(data=st.data(), how=st.sampled_from(["bytes", "json"]))
+def test_any_damaged_detections_file_is_read_or_refused(tmp_path: Path, data: st.DataObject, how: str) -> None:
+    """A detector's file damaged byte-wise or with one value of any type anywhere: read, or one InputError line."""
+    from bimfactor.perception.detections import read_detections
+    from bimfactor.types import CameraIntrinsics
+
+    lines = [json.dumps(line) for line in DETECTION_LINES]
+    k = data.draw(st.integers(0, len(lines) - 1))
+    if how == "json":
+        lines[k] = data.draw(json_edited(lines[k])).decode()
+    text = ("\n".join(lines) + "\n").encode()
+    if how == "bytes":
+        text = data.draw(mutated(text))
+    path = tmp_path / "detections.jsonl"
+    path.write_bytes(text)
+    intrinsics = CameraIntrinsics(32, 24, 30.0, 30.0, 16.0, 12.0)
+    try:
+        read_detections(path, [0.0, 0.5], [0, 1], intrinsics, embedding_dim=4, encoder="enc")
+    except BimfactorError as exc:
+        assert "\n" not in str(exc) and str(exc).strip()
