@@ -135,11 +135,14 @@ class FineTrack(_PerStep):
         return dict(counts.most_common())
 
     def summary(self) -> dict:
-        """Steps registered and accepted, and the rejection counts by kind (for metrics.json)."""
+        """Steps registered, accepted and rejected (they add up), and the rejection reasons by kind, which count
+        reasons, not steps: a rejected fit can fail several gates (for metrics.json)."""
+        registered, accepted = int(self.ran.sum()), int(self.accepted.sum())
         return {
-            "steps_registered": int(self.ran.sum()),
-            "steps_accepted": int(self.accepted.sum()),
-            "rejections": self.rejection_counts(),
+            "steps_registered": registered,
+            "steps_accepted": accepted,
+            "steps_rejected": registered - accepted,
+            "rejection_reasons": self.rejection_counts(),
         }
 
 
