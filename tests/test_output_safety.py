@@ -238,3 +238,18 @@ def test_each_wrong_kind_of_path_is_named_for_what_it_is(tmp_path: Path, args: t
     args = tuple(str(tmp_path / "out") if a == "OUT" else a for a in args)
     assert_one_line_error(invoke(*args), contains=says)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.skipif(not SLAMBOOK.is_dir(), reason="needs ../shared/data/real")
+def test_an_output_through_a_link_replaces_the_linked_run_and_keeps_the_link(tmp_path: Path) -> None:
+    """`-o runs/latest`, a link to an earlier run: that run is replaced, the link stays, nothing is left beside."""
+    first = tmp_path / "first"
+    args = ("scene-graph", SLAMBOOK, "--intrinsics", "518,519,325.5,253.5", "-o")
+    assert invoke(*args, first).exit_code == 0
+    (first / "scene_graph.json").write_text("{}")  # to see it replaced (the marker lists the file)
+    latest = tmp_path / "latest"
+    latest.symlink_to(first)
+    assert invoke(*args, latest).exit_code == 0
+    assert latest.is_symlink() and latest.resolve() == first.resolve()
+    assert (first / "scene_graph.json").read_text() != "{}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["first", "latest"]

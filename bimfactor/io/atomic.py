@@ -107,6 +107,12 @@ def read_marker(folder: str | Path) -> dict | None:
     return data
 
 
+def through_link(path: Path) -> Path:
+    """The folder a link at `path` points to (`runs/latest` → `runs/2026-11-28`): the output replaces that folder and
+    the link stays a link; any other path as it is."""
+    return path.resolve() if path.is_symlink() and path.is_dir() else path
+
+
 def is_mount_point(path: Path) -> bool:
     """Whether `path` is a mount point, a bind mount of a folder of the same file system included (which
     `os.path.ismount` misses, and which cannot be renamed: EBUSY)."""
@@ -142,6 +148,7 @@ def check_output_dir(
         raise InputError(
             f"{path}: is a link to nothing (a missing target or a loop of links); remove it or choose another"
         )
+    path = through_link(path)
     for given in map(Path, inputs):
         if _same(path, given) or (kind in ATOMIC_KINDS and _inside(given, path)):
             raise InputError(f"{path}: holds this command's input {given}; write the output to another folder")
@@ -180,7 +187,7 @@ def output_dir(
     """
     if kind not in ATOMIC_KINDS:
         raise ValueError(f"output_dir: kind {kind!r} is not one of {ATOMIC_KINDS}")
-    path = Path(path)
+    path = through_link(Path(path))
     recover(path)
     check_output_dir(path, kind, inputs=inputs, replace=replace, flag=flag)
     if is_mount_point(path):
