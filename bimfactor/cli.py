@@ -57,13 +57,26 @@ class _OneLineUsageError(click_exceptions.UsageError):
 class _OneLineGroup(typer.core.TyperGroup):
     """The command group: argument parsing errors of every subcommand become one line on stderr, exit 2."""
 
-    def make_context(self, *args: Any, **kwargs: Any) -> Any:
+    def make_context(self, info_name: str | None, args: list[str], *rest: Any, **kwargs: Any) -> Any:
         with _one_line_usage():
-            return super().make_context(*args, **kwargs)
+            _refuse_empty_paths(args)
+            return super().make_context(info_name, args, *rest, **kwargs)
 
     def invoke(self, ctx: Any) -> Any:
         with _one_line_usage():
             return super().invoke(ctx)
+
+
+PATH_OPTIONS = ("-o", "--output", "-c", "--config")
+"""Options whose empty value is refused as such: click turns '' into '.', which would be reported as another
+problem (a non-empty folder, a folder given as a config)."""
+
+
+def _refuse_empty_paths(args: list[str]) -> None:
+    for k, arg in enumerate(args):
+        empty = arg in PATH_OPTIONS and k + 1 < len(args) and not args[k + 1].strip()
+        if empty or any(arg == f"{option}=" for option in PATH_OPTIONS if option.startswith("--")):
+            raise click_exceptions.UsageError(f"{arg.rstrip('=')} is empty: give a folder or file name")
 
 
 @contextlib.contextmanager

@@ -227,12 +227,13 @@ def test_a_full_disk_is_one_line_naming_the_file(tmp_path: Path, monkeypatch: py
 @pytest.mark.parametrize(
     ("args", "says"),
     [
-        (("config", "-c", ""), "the config is named by an empty text"),
+        (("config", "-c", ""), "-c is empty"),
+        (("scene-graph", str(SLAMBOOK), "-o", ""), "-o is empty"),
         (("config", "-c", "/dev/null"), "/dev/null is not a regular file"),
         (("config", "-c", "room_categories"), "config file not found: room_categories (no such file, and the presets"),
         (("convert", "tum", str(SLAMBOOK), "-o", "OUT", "--detections", "."), "is a folder, not a detections file"),
     ],
-    ids=["empty config", "device as config", "data table as preset", "folder as detections"],
+    ids=["empty config", "empty output", "device as config", "data table as preset", "folder as detections"],
 )
 def test_each_wrong_kind_of_path_is_named_for_what_it_is(tmp_path: Path, args: tuple[str, ...], says: str) -> None:
     args = tuple(str(tmp_path / "out") if a == "OUT" else a for a in args)
