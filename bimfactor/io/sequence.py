@@ -742,8 +742,15 @@ def _instances_to_disk(ids: np.ndarray, size: tuple[int, int], where: str) -> np
 
 
 def _write_png(path: Path, image: np.ndarray, where: str) -> None:
-    if not cv2.imwrite(str(path), image):
-        raise InputError(f"{where}: could not write {path}")
+    """Encode in memory, then write the bytes: a full disk is Python's OSError naming the file (cv2.imwrite would
+    print libpng's own line first and return False)."""
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise InputError(f"{where}: could not encode {path.name} as PNG")
+    try:
+        path.write_bytes(data.tobytes())
+    except OSError as exc:  # a full disk fails at the flush, with no file name: give it one
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
 
 
 # ------------------------------------------------------------------------------------------ reader

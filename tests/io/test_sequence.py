@@ -322,3 +322,16 @@ def test_associate_nearest() -> None:
     assert iq.tolist() == [0] and ir.tolist() == [0]  # one-to-one: the tie goes to the first query
     iq, ir = associate_nearest(np.array([1.0, 1.01, 5.0]), np.array([1.005]), 0.02, one_to_one=False)
     assert iq.tolist() == [0, 1] and ir.tolist() == [0, 0]
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+def test_a_full_disk_is_an_os_error_naming_the_file_and_libpng_says_nothing(capfd: pytest.CaptureFixture) -> None:
+    """/dev/full fails every write with ENOSPC: the error names it, and no libpng line reaches stderr first."""
+    import errno
+
+    from bimfactor.io.sequence import _write_png
+
+    with pytest.raises(OSError) as caught:
+        _write_png(Path("/dev/full"), np.zeros((8, 8, 3), np.uint8), "frame 0")
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == "/dev/full"
+    assert capfd.readouterr().err == ""
