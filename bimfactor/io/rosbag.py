@@ -100,9 +100,14 @@ def _rosbags() -> tuple[Any, tuple[type[BaseException], ...], Any]:
     (imported on first use: optional dependency)."""
     try:
         from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.rosbag1 import ReaderError as Ros1ReaderError
+        from rosbags.rosbag2 import ReaderError as Ros2ReaderError
+        from rosbags.serde import SerdeError
     except ImportError:
         raise DependencyError("reading ROS bags needs the 'rosbags' package: pip install rosbags") from None
-    return AnyReader, (AnyReaderError, FileNotFoundError), ros2_typestore()
+    # a damaged file fails inside the reader as any of these, or asks for more memory than a record can hold
+    errors = (AnyReaderError, Ros1ReaderError, Ros2ReaderError, SerdeError, FileNotFoundError, MemoryError)
+    return AnyReader, errors, ros2_typestore()
 
 
 def ros2_typestore() -> Any:
