@@ -254,3 +254,27 @@ def test_an_output_through_a_link_replaces_the_linked_run_and_keeps_the_link(tmp
     assert latest.is_symlink() and latest.resolve() == first.resolve()
     assert (first / "scene_graph.json").read_text() != "{}"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["first", "latest"]
+
+
+def test_a_second_demo_into_the_folder_a_first_is_writing_is_refused(
+    tmp_path: Path, config_overrides: list[str]
+) -> None:
+    """Two demos into one folder at once mixed their outputs under a marker that said complete: the second is now one
+    line and exit 2 while the first runs, and the first ends complete."""
+    out = tmp_path / "demo"
+    sets = [a for o in config_overrides for a in ("--set", o)]
+    first = subprocess.Popen(
+        [sys.executable, "-m", "bimfactor", "demo", "-o", str(out), *sets],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 120
+    while not (out / "paper-floor.ifc").is_file() and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    second = invoke("demo", "-o", out, *sets)
+    _, stderr = first.communicate(timeout=300)
+    assert first.returncode == 0, stderr
+    assert_one_line_error(second, contains="another bimfactor command is writing this folder now")
+    assert read_marker(out)["complete"] is True
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo"]

@@ -216,12 +216,37 @@ def container_dir(path: str | Path, kind: str, *, inputs: Iterable[str | Path] =
     """Yield `path` as a folder that collects several outputs (a demo, a benchmark); marked complete at the end."""
     if kind not in CONTAINER_KINDS:
         raise ValueError(f"container_dir: kind {kind!r} is not one of {CONTAINER_KINDS}")
-    path = Path(path)
+    path = through_link(Path(path))
     check_output_dir(path, kind, inputs=inputs)
-    path.mkdir(parents=True, exist_ok=True)
-    _write_marker(path, kind, complete=False)
-    yield path
-    _write_marker(path, kind, complete=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with _exclusive(path):
+        path.mkdir(exist_ok=True)
+        _write_marker(path, kind, complete=False)
+        yield path
+        _write_marker(path, kind, complete=True)
+
+
+@contextlib.contextmanager
+def _exclusive(path: Path) -> Iterator[None]:
+    """Hold `.NAME.lock` beside `path` (an advisory lock the system drops when the process dies): a second command
+    writing the same collecting folder at once is refused instead of mixing its outputs with the first's."""
+    import fcntl
+
+    lock = path.with_name(f".{path.name}.lock")
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InputError(
+                f"{path}: another bimfactor command is writing this folder now; wait or choose another"
+            ) from None
+        try:
+            yield
+        finally:
+            lock.unlink(missing_ok=True)  # while still held: a waiting command then finds none to fight over
+    finally:
+        os.close(fd)
 
 
 def recover(path: str | Path) -> None:
