@@ -149,7 +149,11 @@ def _localize(ctx: DemoContext) -> str:
     from bimfactor.io.sequence import read_sequence
     from bimfactor.pipeline import localize_sequence
 
-    assert ctx.prior is not None and ctx.sequence_dir is not None, "the localize step needs a prior and a sequence"
+    assert ctx.prior_dir is not None and ctx.sequence_dir is not None, "the localize step needs a prior and a sequence"
+    # the prior as `bimfactor localize` reads it (saved arrays, not the builder's own), so the runs are the same
+    from bimfactor.bim.prior import BimPrior
+
+    prior = BimPrior.load(ctx.prior_dir)
     sequence = read_sequence(ctx.sequence_dir)
     n = len(sequence)
     names = [name for name, _ in STAGES]
@@ -161,7 +165,7 @@ def _localize(ctx: DemoContext) -> str:
             continue  # the filter is the same in every variant: its line comes from the next run's filter track
         cfg = ctx.cfg if name == variant else updated(ctx.cfg, {"localization.variant": name})
         snapshots = sorted({0, n // 4, n // 2, n - 1}) if name == variant else ()
-        run = localize_sequence(ctx.prior, sequence.meta, sequence, cfg, ctx.cfg.seed, snapshot_steps=snapshots)
+        run = localize_sequence(prior, sequence.meta, sequence, cfg, ctx.cfg.seed, snapshot_steps=snapshots)
         if not lines and name != "smcl":  # the first run: its filter track is S-MCL's line
             filtered = track_metrics(run.filter, run.gt_poses, run.gt_rooms)
             assert filtered is not None
@@ -177,7 +181,7 @@ def _localize(ctx: DemoContext) -> str:
     ctx.figures.extend(
         write_run(
             run,
-            ctx.prior,
+            prior,
             run_dir,
             ctx.cfg.dump_yaml(),
             title=sequence.meta.name,

@@ -309,6 +309,11 @@ def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: 
     assert len(sequence) == 50 and sequence.ground_truth() is not None
     for name in ("detections.jsonl", "config.yaml", "trajectory.png"):  # what simulate --help promises, as simulate
         assert (out / "sequence" / name).is_file(), name
+    # its localize is `bimfactor localize` on the same prior, sequence and config, to the last digit
+    again = tmp_path / "again"
+    args = ("localize", out / "prior", out / "sequence", "-o", again, "-c", out / "localize" / "config.yaml")
+    assert invoke(*args).exit_code == 0
+    assert (again / "estimate.txt").read_text() == (out / "localize" / "estimate.txt").read_text()
 
 
 def test_bench_prior_writes_results(tmp_path: Path, ifc_file, cli_config_args: list[str]) -> None:
