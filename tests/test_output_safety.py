@@ -278,3 +278,23 @@ def test_a_second_demo_into_the_folder_a_first_is_writing_is_refused(
     assert_one_line_error(second, contains="another bimfactor command is writing this folder now")
     assert read_marker(out)["complete"] is True
     assert sorted(p.name for p in tmp_path.iterdir()) == ["demo"]
+
+
+@pytest.mark.skipif(not SLAMBOOK.is_dir(), reason="needs ../shared/data/real")
+def test_an_output_folder_that_is_a_bind_mount_is_written_in_place(tmp_path: Path) -> None:
+    """A bind mount of a folder of the same file system cannot be renamed (EBUSY, after all the work): it is written
+    in place, as a volume is. Needs the privilege to bind-mount (a root container), else skipped."""
+    source, out = tmp_path / "source", tmp_path / "out"
+    source.mkdir()
+    out.mkdir()
+    if (
+        shutil.which("mount") is None
+        or subprocess.run(["mount", "--bind", source, out], capture_output=True).returncode
+    ):
+        pytest.skip("cannot bind-mount here")
+    try:
+        result = invoke("scene-graph", SLAMBOOK, "--intrinsics", "518,519,325.5,253.5", "-o", out)
+        assert result.exit_code == 0, result.output
+        assert (source / "scene_graph.json").is_file() and read_marker(out)["complete"] is True
+    finally:
+        subprocess.run(["umount", out], capture_output=True)
