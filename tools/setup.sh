@@ -105,8 +105,7 @@ PINS=()
 if [ -n "$VLM" ]; then
     # torch only for the vlm extra, its CPU build first (an unpinned torch pulls GBs of CUDA packages)
     say "installing torch==$TORCH_VERSION (CPU wheel)"
-    "${PIP[@]}" install --progress-bar off --extra-index-url "$TORCH_CPU_INDEX" "torch==$TORCH_VERSION" ||
-        "${PIP[@]}" install --progress-bar off "torch==$TORCH_VERSION"
+    "${PIP[@]}" install --progress-bar off "torch==$TORCH_VERSION"
     PINS+=("torch==$TORCH_VERSION" "torchvision==$TORCHVISION_VERSION")
     # PyPI's torchvision is built against the CUDA torch and does not load beside the CPU one ('operator
     # torchvision::nms does not exist'): next to a +cpu torch, take the +cpu torchvision from PyTorch's CPU index.
