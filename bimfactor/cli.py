@@ -1017,10 +1017,9 @@ def _recording_detections(sequence: Any, source_sequence: Path | None, file: Pat
     """The detections a converted sequence keeps, checked against every recorded frame before anything is written:
     `--detections FILE`, else a bag's Detection2DArray topic, else a source sequence's detections.jsonl; with where
     they came from. None: no detections."""
-    from bimfactor.perception.detections import DETECTIONS_FILE, check_detections_file, read_detections
+    from bimfactor.perception.detections import DETECTIONS_FILE, read_detections
 
-    if file is not None:
-        check_detections_file(file)
+    if file is not None:  # convert checked it before reading the recording; read_detections checks it again
         path, origin = file, str(file)
     elif getattr(sequence, "detections", None) is not None:
         topic = sequence.meta.extras["topics"]["detections"]

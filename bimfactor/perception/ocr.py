@@ -61,6 +61,20 @@ def quad_to_box(quad: Sequence[Sequence[float]], width: int, height: int) -> np.
     )
 
 
+def engine_readings(
+    result: Any, min_score: float, width: int, height: int, offset: tuple[int, int] = (0, 0)
+) -> list[TextReading]:
+    """RapidOCR's `result` (None, or `[quad, text, score]` items) as readings with non-blank text and score ≥
+    `min_score`, each quad shifted by the (x, y) `offset` of the image RapidOCR read into the frame's pixels."""
+    readings = []
+    for quad, text, score, *_ in result or []:
+        text = str(text).strip()
+        if text and float(score) >= min_score:
+            box = quad_to_box(np.asarray(quad, float).reshape(-1, 2) + np.asarray(offset, float), width, height)
+            readings.append(TextReading(text, box, float(score)))
+    return readings
+
+
 class RapidOcrReader:
     """RapidOCR on a frame's whole colour image; keeps readings with score ≥ `min_score` and non-blank text.
 
@@ -89,12 +103,7 @@ class RapidOcrReader:
         height, width = frame.rgb.shape[:2]
         bgr = np.ascontiguousarray(frame.rgb[..., ::-1])  # RapidOCR takes a 3-channel numpy image as OpenCV BGR
         result, _elapse = self.engine(bgr)
-        readings = []
-        for quad, text, score, *_ in result or []:
-            text = str(text).strip()
-            if text and float(score) >= self.min_score:
-                readings.append(TextReading(text, quad_to_box(quad, width, height), float(score)))
-        return readings
+        return engine_readings(result, self.min_score, width, height)
 
 
 def plate_columns(
@@ -239,10 +248,4 @@ class PlateReader:
         if detector is not None:  # RapidOCR's detector scales an image's shorter side to this many pixels
             detector.limit_side_len = round(min(y1 - y0, x1 - x0) * self.scale)
         result, _elapse = self.engine(np.ascontiguousarray(frame.rgb[y0:y1, x0:x1, ::-1]))  # BGR, as RapidOCR takes it
-        readings = []
-        for quad, text, score, *_ in result or []:
-            text = str(text).strip()
-            if text and float(score) >= self.min_score:
-                box = quad_to_box(np.asarray(quad, float).reshape(-1, 2) + np.array([x0, y0]), width, height)
-                readings.append(TextReading(text, box, float(score)))
-        return readings
+        return engine_readings(result, self.min_score, width, height, offset=(x0, y0))

@@ -92,9 +92,12 @@ class Perception:
     def perceive(self, frame: Frame) -> tuple[list[Detection], np.ndarray, np.ndarray]:
         """The 2D front end alone: detections, (N, H, W) masks, (N, D) embeddings."""
         detections = self.detector.detect(frame)
+        return detections, *self._describe(frame, detections)
+
+    def _describe(self, frame: Frame, detections: list[Detection]) -> tuple[np.ndarray, np.ndarray]:
+        """The detections' (N, H, W) masks and (N, D) embeddings."""
         masks = self.segmenter.segment(frame, detections)
-        embeddings = self.embedder.embed(frame, detections, masks)
-        return detections, masks, embeddings
+        return masks, self.embedder.embed(frame, detections, masks)
 
     def fuse(
         self, frame: Frame, T_world_camera: np.ndarray
@@ -105,8 +108,7 @@ class Perception:
         started = time.perf_counter()
         detections = self.detector.detect(frame)
         detected = time.perf_counter()
-        masks = self.segmenter.segment(frame, detections)
-        embeddings = self.embedder.embed(frame, detections, masks)
+        masks, embeddings = self._describe(frame, detections)
         stats = self.graph.update(frame, detections, masks, embeddings, T_world_camera)
         timing = {"detector": (detected - started) * 1000, "lifting": (time.perf_counter() - detected) * 1000}
         return detections, masks, embeddings, stats, timing
