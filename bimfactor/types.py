@@ -57,6 +57,11 @@ def matrix_to_se2(T: np.ndarray) -> np.ndarray:
     return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])])
 
 
+# Open3D's parallel sums differ in the last bits from run to run: its poses are rounded to this many decimals, so
+# that a run repeats bit for bit.
+POSE_DECIMALS = 9
+
+
 # ------------------------------------------------------------------------------------------ camera
 
 

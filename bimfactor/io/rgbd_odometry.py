@@ -43,7 +43,7 @@ from bimfactor.io.sequence import Sequence
 from bimfactor.io.tum import MAX_TILT_DEG, planar_from_matrices
 from bimfactor.odometry import odometry_increments
 from bimfactor.progress import progress
-from bimfactor.types import CameraIntrinsics, se2_between, se2_compose, wrap_angle
+from bimfactor.types import POSE_DECIMALS, CameraIntrinsics, se2_between, se2_compose, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,6 @@ ICP_MAX_JUMP = (0.75, 25.0)  # metres, degrees: an ICP moving its start further 
 DENSE_MAX_JUMP = (0.3, 10.0)  # metres, degrees: the same for the dense step and the fine ICP scale
 DENSE_ITERATIONS = (20, 10, 5)  # per image-pyramid level, coarse to fine
 DENSE_DEPTH_DIFF_M = 0.07  # depth differences above this are no correspondence in the dense step
-POSE_DECIMALS = 9  # poses are rounded: Open3D's parallel sums differ in the last bits from run to run
 MIN_OVERLAP = 0.3  # share of the current cloud within 2.5 fine voxels of the previous one; below: the prior is kept
 FLAT_SHARE = 0.06  # a horizontal direction with less of the surface normals' weight is unmeasured
 SAME_POSE = (0.02, 1.0)  # metres, degrees: two ICP results this close are one

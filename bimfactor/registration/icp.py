@@ -40,7 +40,7 @@ from bimfactor.config import RegistrationConfig
 from bimfactor.errors import ConfigError
 from bimfactor.registration.scan import voxel_downsample
 from bimfactor.registration.surface import CROP_CELL_M, SurfaceModel, to_point_cloud
-from bimfactor.types import matrix_to_se2, se2_to_matrix, wrap_angle
+from bimfactor.types import POSE_DECIMALS, matrix_to_se2, se2_to_matrix, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -519,8 +519,8 @@ class Open3dIcp(CentredRegistrar):
                 out = reg.registration_generalized_icp(source, target, distance, T, estimation, criteria)
             else:
                 out = reg.registration_icp(source, target, distance, T, estimation, criteria)
-            # Back onto SE(2) after every scale, so z, roll and pitch never carry over.
-            T = se2_to_matrix(matrix_to_se2(np.asarray(out.transformation)), z_m)
+            # Back onto SE(2) after every scale, so z, roll and pitch never carry over; rounded, so a run repeats.
+            T = se2_to_matrix(np.round(matrix_to_se2(np.asarray(out.transformation)), POSE_DECIMALS), z_m)
         return T, -1
 
 
