@@ -90,6 +90,14 @@ class CameraIntrinsics:
     def hfov_rad(self) -> float:
         return float(2 * np.arctan2(self.width / 2, self.fx))
 
+    def backproject(self, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """(N, 3) camera-frame points (OpenCV: x right, y down, z ahead) of pixel columns `u` and rows `v` at depth
+        `z` along the camera's z axis (NaN depth gives NaN points). The package's one back-projection: every stage
+        that lifts depth calls it."""
+        z = np.asarray(z, np.float64).ravel()
+        u, v = np.asarray(u).ravel(), np.asarray(v).ravel()
+        return np.column_stack([(u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z])
+
 
 @dataclass
 class Frame:

@@ -187,10 +187,10 @@ class RgbdOdometry:
         px = np.array([kp.pt for kp in keypoints], np.float64).reshape(-1, 2)
         u = np.clip(np.rint(px[:, 0]).astype(np.int64), 0, k.width - 1)
         v = np.clip(np.rint(px[:, 1]).astype(np.int64), 0, k.height - 1)
-        keypoints_camera = _backproject(px[:, 0], px[:, 1], np.where(valid[v, u], depth[v, u], np.nan), k)
+        keypoints_camera = k.backproject(px[:, 0], px[:, 1], np.where(valid[v, u], depth[v, u], np.nan))
 
         rows, cols = np.nonzero(valid)
-        full = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(_backproject(cols, rows, depth[rows, cols], k)))
+        full = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(k.backproject(cols, rows, depth[rows, cols])))
         clouds = []
         for voxel in ICP_VOXELS_M:
             cloud = full.voxel_down_sample(voxel)
@@ -368,12 +368,6 @@ class RgbdOdometry:
             prior_xy[1] = prior_xy[0] * math.tan(math.atan2(T_base[1, 0], T_base[0, 0]) / 2)
         T_base[:2, 3] += flat @ (flat.T @ (prior_xy - T_base[:2, 3]))
         return T_camera_base @ T_base @ self.T_base_camera, 2 - flat.shape[1]
-
-
-def _backproject(u: np.ndarray, v: np.ndarray, z: np.ndarray, k: CameraIntrinsics) -> np.ndarray:
-    """(N, 3) camera-frame points of pixels (u, v) at depth z (the pinhole model; NaN depth gives NaN points)."""
-    z = np.asarray(z, np.float64)
-    return np.column_stack([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z])
 
 
 def _pose_distance(a: np.ndarray, b: np.ndarray, scale: tuple[float, float] = SAME_POSE) -> float:

@@ -38,10 +38,7 @@ def backproject(
     if len(flat) > max_points:
         flat = flat[np.linspace(0, len(flat) - 1, max_points).astype(np.int64)]
     v, u = np.divmod(flat, depth_m.shape[1])
-    z = depth_m.ravel()[flat].astype(np.float64)
-    x = (u - intrinsics.cx) / intrinsics.fx * z
-    y = (v - intrinsics.cy) / intrinsics.fy * z
-    return np.column_stack([x, y, z])
+    return intrinsics.backproject(u, v, depth_m.ravel()[flat])
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -175,10 +175,9 @@ def plate_region(
     sampled = depth_m[::SAMPLE_PX, ::SAMPLE_PX]
     with np.errstate(invalid="ignore"):
         v, u = np.nonzero((sampled > 0) & (sampled <= 2 * READ_RANGE_M))  # deeper is farther (pitch below 60°)
-    z = sampled[v, u].astype(np.float64)
+    z = sampled[v, u]
     v, u = v * SAMPLE_PX, u * SAMPLE_PX
-    k = intrinsics
-    points = np.column_stack([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z])
+    points = intrinsics.backproject(u, v, z)
     T = np.asarray(T_base_camera, float)
     base = points @ T[:3, :3].T + T[:3, 3]
     low, high = PLATE_HEIGHTS_M

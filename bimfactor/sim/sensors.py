@@ -68,8 +68,7 @@ class RgbdCamera:
         k = self.intrinsics
         u, v = np.meshgrid(np.arange(k.width), np.arange(k.height))
         # Directions with z = 1, so the hit parameter t is the depth along the camera's z axis.
-        dirs = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones(u.shape)], -1).reshape(-1, 3)
-        self._dirs_camera = dirs.astype(np.float32)
+        self._dirs_camera = k.backproject(u, v, np.ones(u.shape)).astype(np.float32)
         self._dir_norm = np.linalg.norm(self._dirs_camera, axis=1).astype(np.float32)
         self._shade_light = (1.0 - AMBIENT) * LIGHT_DIRECTION.astype(np.float32)
         self._albedo_255 = (world.albedo * 255.0).astype(np.float32)

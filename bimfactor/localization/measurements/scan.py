@@ -30,11 +30,7 @@ def backproject_depth(
     """(H, W) depth (NaN: no return) → (N, 3) points in the base frame; depth is the camera z (OpenCV)."""
     depth = np.asarray(depth_m, dtype=np.float64)
     v, u = np.nonzero(np.isfinite(depth) & (depth > 0) & (depth <= max_range_m))
-    z = depth[v, u]
-    x = (u - intrinsics.cx) / intrinsics.fx * z
-    y = (v - intrinsics.cy) / intrinsics.fy * z
-    points_camera = np.column_stack([x, y, z])
-    return points_camera @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
+    return intrinsics.backproject(u, v, depth[v, u]) @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
 
 
 def height_band(points: np.ndarray, min_z_m: float, max_z_m: float) -> np.ndarray:

@@ -1,0 +1,41 @@
+"""The shape of the code, read with `ast` (nothing is imported): one back-projection in the package, and a localizer
+step that is a fixed chain of stages."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE_DIR = Path(__file__).resolve().parents[1] / "bimfactor"
+
+
+def _trees() -> list[tuple[Path, ast.Module]]:
+    return [(path, ast.parse(path.read_text(), str(path))) for path in sorted(PACKAGE_DIR.rglob("*.py"))]
+
+
+def _is_backprojection(node: ast.AST) -> bool:
+    """`(u - K.cx) / K.fx` or `(v - K.cy) / K.fy`: a pixel offset from the principal point over the focal length."""
+    if not (isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div)):
+        return False
+    left, right = node.left, node.right
+    return (
+        isinstance(left, ast.BinOp)
+        and isinstance(left.op, ast.Sub)
+        and isinstance(left.right, ast.Attribute)
+        and left.right.attr in ("cx", "cy")
+        and isinstance(right, ast.Attribute)
+        and right.attr in ("fx", "fy")
+    )
+
+
+def test_one_back_projection_function_in_the_package() -> None:
+    # every pixel-to-ray division in bimfactor/, by the function that holds it
+    places = sorted(
+        f"{path.relative_to(PACKAGE_DIR.parent)}:{function.name}"
+        for path, tree in _trees()
+        for function in ast.walk(tree)
+        if isinstance(function, ast.FunctionDef)
+        for node in ast.walk(function)
+        if _is_backprojection(node)
+    )
+    assert places == ["bimfactor/types.py:backproject"] * 2, places
