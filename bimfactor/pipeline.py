@@ -60,7 +60,7 @@ from bimfactor.embed.text import TextEmbedder, make_text_embedder, text_model_na
 from bimfactor.errors import ConfigError, InputError
 from bimfactor.io.sequence import Sequence as SequenceFolder
 from bimfactor.localization.filter import SemanticMCL, StepResult
-from bimfactor.localization.measurements.scan import frame_endpoints
+from bimfactor.localization.measurements.scan import DepthPoints, frame_endpoints
 from bimfactor.localization.modes import extract_modes
 from bimfactor.localization.stats import (
     local_mean_yaw,
@@ -93,6 +93,9 @@ ODOMETRY_JUMP_SLACK_M = 0.5
 same timestamp, or stamped late, still move a keyframe's spacing."""
 SKIP_KINDS = ("empty_depth", "saturated_depth", "odometry_jump")
 """Why a frame is skipped, in the order the summary lists them."""
+DEPTH_PART = "depth points and scan"
+"""The keyframe's part of `LocalizerStep.perception_parts` that is not perception: its depth returns, back-projected
+once for the scan term, the scan factors and the registrar, and the scan endpoints."""
 PLATE_FORECAST_PARTICLES = 256
 """A real frame's text is read only in the image columns where one of this many particles, drawn from the belief by
 weight, holds a door plate in reading range: a spread belief reads wherever plates can be, a settled one only where
@@ -198,6 +201,28 @@ def plausible_odometry_step(increment: np.ndarray, dt_s: float) -> bool:
 
 
 @dataclass
+class Keyframe:
+    """One frame as every stage reads it, derived once (`Localizer.keyframe`): the frame (its odometry pose continuous
+    with the earlier frames'), the odometry increment since the last trusted frame (None: the first), why the frame
+    is skipped (None: it is not), its depth returns in the base frame, the scan endpoints cut from them (None
+    without a scan term or scan factors), and what perception made of it (no node, no text when skipped)."""
+
+    frame: Frame
+    increment: np.ndarray | None
+    skipped: FrameSkip | None
+    points: DepthPoints | None
+    scan: np.ndarray | None
+    observations: Observations
+    perception_ms: float
+    perception_parts: dict[str, float]
+
+    @property
+    def seen(self) -> Observations | None:
+        """What the filter weighs: a skipped frame brings no observation, not an empty one."""
+        return self.observations if self.skipped is None else None
+
+
+@dataclass
 class LocalizerStep:
     """One frame through the localizer: the filter's step, the back end's (None: smcl, or no mode yet), the
     output pose on its storey with its covariance and room, and what the frame brought."""
@@ -219,7 +244,26 @@ class LocalizerStep:
     twin_share: float = float("nan")
     skipped: FrameSkip | None = None
     perception_parts: dict[str, float] = field(default_factory=dict)
-    """How `perception_ms` divides: `plate forecast` (`Localizer._plate_columns`) and `FrameResult.timing_ms`."""
+    """How `perception_ms` divides: `plate forecast` (`Localizer._plate_columns`), `FrameResult.timing_ms` and
+    `DEPTH_PART`."""
+
+    @classmethod
+    def of(cls, key: Keyframe, filtered: StepResult) -> LocalizerStep:
+        """The step as the filter leaves it: its estimate is the output until a later stage reports another."""
+        return cls(
+            filtered,
+            None,
+            filtered.pose,
+            filtered.covariance,
+            filtered.storey,
+            filtered.room_id,
+            key.observations,
+            key.increment,
+            key.perception_ms,
+            key.scan,
+            skipped=key.skipped,
+            perception_parts=key.perception_parts,
+        )
 
 
 @dataclass
@@ -380,8 +424,15 @@ class Localizer:
         )
         self.matcher = (matcher or scan_matcher(prior, cfg)) if self.backend else None
         self.fine = self._fine_stage(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None
-        # The frames before the current one that a submap stitches in (registration.submap_keyframes − 1).
-        self._recent: deque[Frame] = deque(maxlen=cfg.registration.submap_keyframes - 1)
+        # The variant is its chain of stages after the filter, each `(keyframe, step) -> None`.
+        graph = (self._graph_step,) if self.backend is not None else ()
+        fine = (self._fine_step,) if self.fine is not None else ()
+        report = (self._report,) if self.backend is not None else ()
+        self._stages = (*graph, *fine, *report, self._twin_step, self._remember)
+        self._uses_scan = bool(cfg.smcl.scan.enabled or self.matcher)
+        self._uses_depth = self._uses_scan or self.fine is not None
+        # The keyframes before the current one that a submap stitches in (registration.submap_keyframes − 1).
+        self._recent: deque[Keyframe] = deque(maxlen=cfg.registration.submap_keyframes - 1)
         # Odometry bookkeeping (`_odometry_step`): the last trusted frame's raw odometry pose and time, the previous
         # frame's, the motion guessed across jumps since the trusted frame, the increment of the last trusted step,
         # the odometry pose the filter believes at the last step, and the map of a re-based odometry onto the first.
@@ -434,9 +485,21 @@ class Localizer:
         self._recent.clear()
 
     def step(self, frame: Frame) -> LocalizerStep:
-        """One frame: perception, the filter, (graph variants) the back end on the filter's modes, and (full) the fine
-        stage on the best mode. An implausible frame (`FrameSkip`: unusable depth, an odometry jump) is skipped: the
+        """One frame through the variant's fixed chain: the keyframe (odometry, depth checks, perception, scan), the
+        filter, then the variant's stages (`_stages`: the back end, the fine stage, the output choice, the twin
+        check, the submap). An implausible frame (`FrameSkip`: unusable depth, an odometry jump) is skipped: the
         filter only predicts, by the odometry increment or, across a jump, the previous step's."""
+        key = self.keyframe(frame)
+        filtered = self.filter.step(key.increment, key.seen, key.scan)
+        self._converged, self._suggestion = filtered.converged, None
+        out = LocalizerStep.of(key, filtered)
+        for stage in self._stages:
+            stage(key, out)
+        return out
+
+    def keyframe(self, frame: Frame) -> Keyframe:
+        """Derive what every stage reads from one frame, once: the odometry step and its checks, the depth checks, the
+        depth returns, the scan endpoints and perception's observations (none for a skipped frame)."""
         if not np.all(np.isfinite(frame.odom_pose)):
             raise InputError(
                 f"frame {frame.index} has no odometry pose: the localizer predicts each step from wheel odometry "
@@ -445,60 +508,43 @@ class Localizer:
         increment, frame, skipped = self._odometry_step(frame)
         skipped = skipped or depth_problem(frame.depth_m, self.cfg)
         started = time.perf_counter()
-        parts: dict[str, float] = {}
-        if skipped is None:
-            self._seen.append(self._believed_odom.copy())  # a view the filter weighs (`suggest`)
-            columns = self._plate_columns(increment)
-            parts["plate forecast"] = (time.perf_counter() - started) * 1000
-            perceived = self.perception.step(frame, columns)
-            observations: Observations = perceived.observations
-            parts.update(perceived.timing_ms)
-            use_scan = self.cfg.smcl.scan.enabled or self.matcher
-            scan = frame_endpoints(frame, self.meta, self.cfg) if use_scan else None
-        else:
+        if skipped is not None:
             log.info("frame %d skipped: %s", frame.index, skipped)
-            observations, scan = self._no_observations(), None
+            return Keyframe(frame, increment, skipped, None, None, self._no_observations(), 0.0, {})
+        self._seen.append(self._believed_odom.copy())  # a view the filter weighs (`suggest`)
+        columns = self._plate_columns(increment)
+        parts = {"plate forecast": (time.perf_counter() - started) * 1000}
+        perceived = self.perception.step(frame, columns)
+        parts.update(perceived.timing_ms)
+        lifted = time.perf_counter()
+        points = DepthPoints.of_frame(frame, self.meta) if self._uses_depth else None
+        scan = frame_endpoints(points, self.cfg) if points is not None and self._uses_scan else None
+        parts[DEPTH_PART] = (time.perf_counter() - lifted) * 1000
         perception_ms = (time.perf_counter() - started) * 1000
-        # the filter ignores the scan without its scan term; a skipped frame brings no observation, not an empty one
-        filtered = self.filter.step(increment, observations if skipped is None else None, scan)
-        self._converged = filtered.converged
-        self._suggestion = None
-        out = LocalizerStep(
-            filtered,
-            None,
-            filtered.pose,
-            filtered.covariance,
-            filtered.storey,
-            filtered.room_id,
-            observations,
-            increment,
-            perception_ms,
-            scan,
-            skipped=skipped,
-            perception_parts=parts,
-        )
-        if self.backend is not None:
-            self._graph_step(out)
-        if self.fine is not None and out.graph is not None and skipped is None:
-            self._fine_step(frame, out)
-        if self.backend is not None:
-            self._report(out)
+        return Keyframe(frame, increment, None, points, scan, perceived.observations, perception_ms, parts)
+
+    def _twin_step(self, key: Keyframe, out: LocalizerStep) -> None:
+        """The belief's weight at the output pose's twin: nothing observed tells the output pose from it, but what
+        only one place has."""
         twin = self.twins.get(out.storey)
-        if twin is not None:  # nothing observed tells the output pose from this one, but what only one place has
-            out.twin_pose = twin.apply(out.pose[None])[0]
-            weights = self.filter.estimation_weights()
-            near = near_pose(
-                self.filter.particles,
-                self.filter.storeys,
-                out.twin_pose,
-                out.storey,
-                self.cfg.localization.output_mode_radius_m,
-                np.deg2rad(TWIN_YAW_DEG),
-            )
-            out.twin_share = float(weights[near].sum() / weights.sum())
-        if skipped is None:
-            self._recent.append(frame)
-        return out
+        if twin is None:
+            return
+        out.twin_pose = twin.apply(out.pose[None])[0]
+        weights = self.filter.estimation_weights()
+        near = near_pose(
+            self.filter.particles,
+            self.filter.storeys,
+            out.twin_pose,
+            out.storey,
+            self.cfg.localization.output_mode_radius_m,
+            np.deg2rad(TWIN_YAW_DEG),
+        )
+        out.twin_share = float(weights[near].sum() / weights.sum())
+
+    def _remember(self, key: Keyframe, out: LocalizerStep) -> None:
+        """A used keyframe joins the submap's recent frames."""
+        if key.skipped is None:
+            self._recent.append(key)
 
     def _plate_columns(self, increment: np.ndarray | None) -> np.ndarray | None:
         """(W,) bool: the image columns where the belief, moved by this step's odometry, holds a door plate in reading
@@ -662,7 +708,7 @@ class Localizer:
         self._prev_odom, self._prev_odom_s, self._believed_odom = raw, t, believed
         return increment, frame, skipped
 
-    def _graph_step(self, out: LocalizerStep) -> None:
+    def _graph_step(self, key: Keyframe, out: LocalizerStep) -> None:
         """The filter's modes update their pose graphs; the most probable mode becomes the step's output."""
         assert self.backend is not None
         started = time.perf_counter()
@@ -674,13 +720,15 @@ class Localizer:
         out.graph = self.backend.step(modes, out.odom_increment, out.observations, associate, None, scan_match)
         out.graph_ms = (time.perf_counter() - started) * 1000
 
-    def _fine_step(self, frame: Frame, out: LocalizerStep) -> None:
+    def _fine_step(self, key: Keyframe, out: LocalizerStep) -> None:
         """Register the keyframe's scan from the best mode's pose; an accepted fit enters that mode's graph, and the
-        mode's updated estimate replaces it in the back-end step."""
-        assert self.fine is not None and self.backend is not None and out.graph is not None
+        mode's updated estimate replaces it in the back-end step. Not before a first mode, nor on a skipped frame."""
+        assert self.fine is not None and self.backend is not None
+        if out.graph is None or key.skipped is not None:
+            return
         started = time.perf_counter()
         best = out.graph.best
-        scan = self.fine.scan(frame, self.meta, self._recent)
+        scan = self.fine.scan(key.frame, self.meta, [k.frame for k in self._recent], points=key.points)
         gate_covariance = self.cfg.localization.fine_covariance_scale * best.covariance
         out.fine = self.fine.register_scan(scan, best.pose, best.storey, gate_covariance)
         if out.fine.accepted:
@@ -691,7 +739,7 @@ class Localizer:
             out.graph.best = out.graph.modes[0] = updated
         out.fine_ms = (time.perf_counter() - started) * 1000
 
-    def _report(self, out: LocalizerStep) -> None:
+    def _report(self, key: Keyframe, out: LocalizerStep) -> None:
         """The graph variants' output pose, storey and room (`localization.output`); its covariance is the whole
         belief's about that pose (`belief_covariance`).
 

@@ -39,3 +39,19 @@ def test_one_back_projection_function_in_the_package() -> None:
         if _is_backprojection(node)
     )
     assert places == ["bimfactor/types.py:backproject"] * 2, places
+
+
+def _method(path: Path, cls: str, name: str) -> ast.FunctionDef:
+    tree = ast.parse(path.read_text())
+    owner = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == cls)
+    return next(n for n in owner.body if isinstance(n, ast.FunctionDef) and n.name == name)
+
+
+def test_the_localizer_step_is_a_fixed_chain_of_stages() -> None:
+    step = _method(PACKAGE_DIR / "pipeline.py", "Localizer", "step")
+    assert step.end_lineno is not None and step.end_lineno - step.lineno + 1 <= 25
+    # no branch on the variant or anything else: a variant is its chain of stages, chosen when the localizer is built
+    branches = [node.lineno for node in ast.walk(step) if isinstance(node, ast.If | ast.IfExp | ast.Match)]
+    assert branches == [], branches
+    names = {node.attr for node in ast.walk(step) if isinstance(node, ast.Attribute)}
+    assert {"keyframe", "filter", "_stages"} <= names and "variant" not in names

@@ -19,7 +19,7 @@ from matplotlib.figure import Figure
 from bimfactor.io.atomic import atomic_path
 from bimfactor.io.preview import missing_glyphs_quiet
 from bimfactor.io.sequence import Sequence
-from bimfactor.localization.measurements.scan import backproject_depth
+from bimfactor.localization.measurements.scan import DepthPoints
 
 FLOOR_SEARCH_M = (-1.0, 1.0)  # the floor is looked for this far below and above z = 0 ...
 FLOOR_RANGE_M = 4.0  # ... among the points this close to the robot
@@ -72,7 +72,7 @@ def recording_checks(sequence: Sequence, path_png: str | Path) -> list[str]:
     base frame, the odometry in plan); the report's lines. Atomic."""
     meta = sequence.meta
     frame = sequence[len(sequence) // 2]
-    points = backproject_depth(frame.depth_m, meta.intrinsics, meta.T_base_camera)
+    points = DepthPoints.of_frame(frame, meta).base
     camera = meta.T_base_camera[:3, 3]
     check = FloorCheck(frame.index, floor_height(points, float(camera[2])))
     odometry = sequence.odometry()

@@ -29,7 +29,7 @@ from bimfactor.config import BackendConfig, Config, OdometryConfig, SmclConfig
 from bimfactor.evaluation.registrars import perturb
 from bimfactor.localization.filter import SemanticMCL
 from bimfactor.localization.measurements import FrameData
-from bimfactor.localization.measurements.scan import frame_endpoints
+from bimfactor.localization.measurements.scan import DepthPoints, frame_endpoints
 from bimfactor.localization.measurements.semantic import polar_coordinates
 from bimfactor.localization.modes import Mode
 from bimfactor.progress import progress
@@ -198,7 +198,7 @@ def benchmark_scan_matching(
         for frame in sim.frames[::every]:
             truth = np.asarray(frame.gt_pose, np.float64)
             start = perturb(truth, trans_m, np.deg2rad(rot_deg), rng)
-            endpoints = frame_endpoints(frame, sim.meta, cfg)
+            endpoints = frame_endpoints(DepthPoints.of_frame(frame, sim.meta), cfg)
             clock = time.perf_counter()
             found = matcher.match(start, frame.gt_storey or 0, endpoints)
             times.append((time.perf_counter() - clock) * 1000)

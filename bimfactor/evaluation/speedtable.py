@@ -105,7 +105,7 @@ def real_perception_rows(cfg: Config, building: str, prior, frames, meta, seed: 
     from bimfactor.localization.measurements.text import door_plates, normalise_text
     from bimfactor.perception.ocr import RapidOcrReader
     from bimfactor.perception.text import locate_readings
-    from bimfactor.pipeline import Localizer
+    from bimfactor.pipeline import DEPTH_PART, Localizer
 
     try:
         whole = RapidOcrReader(cfg.perception.text.min_score)
@@ -117,8 +117,9 @@ def real_perception_rows(cfg: Config, building: str, prior, frames, meta, seed: 
     localizer = Localizer(prior, recording, updated(cfg, {"localization.variant": "full"}), seed)
     steps = [localizer.step(frame) for frame in frames]
     used = [s for s in steps if s.skipped is None]
-    total = np.array([s.perception_ms for s in used])
-    parts = {name: np.array([s.perception_parts[name] for s in used]) for name in used[0].perception_parts}
+    total = np.array([s.perception_ms - s.perception_parts[DEPTH_PART] for s in used])
+    names = [name for name in used[0].perception_parts if name != DEPTH_PART]
+    parts = {name: np.array([s.perception_parts[name] for s in used]) for name in names}
     plates = door_plates(prior)
 
     def right(texts: list[str], frame) -> int:

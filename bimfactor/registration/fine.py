@@ -40,6 +40,7 @@ import numpy as np
 from bimfactor.backend.factors import covariance_world_to_body
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import Config, RegistrationConfig, SensorConfig
+from bimfactor.localization.measurements.scan import DepthPoints
 from bimfactor.registration.gate import GateDecision, gate_with_probes
 from bimfactor.registration.icp import Registrar, RegistrationResult, make_registrar
 from bimfactor.registration.scan import MIN_SCAN_POINTS, frame_scan, stitch_submap
@@ -155,33 +156,36 @@ class FineRegistration:
         meta: SequenceMeta,
         recent: Sequence[Frame] = (),
         recent_poses: np.ndarray | None = None,
+        points: DepthPoints | None = None,
     ) -> np.ndarray:
         """(N, 3) registration scan of `frame` in its base frame; (0, 3) when the depth has no usable return.
 
         With `submap_keyframes` = K > 1, the last K − 1 frames of `recent` (oldest first) are stitched in;
         `recent_poses` ((len(recent) + 1, 3), the frame's own last) places them, default their `odom_pose`.
+        `points`: the frame's returns, when the keyframe has them already.
         """
         k = self.cfg.submap_keyframes - 1
         used = list(recent)[-k:] if k > 0 else []
         if not used:
-            return self._frame_scan(frame, meta)
+            return self._frame_scan(frame, meta, points)
         if recent_poses is None:
             poses = np.stack([f.odom_pose for f in [*used, frame]])
         else:
             poses = np.asarray(recent_poses, dtype=np.float64).reshape(-1, 3)[-(len(used) + 1) :]
-        scans = [self._frame_scan(f, meta) for f in [*used, frame]]
+        scans = [*(self._frame_scan(f, meta) for f in used), self._frame_scan(frame, meta, points)]
         nonempty = [i for i, s in enumerate(scans) if len(s)]
         if not nonempty:
             return np.zeros((0, 3))
         return stitch_submap([scans[i] for i in nonempty], poses[nonempty], self.cfg.scan_voxel_m)
 
-    def _frame_scan(self, frame: Frame, meta: SequenceMeta) -> np.ndarray:
+    def _frame_scan(self, frame: Frame, meta: SequenceMeta, points: DepthPoints | None = None) -> np.ndarray:
         """One frame's scan, kept for the next `submap_keyframes` calls (a submap re-uses its frames)."""
         key = (frame.index, frame.timestamp_s)
         if key not in self._scans:
             depth = np.asarray(frame.depth_m)
             usable = depth.ndim == 2 and depth.size > 0
-            self._scans[key] = frame_scan(frame, meta, self.cfg, self.sensor) if usable else np.zeros((0, 3))
+            scan = frame_scan(frame, meta, self.cfg, self.sensor, points=points) if usable else np.zeros((0, 3))
+            self._scans[key] = scan
             while len(self._scans) > self.cfg.submap_keyframes:
                 self._scans.pop(next(iter(self._scans)))
         return self._scans[key]

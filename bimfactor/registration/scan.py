@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from bimfactor.config import RegistrationConfig, SensorConfig
-from bimfactor.localization.measurements.scan import backproject_depth, height_band
+from bimfactor.localization.measurements.scan import DepthPoints, height_band
 from bimfactor.types import Frame, SequenceMeta, se2_between, se2_to_matrix
 
 # A scan with fewer points is not registered (the fine stage) nor used (the comparison's keyframes).
@@ -27,12 +27,18 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
 
 
 def frame_scan(
-    frame: Frame, meta: SequenceMeta, cfg: RegistrationConfig, sensor: SensorConfig, voxel_m: float | None = None
+    frame: Frame,
+    meta: SequenceMeta,
+    cfg: RegistrationConfig,
+    sensor: SensorConfig,
+    voxel_m: float | None = None,
+    points: DepthPoints | None = None,
 ) -> np.ndarray:
     """One frame's registration scan: (N, 3) base-frame wall points within the sensor's range, from its floor cut
-    (`sensor.min_z_m`) up to `cfg.scan_max_z_m`, voxel-downsampled (default voxel from cfg)."""
-    points = backproject_depth(frame.depth_m, meta.intrinsics, meta.T_base_camera, sensor.max_range_m)
-    points = height_band(points, sensor.min_z_m, cfg.scan_max_z_m)
+    (`sensor.min_z_m`) up to `cfg.scan_max_z_m`, voxel-downsampled (default voxel from cfg); `points`, the frame's
+    returns when a keyframe has them already (`DepthPoints.of_frame`)."""
+    points = points if points is not None else DepthPoints.of_frame(frame, meta)
+    points = height_band(points.within(sensor.max_range_m), sensor.min_z_m, cfg.scan_max_z_m)
     return voxel_downsample(points, cfg.scan_voxel_m if voxel_m is None else voxel_m)
 
 

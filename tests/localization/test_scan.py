@@ -10,7 +10,7 @@ from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config, SmclConfig, updated
 from bimfactor.localization.filter import SemanticMCL
 from bimfactor.localization.measurements import FrameData
-from bimfactor.localization.measurements.scan import ScanLikelihood, scan_endpoints
+from bimfactor.localization.measurements.scan import DepthPoints, ScanLikelihood, scan_endpoints
 from bimfactor.localization.recovery import LostMonitor
 from bimfactor.localization.recovery.augmented import AugmentedMCL
 from bimfactor.sim.sensors import camera_mount
@@ -26,7 +26,8 @@ def _camera(cfg: Config) -> tuple[CameraIntrinsics, np.ndarray]:
 def _endpoints(depth: np.ndarray, cfg: Config) -> np.ndarray:
     """The scan of a depth image from the test camera, up to the top of the grid's obstacle band."""
     intrinsics, T_base_camera = _camera(cfg)
-    return scan_endpoints(depth, intrinsics, T_base_camera, cfg.scan, cfg.sensor, cfg.bim.grid.band_max_m)
+    points = DepthPoints.of(depth, intrinsics, T_base_camera)
+    return scan_endpoints(points, cfg.scan, cfg.sensor, cfg.bim.grid.band_max_m)
 
 
 def test_endpoints_are_the_nearest_surface_per_bearing_bin(test_config: Config) -> None:
@@ -78,7 +79,9 @@ def test_a_low_table_seen_from_above_ends_the_scan_at_its_edge(test_config: Conf
     depth = np.where((on_top >= 1.0) & (on_top <= 1.8), on_top, 3.0) * np.ones((1, w))
 
     def ahead(c: Config) -> np.ndarray:
-        scan = scan_endpoints(depth.astype(np.float32), intrinsics, camera_mount(c.sim.camera), c.scan, c.sensor, 1.2)
+        scan = scan_endpoints(
+            DepthPoints.of(depth.astype(np.float32), intrinsics, camera_mount(c.sim.camera)), c.scan, c.sensor, 1.2
+        )
         return scan[np.abs(scan[:, 1]) < 0.3, 0] - c.sim.camera.mount_forward_m  # the bins straight ahead
 
     assert len(ahead(cfg)) >= 3

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from bimfactor.config import Config
-from bimfactor.localization.measurements.scan import backproject_depth
+from bimfactor.localization.measurements.scan import DepthPoints
 from bimfactor.registration.scan import frame_scan, stitch_submap
 from bimfactor.sim.sensors import camera_mount
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta, se2_inverse, se2_to_matrix
@@ -20,7 +20,7 @@ def test_depth_plane_backprojects_to_a_wall_ahead(test_config: Config) -> None:
     intrinsics, T_base_camera = _camera(test_config)
     depth = np.full((48, 64), 3.0, dtype=np.float32)
     depth[0, :] = np.nan  # no return on the top row
-    points = backproject_depth(depth, intrinsics, T_base_camera)
+    points = DepthPoints.of(depth, intrinsics, T_base_camera).base
     assert len(points) == 47 * 64
     cam = test_config.sim.camera
     # A level camera looking along base x: a fronto-parallel depth plane is the plane x = forward + 3.

@@ -15,6 +15,8 @@ tells places of the same shape apart.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from bimfactor.bim.grid import distance_transform
@@ -24,13 +26,30 @@ from bimfactor.localization.measurements.base import FrameData, Term
 from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
 
 
-def backproject_depth(
-    depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray, max_range_m: float = np.inf
-) -> np.ndarray:
-    """(H, W) depth (NaN: no return) → (N, 3) points in the base frame; depth is the camera z (OpenCV)."""
-    depth = np.asarray(depth_m, dtype=np.float64)
-    v, u = np.nonzero(np.isfinite(depth) & (depth > 0) & (depth <= max_range_m))
-    return intrinsics.backproject(u, v, depth[v, u]) @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]
+@dataclass(frozen=True)
+class DepthPoints:
+    """A depth image's returns in the robot's base frame, back-projected once a keyframe: the scan term's endpoints
+    and the registrar's scan are both cut from them. `base` (N, 3) metres; `depth_m` (N,) each return's depth along
+    the camera's z axis (OpenCV), which the sensor's range limits."""
+
+    base: np.ndarray
+    depth_m: np.ndarray
+
+    @classmethod
+    def of(cls, depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_base_camera: np.ndarray) -> DepthPoints:
+        """The returns of an (H, W) depth image (NaN or ≤ 0: no return), in pixel order."""
+        depth = np.asarray(depth_m, dtype=np.float64)
+        v, u = np.nonzero(np.isfinite(depth) & (depth > 0))
+        z = depth[v, u]
+        return cls(intrinsics.backproject(u, v, z) @ T_base_camera[:3, :3].T + T_base_camera[:3, 3], z)
+
+    @classmethod
+    def of_frame(cls, frame: Frame, meta: SequenceMeta) -> DepthPoints:
+        return cls.of(frame.depth_m, meta.intrinsics, meta.T_base_camera)
+
+    def within(self, max_range_m: float = np.inf) -> np.ndarray:
+        """(M, 3) base-frame points whose depth is at most `max_range_m`."""
+        return self.base if max_range_m == np.inf else self.base[self.depth_m <= max_range_m]
 
 
 def height_band(points: np.ndarray, min_z_m: float, max_z_m: float) -> np.ndarray:
@@ -40,9 +59,7 @@ def height_band(points: np.ndarray, min_z_m: float, max_z_m: float) -> np.ndarra
 
 
 def scan_endpoints(
-    depth_m: np.ndarray,
-    intrinsics: CameraIntrinsics,
-    T_base_camera: np.ndarray,
+    points: DepthPoints,
     cfg: ScanConfig,
     sensor: SensorConfig,
     max_z_m: float,
@@ -58,8 +75,7 @@ def scan_endpoints(
     a wall's ±3σ spread, and no more. A fixed 0.3 m took in the top of a low table seen from above, whose returns
     lie behind its edge, and put the endpoint 0.15–0.2 m inside the table (`bimfactor bench scanmatch`).
     """
-    points = backproject_depth(depth_m, intrinsics, T_base_camera)
-    points = height_band(points, sensor.min_z_m, max_z_m)
+    points = height_band(points.base, sensor.min_z_m, max_z_m)
     ranges = np.hypot(points[:, 0], points[:, 1])
     keep = ranges <= sensor.max_range_m
     points, ranges = points[keep], ranges[keep]
@@ -78,11 +94,9 @@ def scan_endpoints(
     return points[order[first + surface_counts // 2], :2]
 
 
-def frame_endpoints(frame: Frame, meta: SequenceMeta, cfg: Config) -> np.ndarray:
-    """`scan_endpoints` of one frame's depth image, up to the top of the configured obstacle band."""
-    return scan_endpoints(
-        frame.depth_m, meta.intrinsics, meta.T_base_camera, cfg.scan, cfg.sensor, cfg.bim.grid.band_max_m
-    )
+def frame_endpoints(points: DepthPoints, cfg: Config) -> np.ndarray:
+    """`scan_endpoints` of one frame's returns, up to the top of the configured obstacle band."""
+    return scan_endpoints(points, cfg.scan, cfg.sensor, cfg.bim.grid.band_max_m)
 
 
 def face_distances(prior: BimPrior) -> np.ndarray:
