@@ -38,7 +38,7 @@ from bimfactor.localization.measurements.semantic import SemanticLikelihood
 from bimfactor.localization.measurements.text import PlateLikelihood
 from bimfactor.localization.motion import propagate
 from bimfactor.localization.particles import FreeSpace, ParticleSampler
-from bimfactor.localization.recovery import Recovery, make_recoveries
+from bimfactor.localization.recovery import Recoveries, make_recoveries
 from bimfactor.localization.resampling import make_resampler, systematic_resample
 from bimfactor.localization.stats import effective_sample_size, weighted_pose_stats
 from bimfactor.localization.twins import TwinEvidence
@@ -154,7 +154,7 @@ class SemanticMCL:
         self.weights = np.full(self.max_particles, 1.0 / self.max_particles)
         # Particles redrawn at the last resampling and not yet weighed by a measurement: left out of the estimate.
         self.fresh = np.zeros(self.max_particles, bool)
-        self.recoveries: list[Recovery] = make_recoveries(cfg, m.plates, self.sampler, self._rival)
+        self.recoveries: Recoveries = make_recoveries(cfg, m.plates, self.sampler, self._rival)
         # A belief on a storey with a twin place is converged only once the frames tell it from its twin.
         self.twin_evidence = TwinEvidence(twins, self._log_likelihood) if twins else None
         self._initialized = False
@@ -185,7 +185,7 @@ class SemanticMCL:
         # 2. Update: weight ×= P(z | x), every measurement model's term.
         update = self.update(frame)
         # Recover, the kidnapped robot: a belief that no longer explains the data starts over, weighed by this frame.
-        lost_frames = max((r.lost(update, frame) for r in self.recoveries), default=0)
+        lost_frames = self.recoveries.lost(update, frame)
         if lost_frames:
             log.info("the belief no longer explains the frames: particles spread over the building")
             self.initialize()
@@ -201,12 +201,11 @@ class SemanticMCL:
         # Recover, the look-alike place: take over a particle set that explains the frames decisively better.
         challenged = False
         if not lost_frames:
-            for recovery in self.recoveries:
-                taken = recovery.challenge(odom_increment, frame, estimate, update.log_evidence)
-                if taken is not None:
-                    log.info("a challenger explains the frames better: the belief moves there")
-                    self.adopt(*taken)
-                    challenged = True
+            taken = self.recoveries.challenge(odom_increment, frame, estimate, update.log_evidence)
+            if taken is not None:
+                log.info("a challenger explains the frames better: the belief moves there")
+                self.adopt(*taken)
+                challenged = True
             estimate = self.estimate()  # what the challenge found confirms the belief, or not
             lap("recover")
         return StepResult(
@@ -274,13 +273,12 @@ class SemanticMCL:
             update = Update(before, terms, log_evidence)
             if self.twin_evidence is not None:
                 self.twin_evidence.observe(self.particles, self.storeys, before, log_likelihood, frame)
-        for recovery in self.recoveries:
-            recovery.after_update(update, frame)
+        self.recoveries.after_update(update, frame)
         return update
 
     def resample(self, frame: FrameData) -> tuple[bool, int]:
         """When ESS < δ_ess·M (or a recovery asks for a redraw), draw the particle set anew: the resampler keeps
-        some, the recoveries redraw the rest (`Recovery.draw`; uniformly over free space where they run short).
+        some, the injections redraw the rest (`Injection.draw`; uniformly over free space where they run short).
         Returns (resampled, particles redrawn)."""
         self._require_initialized()
         M = self.num_particles
@@ -294,7 +292,7 @@ class SemanticMCL:
 
         keep = self.resampler.resample(self.weights, self.particles, self.storeys, sum(wanted), recount, self.rng)
         fresh, fresh_storeys = [np.zeros((0, 3))], [np.zeros(0, np.int64)]
-        for recovery, n in zip(self.recoveries, wanted, strict=True):
+        for recovery, n in zip(self.recoveries.injections, wanted, strict=True):
             if n:
                 poses, storeys = recovery.draw(n, frame)
                 fresh.append(poses)
@@ -316,7 +314,7 @@ class SemanticMCL:
         """How many of `count` particles each recovery redraws at this resampling (`asked`: only those that asked
         before, for the count a resampler chose)."""
         out, room = [], count
-        for k, recovery in enumerate(self.recoveries):
+        for k, recovery in enumerate(self.recoveries.injections):
             n = recovery.replacements(count, room) if asked is None or asked[k] else 0
             out.append(n)
             room -= n
@@ -347,7 +345,7 @@ class SemanticMCL:
         """A compact estimate on `storey` is converged when every recovery confirms it and the frames tell it from
         its twin place, if the storey has one."""
         settled = self.twin_evidence is None or self.twin_evidence.settled(storey)
-        return compact and settled and all(recovery.confirms() for recovery in self.recoveries)
+        return compact and settled and self.recoveries.confirms()
 
     # -------------------------------------------------------------------------------- starting the belief
 
@@ -405,8 +403,7 @@ class SemanticMCL:
         self.particles, self.storeys = particles, storeys
         self.weights = np.full(len(particles), 1.0 / len(particles))
         self.fresh = np.zeros(len(particles), bool)
-        for recovery in self.recoveries:
-            recovery.reset()
+        self.recoveries.reset()
         if self.twin_evidence is not None:
             self.twin_evidence.reset()
         self._initialized = True

@@ -13,7 +13,7 @@ from tests.localization.handmade import observe
 
 
 def augmented_of(mcl: SemanticMCL) -> AugmentedMCL:
-    return next(r for r in mcl.recoveries if isinstance(r, AugmentedMCL))
+    return next(r for r in mcl.recoveries.injections if isinstance(r, AugmentedMCL))
 
 
 def test_augmented_mcl_injects_random_particles_when_the_short_average_drops(box_prior, box_visibility, smcl_cfg):
@@ -30,7 +30,7 @@ def test_augmented_mcl_injects_random_particles_when_the_short_average_drops(box
         box_prior, box_visibility, updated(cfg, {"augmented.enabled": False}), np.random.default_rng(0), 1000
     )
     paper.initialize()
-    assert not any(isinstance(r, AugmentedMCL) for r in paper.recoveries)
+    assert not any(isinstance(r, AugmentedMCL) for r in paper.recoveries.injections)
     assert paper.resample(FrameData()) == (False, 0)
 
 

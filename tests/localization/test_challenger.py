@@ -22,12 +22,12 @@ def test_the_challenger_draws_from_its_own_generator(box_prior, box_visibility, 
         for _ in range(6):
             result = mcl.step(np.array([0.0, 0.0, 0.0]), observe(("chair", 1.0, 0.0)))
         assert result.converged and not result.challenged
-        challengers = [r for r in mcl.recoveries if isinstance(r, Challenger)]
+        challengers = [r for r in [mcl.recoveries.verification] if isinstance(r, Challenger)]
         assert bool(challengers) == enabled
         if enabled:  # it ran: drawn at a converged frame, with a filter of its own size and no challenger of its own
             rival = challengers[0].rival
             assert rival._initialized and rival.num_particles == cfg.challenger.particles
-            assert not any(isinstance(r, Challenger) for r in rival.recoveries)
+            assert rival.recoveries.verification is None and rival.recoveries.lost_detection is None
         poses.append(mcl.particles.copy())
     np.testing.assert_array_equal(*poses)
 

@@ -163,7 +163,7 @@ def _two_particles(prior: BimPrior, visibility: VisibilityTable, cfg: SmclConfig
 
 
 def _augmented(mcl: SemanticMCL) -> AugmentedMCL:
-    return next(r for r in mcl.recoveries if isinstance(r, AugmentedMCL))
+    return next(r for r in mcl.recoveries.injections if isinstance(r, AugmentedMCL))
 
 
 def test_the_filter_weighs_by_the_scan_only_when_enabled(

@@ -214,7 +214,7 @@ def test_the_filter_tells_the_twin_units_apart_by_a_plate(duplex: Building) -> N
 
 
 def _text_reset(filt: SemanticMCL) -> TextReset:
-    return next(r for r in filt.recoveries if isinstance(r, TextReset))
+    return next(r for r in filt.recoveries.injections if isinstance(r, TextReset))
 
 
 def test_a_reading_the_belief_cannot_explain_redraws_particles_before_its_plate(duplex: Building) -> None:

@@ -1,5 +1,6 @@
-"""The filter's recoveries from a wrong belief, behind the `Recovery` protocol (`recovery.base`): door-plate resets,
-augmented MCL, relocalization and the challenger. `make_recoveries` picks them from `smcl`'s sub-configs."""
+"""The filter's recoveries from a wrong belief, by role (`recovery.base`): door-plate resets and augmented MCL inject
+particles, relocalization detects a lost belief, the challenger verifies a converged one. `make_recoveries` picks
+them from `smcl`'s sub-configs."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from bimfactor.config import SmclConfig
 from bimfactor.localization.measurements.text import PlateLikelihood
 from bimfactor.localization.particles import ParticleSampler
 from bimfactor.localization.recovery.augmented import AugmentedMCL
-from bimfactor.localization.recovery.base import Recovery, RecoveryBase, WeightedSet
+from bimfactor.localization.recovery.base import Injection, Recoveries, WeightedSet
 from bimfactor.localization.recovery.challenger import Challenger
 from bimfactor.localization.recovery.relocalize import LostMonitor, Relocalize
 from bimfactor.localization.recovery.text_reset import TextReset
@@ -18,7 +19,7 @@ from bimfactor.localization.recovery.text_reset import TextReset
 if TYPE_CHECKING:
     from bimfactor.localization.filter import SemanticMCL
 
-__all__ = ["LostMonitor", "Recovery", "RecoveryBase", "WeightedSet", "make_recoveries"]
+__all__ = ["LostMonitor", "Recoveries", "WeightedSet", "make_recoveries"]
 
 
 def make_recoveries(
@@ -26,16 +27,15 @@ def make_recoveries(
     plates: PlateLikelihood,
     sampler: ParticleSampler,
     rival: Callable[[SmclConfig, int], SemanticMCL],
-) -> list[Recovery]:
-    """The recoveries `cfg` enables. Their order is the order of the redraws at a resampling (door-plate resets
-    before augmented MCL's random particles). `rival(cfg, n)` makes the challenger's filter of n particles."""
-    out: list[Recovery] = []
+) -> Recoveries:
+    """The recoveries `cfg` enables. The injections redraw in this order at a resampling: door-plate resets before
+    augmented MCL's random particles. `rival(cfg, n)` makes the challenger's filter of n particles."""
+    injections: list[Injection] = []
     if cfg.text_reset.enabled:
-        out.append(TextReset(cfg.text_reset, plates, sampler))
+        injections.append(TextReset(cfg.text_reset, plates, sampler))
     if cfg.augmented.enabled:
-        out.append(AugmentedMCL(cfg.augmented, cfg.semantic.temperature, sampler))
-    if cfg.relocalize.enabled:
-        out.append(Relocalize(cfg.relocalize))
+        injections.append(AugmentedMCL(cfg.augmented, cfg.semantic.temperature, sampler))
+    out = Recoveries(injections, Relocalize(cfg.relocalize) if cfg.relocalize.enabled else None)
     if cfg.challenger.enabled:
         solo = cfg.model_copy(
             update={
@@ -43,5 +43,5 @@ def make_recoveries(
                 "relocalize": cfg.relocalize.model_copy(update={"enabled": False}),
             }
         )
-        out.append(Challenger(cfg.challenger, rival(solo, cfg.challenger.particles)))
+        out.verification = Challenger(cfg.challenger, rival(solo, cfg.challenger.particles))
     return out

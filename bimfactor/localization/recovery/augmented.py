@@ -10,10 +10,10 @@ import numpy as np
 from bimfactor.config import AugmentedConfig
 from bimfactor.localization.measurements.base import FrameData, Update
 from bimfactor.localization.particles import ParticleSampler, Poses
-from bimfactor.localization.recovery.base import NO_POSES, RecoveryBase
+from bimfactor.localization.recovery.base import NO_POSES
 
 
-class AugmentedMCL(RecoveryBase):
+class AugmentedMCL:
     def __init__(self, cfg: AugmentedConfig, temperature: float, sampler: ParticleSampler) -> None:
         self.cfg, self.temperature, self.sampler = cfg, temperature, sampler
         self.w_slow: float | None = None

@@ -1,21 +1,22 @@
-"""What every recovery of the filter may do, and when the filter asks it (`filter.SemanticMCL.step`):
+"""The three roles a recovery of the filter plays, and when the filter asks each (`filter.SemanticMCL.step`):
 
-- `after_update`: after each measurement update, watch the update (augmented MCL's likelihood averages, the door
-  plates the belief does not explain);
-- `lost`: once a step, after the update: > 0 when the belief must be spread over the building again (the frames
-  since it stopped explaining the data);
-- `replacements` and `draw`: at a resampling, how many particles to redraw instead of resampling them, and the poses
-  to redraw them at (fewer: the rest are drawn uniformly);
-- `challenge`: after the estimate, a weighted particle set the belief should take over instead (or None);
-- `confirms`: whether the recovery lets a compact estimate be reported converged (the challenger: only once it
-  looked for a look-alike place and found none that explains the frames as well);
-- `reset`: the particles were set anew (a start, a relocalization, a set taken over).
+- an `Injection` redraws particles at a resampling: it watches each measurement update (`after_update`: augmented
+  MCL's likelihood averages, the door plates the belief does not explain), then says how many particles to redraw
+  instead of resampling them (`replacements`) and where (`draw`; fewer: the rest are drawn uniformly);
+- a `LostDetection` says, once a step after the update, that the belief must be spread over the building again
+  (`lost` > 0: the frames since it stopped explaining the data);
+- a `Verification` checks a converged belief: after the estimate it may hand over a weighted particle set the belief
+  should take instead (`challenge`), and it decides whether a compact estimate may be reported converged
+  (`confirms`: the challenger, only once it looked for a look-alike place and found none that explains the frames
+  as well).
 
-`RecoveryBase` does nothing at each; a recovery overrides the hooks it needs.
+Each starts over (`reset`) when the particles are set anew: a start, a relocalization, a set taken over.
+`Recoveries` holds the ones the configuration enables.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -32,16 +33,24 @@ WeightedSet = tuple[np.ndarray, np.ndarray, np.ndarray]
 NO_POSES: Poses = (np.zeros((0, 3)), np.zeros(0, np.int64))
 
 
-class Recovery(Protocol):
+class Injection(Protocol):
     def reset(self) -> None: ...
 
     def after_update(self, update: Update, frame: FrameData) -> None: ...
 
-    def lost(self, update: Update, frame: FrameData) -> int: ...
-
     def replacements(self, count: int, room: int) -> int: ...
 
     def draw(self, n: int, frame: FrameData) -> Poses: ...
+
+
+class LostDetection(Protocol):
+    def reset(self) -> None: ...
+
+    def lost(self, update: Update, frame: FrameData) -> int: ...
+
+
+class Verification(Protocol):
+    def reset(self) -> None: ...
 
     def challenge(
         self, odom_increment: np.ndarray | None, frame: FrameData, estimate: PoseEstimate, log_evidence: float | None
@@ -50,28 +59,33 @@ class Recovery(Protocol):
     def confirms(self) -> bool: ...
 
 
-class RecoveryBase:
-    """A recovery that does nothing at any hook; subclasses override the ones they need."""
+@dataclass
+class Recoveries:
+    """The filter's recoveries by role. `injections` in the order of their redraws at a resampling."""
+
+    injections: list[Injection]
+    lost_detection: LostDetection | None = None
+    verification: Verification | None = None
 
     def reset(self) -> None:
-        return None
+        for recovery in (*self.injections, self.lost_detection, self.verification):
+            if recovery is not None:
+                recovery.reset()
 
     def after_update(self, update: Update, frame: FrameData) -> None:
-        return None
+        for injection in self.injections:
+            injection.after_update(update, frame)
 
     def lost(self, update: Update, frame: FrameData) -> int:
-        return 0
-
-    def replacements(self, count: int, room: int) -> int:
-        return 0
-
-    def draw(self, n: int, frame: FrameData) -> Poses:
-        return NO_POSES
+        """The frames since the belief stopped explaining the data (0: it still does, or nothing watches)."""
+        return 0 if self.lost_detection is None else self.lost_detection.lost(update, frame)
 
     def challenge(
         self, odom_increment: np.ndarray | None, frame: FrameData, estimate: PoseEstimate, log_evidence: float | None
     ) -> WeightedSet | None:
-        return None
+        if self.verification is None:
+            return None
+        return self.verification.challenge(odom_increment, frame, estimate, log_evidence)
 
     def confirms(self) -> bool:
-        return True
+        return self.verification is None or self.verification.confirms()

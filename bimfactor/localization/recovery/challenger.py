@@ -29,13 +29,13 @@ import numpy as np
 
 from bimfactor.config import ChallengerConfig
 from bimfactor.localization.measurements.base import FrameData
-from bimfactor.localization.recovery.base import NO_POSES, RecoveryBase, WeightedSet
+from bimfactor.localization.recovery.base import NO_POSES, WeightedSet
 
 if TYPE_CHECKING:
     from bimfactor.localization.filter import PoseEstimate, SemanticMCL
 
 
-class Challenger(RecoveryBase):
+class Challenger:
     def __init__(self, cfg: ChallengerConfig, rival: SemanticMCL) -> None:
         self.cfg, self.rival = cfg, rival  # `rival`: a filter of `particles` without relocalization or challenger
         self.running = False

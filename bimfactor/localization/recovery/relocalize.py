@@ -8,7 +8,6 @@ import numpy as np
 
 from bimfactor.config import RelocalizeConfig
 from bimfactor.localization.measurements.base import FrameData, Update
-from bimfactor.localization.recovery.base import RecoveryBase
 
 
 class LostMonitor:
@@ -74,7 +73,7 @@ class LostMonitor:
         return 0
 
 
-class Relocalize(RecoveryBase):
+class Relocalize:
     """Says when the belief is lost: `lost` > 0 (the frames since it stopped explaining the scans)."""
 
     def __init__(self, cfg: RelocalizeConfig) -> None:

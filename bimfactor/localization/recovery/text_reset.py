@@ -10,11 +10,11 @@ from bimfactor.config import TextResetConfig
 from bimfactor.localization.measurements.base import FrameData, Update
 from bimfactor.localization.measurements.text import PlateLikelihood
 from bimfactor.localization.particles import ParticleSampler, Poses
-from bimfactor.localization.recovery.base import NO_POSES, RecoveryBase
+from bimfactor.localization.recovery.base import NO_POSES
 from bimfactor.types import TextObservations
 
 
-class TextReset(RecoveryBase):
+class TextReset:
     def __init__(self, cfg: TextResetConfig, plates: PlateLikelihood, sampler: ParticleSampler) -> None:
         self.cfg, self.plates, self.sampler = cfg, plates, sampler
         self.unexplained: list[int] = []  # the last update's readings the belief did not explain
