@@ -1667,7 +1667,7 @@ def bench_buildings(
         typer.Option(
             "--address",
             metavar="ADDR",
-            help="An existing Ray cluster (e.g. ray://head:10001); its nodes need bimfactor and see OUT at its path.",
+            help="A running Ray cluster: auto, HOST:PORT or ray://HOST:PORT; its nodes need bimfactor and see OUT.",
         ),
     ] = None,
     workers: Annotated[int | None, typer.Option("--workers", min=1, help="Parallel runs (default: CPUs).")] = None,
@@ -1689,7 +1689,7 @@ def bench_buildings(
       bimfactor bench buildings ../shared/data/ifc/duplex.ifc --variant smcl+graph -o runs/bench-duplex
       bimfactor bench buildings paper-floor ../shared/data/ifc/AC11-Institute-Var-2-IFC.ifc -o runs/bench-two
       bimfactor bench buildings --set evaluation.trajectory_length=150 -o runs/bench-buildings-150
-      bimfactor bench buildings --address ray://head:10001 -o /shared/runs/bench-buildings
+      bimfactor bench buildings --address head:6379 -o /shared/runs/bench-buildings
     """
     with _cli_errors(debug):
         cfg = _protocol_config(config, overrides, variants, scenario, verbose)
@@ -1700,7 +1700,13 @@ def bench_buildings(
             format_buildings_report,
             run_buildings_bench,
         )
-        from bimfactor.evaluation.paper import check_protocol, check_runner
+        from bimfactor.evaluation.paper import (
+            check_cluster,
+            check_protocol,
+            check_runner,
+            ray_session,
+            runner_description,
+        )
 
         check_protocol(cfg)
         check_runner(runner, address)
@@ -1712,7 +1718,14 @@ def bench_buildings(
                 if not building.is_file():
                     raise InputError(f"no such IFC file: {building}")
                 read_schema(building)  # not IFC, or truncated: refused before any prior is built
-        with _bench_dir(output, *[b for b in chosen if isinstance(b, Path)]):
+        if address is not None:
+            check_cluster(address)  # a closed port: refused at once
+        typer.echo(f"runs on: {runner_description(runner, address, workers)}")
+        # Ray is connected before any prior is built: a cluster that does not answer costs seconds, not priors
+        session = ray_session(workers, address) if runner == "ray" else contextlib.nullcontext({})
+        with session as where, _bench_dir(output, *[b for b in chosen if isinstance(b, Path)]):
+            if where:
+                typer.echo(f"  {where['nodes']} node(s), {where['cpus']} CPUs")
             report = run_buildings_bench(chosen, cfg, output, runner, workers, address)
         typer.echo(format_buildings_report(report), nl=False)
         typer.echo(f"results: {output / 'results.json'}, report: {output / 'report.md'}")

@@ -111,7 +111,14 @@ def run_buildings_bench(
     OUT/report.md, OUT/buildings.png and OUT/config.yaml, and returns the report."""
     from bimfactor.bim.prior import BimPrior
     from bimfactor.bim.symmetry import twin_motions
-    from bimfactor.evaluation.paper import check_protocol, paper_jobs, paper_report, reported_variants, run_jobs
+    from bimfactor.evaluation.paper import (
+        check_protocol,
+        paper_jobs,
+        paper_report,
+        reported_variants,
+        run_jobs,
+        runner_description,
+    )
 
     check_protocol(cfg)
     out = Path(out_dir)
@@ -124,11 +131,18 @@ def run_buildings_bench(
             jobs.append(job)
             owners.append(name)
     desc = f"bench buildings ({len(priors)} buildings, {', '.join(cfg.evaluation.variants)})"
-    results = run_jobs(jobs, desc, runner, workers, address)
+    where: dict = {}
+    results = run_jobs(jobs, desc, runner, workers, address, where)
     report: dict = {
         "benchmark": "buildings",
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "runner": runner if address is None else f"{runner} at {address}",
+        "runner": {
+            "name": runner,
+            "address": address,
+            "own_instance": runner == "ray" and address is None,
+            "runs_on": runner_description(runner, address, workers),
+            **where,
+        },
         "variants": reported_variants(cfg.evaluation),
         "buildings": {},
     }
@@ -185,14 +199,22 @@ def _fmt(value: float | None, pattern: str) -> str:
     return "–" if value is None or (isinstance(value, float) and not np.isfinite(value)) else pattern.format(value)
 
 
+def runs_on(runner: dict | str) -> str:
+    """Where a report's runs went, in words (a report before the runner record held only a name)."""
+    if isinstance(runner, str):
+        return runner
+    nodes = f", {runner['nodes']} node(s) with {runner['cpus']} CPUs in all" if "nodes" in runner else ""
+    return f"{runner['runs_on']}{nodes}"
+
+
 def format_buildings_report(report: dict) -> str:
     """report.md: one table per building (a row per variant), then the worst building and route."""
     lines = [
         "# bench buildings",
         "",
-        f"Runs on {report['runner']}, created {report['created_utc']}. Scored as `bench paper` scores (Table I's "
-        "cells over the scored steps); success, wrong convergence, distance to correct convergence and top 3 over "
-        "each whole route from its first frame.",
+        f"Runs on {runs_on(report['runner'])}, created {report['created_utc']}. Scored as `bench paper` scores "
+        "(Table I's cells over the scored steps); success, wrong convergence, distance to correct convergence and "
+        "top 3 over each whole route from its first frame.",
     ]
     header = "| variant | " + " | ".join(title for _, title, _ in ROW_KEYS) + " | runs |"
     rule = "|---" * (len(ROW_KEYS) + 2) + "|"

@@ -31,12 +31,15 @@ its own forward pass. Each job runs each forward pass it needs once and scores e
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import multiprocessing
 import os
 import re
+import sys
 from collections import Counter
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -46,7 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bimfactor.config import Config, EvaluationConfig, updated
-from bimfactor.errors import ConfigError
+from bimfactor.errors import ConfigError, InputError
 from bimfactor.evaluation.metrics import (
     RouteOutcome,
     orientation_errors_deg,
@@ -512,6 +515,62 @@ RAY_ADDRESS = re.compile(r"^(auto|local|(ray://)?[A-Za-z0-9_.\-]+:\d{1,5})$")
 """What `ray.init(address=...)` takes: auto, local, HOST:PORT of a cluster's head, or ray://HOST:PORT (Ray Client)."""
 
 
+CLUSTER_ANSWER_S = 30.0
+"""How long a cluster given by `--address` has to accept a driver before the benchmark says it cannot reach it."""
+_PROBE = "import sys; from bimfactor.evaluation.paper import ray_session as s\nwith s(None, sys.argv[1]): pass"
+
+
+def _use_cluster_token() -> None:
+    """Authenticate to a cluster the way Ray's own CLI does: with RAY_AUTH_MODE unset, a token in RAY_AUTH_TOKEN,
+    RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token (what `ray start` writes, Ray ≥ 2.5x) turns token mode on."""
+    try:
+        from ray._private.authentication import authentication_token_setup as setup
+    except ImportError:  # a Ray without token authentication
+        return
+    logging.getLogger(setup.__name__).setLevel(logging.ERROR)  # no notice that token mode is on
+    setup.maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
+
+
+def runner_description(runner: str, address: str | None, workers: int | None) -> str:
+    """Where the runs go, in words, for the benchmark's first lines and its results.json."""
+    if runner == "processes":
+        return f"a local process pool ({workers or os.cpu_count() or 1} workers)"
+    if address is None:
+        return "a Ray instance of its own (RAY_ADDRESS and earlier clusters' session files are ignored)"
+    return f"the Ray cluster at {address}"
+
+
+def check_cluster(address: str) -> None:
+    """InputError unless the Ray cluster at `address` accepts a driver within `CLUSTER_ANSWER_S`: a closed port, an
+    address that is no Ray head, `auto` with no cluster running (`ray start --head`), a head that hangs.
+    DependencyError for `ray://` without Ray Client. Tried in a child process, which is killed when it hangs, so the
+    benchmark learns it in seconds, before any prior is built."""
+    import socket
+    import subprocess
+
+    from bimfactor.errors import DependencyError
+
+    if address != "auto":  # a closed port or an unknown host is told at once, not after Ray's retries
+        host, _, port = address.removeprefix("ray://").rpartition(":")
+        try:
+            socket.create_connection((host, int(port)), timeout=CLUSTER_ANSWER_S).close()
+        except OSError as exc:
+            raise InputError(f"--address {address}: nothing answers there ({exc.__class__.__name__}: {exc})") from exc
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", _PROBE, address], capture_output=True, text=True, timeout=CLUSTER_ANSWER_S
+        )
+    except subprocess.TimeoutExpired as exc:
+        raise InputError(f"--address {address}: the Ray cluster did not answer within {CLUSTER_ANSWER_S:g} s") from exc
+    if done.returncode == 0:
+        return
+    if "ray[client]" in done.stderr:
+        raise DependencyError(f"--address {address} needs Ray Client: pip install 'ray[client]'")
+    errors = [line.strip() for line in done.stderr.splitlines() if re.match(r"^\w*(Error|Exception)\b", line.strip())]
+    why = errors[-1] if errors else f"exit {done.returncode}"
+    raise InputError(f"--address {address}: no Ray cluster answers there ({why})")
+
+
 def check_runner(runner: str, address: str | None = None) -> None:
     """ConfigError for a runner not in `RUNNERS`, an `address` that is no Ray address (`RAY_ADDRESS`), or an address
     given to a runner other than Ray."""
@@ -536,12 +595,18 @@ def paper_jobs(prior_dir: str | Path, cfg: Config, twins: dict[int, Motion]) -> 
 
 
 def run_jobs(
-    jobs: list[Job], desc: str, runner: str = "processes", workers: int | None = None, address: str | None = None
+    jobs: list[Job],
+    desc: str,
+    runner: str = "processes",
+    workers: int | None = None,
+    address: str | None = None,
+    where: dict | None = None,
 ) -> list[list[RunResult]]:
-    """Each job's `_run_one` results, in the jobs' order, whichever runner ran them (they do not depend on it)."""
+    """Each job's `_run_one` results, in the jobs' order, whichever runner ran them (they do not depend on it). On
+    Ray, `where` (when given) receives the nodes and CPUs that ran them."""
     check_runner(runner, address)
     if runner == "ray":
-        return _ray_jobs(jobs, desc, workers, address)
+        return _ray_jobs(jobs, desc, workers, address, where if where is not None else {})
     workers = workers or min(len(jobs), os.cpu_count() or 1)
     if workers == 1:  # in this process: no worker start-up (imports, the sentence encoder) to pay for
         return [_run_one(*job) for job in progress(jobs, desc=desc, unit="run")]
@@ -551,9 +616,13 @@ def run_jobs(
         return [future.result() for future in progress(futures, desc=desc, unit="run")]
 
 
-def _ray_jobs(jobs: list[Job], desc: str, workers: int | None, address: str | None) -> list[list[RunResult]]:
-    """`run_jobs` on Ray: a local instance with `workers` CPUs (default: all), or the cluster at `address`, whose
-    nodes must have bimfactor installed and see the prior folders at the same paths (a shared file system)."""
+@contextlib.contextmanager
+def ray_session(workers: int | None = None, address: str | None = None) -> Iterator[dict]:
+    """Ray, connected for the block: an instance of its own with `workers` CPUs (default: all) when `address` is None,
+    whatever RAY_ADDRESS or a dead cluster's session file says (Ray's "local"), else the cluster at `address`, whose
+    nodes must have bimfactor installed and see the prior folders at the same paths (a shared file system). Yields
+    the nodes and CPUs it has. A cluster that does not answer is an InputError (Ray gives up after about 20 s). A
+    session already connected is used as it is, and left connected."""
     from bimfactor.errors import DependencyError
 
     try:
@@ -562,14 +631,55 @@ def _ray_jobs(jobs: list[Job], desc: str, workers: int | None, address: str | No
         raise DependencyError("the Ray runner needs Ray: pip install ray (or --runner processes)") from exc
     started_here = not ray.is_initialized()
     if started_here:
-        ray.init(
-            address=address,
-            num_cpus=None if address else workers,
-            include_dashboard=False,
-            log_to_driver=False,
-            logging_level=logging.ERROR,
-        )
+        if address is not None:
+            _use_cluster_token()
+        try:
+            with _stderr_muted():  # Ray's core logs each retry against an address that does not answer
+                ray.init(
+                    address=address or "local",
+                    num_cpus=None if address else workers,
+                    include_dashboard=False,
+                    log_to_driver=False,
+                    logging_level=logging.ERROR,
+                )
+        except ConnectionError as exc:
+            raise InputError(f"--address {address}: no Ray cluster answers there ({exc})") from exc
+        except ValueError as exc:
+            if "ray[client]" in str(exc):
+                raise DependencyError(f"--address {address} needs Ray Client: pip install 'ray[client]'") from exc
+            raise
     try:
+        nodes = sum(1 for node in ray.nodes() if node.get("Alive"))
+        cpus = int(ray.cluster_resources().get("CPU", 0))
+        log.info("Ray: %d node(s), %d CPUs", nodes, cpus)
+        yield {"nodes": nodes, "cpus": cpus}
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+@contextlib.contextmanager
+def _stderr_muted() -> Iterator[None]:
+    """File descriptor 2 goes to /dev/null for the block (C++ libraries write there, not to sys.stderr)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _ray_jobs(
+    jobs: list[Job], desc: str, workers: int | None, address: str | None, where: dict
+) -> list[list[RunResult]]:
+    """`run_jobs` on Ray (`ray_session`)."""
+    import ray
+
+    with ray_session(workers, address) as session:
+        where.update(session)
         remote = ray.remote(num_cpus=1)(_run_one)
         refs = [remote.remote(*job) for job in jobs]
         order = {ref: i for i, ref in enumerate(refs)}
@@ -580,9 +690,6 @@ def _ray_jobs(jobs: list[Job], desc: str, workers: int | None, address: str | No
             done, pending = ray.wait(pending, num_returns=1)
             results[order[done[0]]] = ray.get(done[0])
         return results
-    finally:
-        if started_here:
-            ray.shutdown()
 
 
 def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, workers: int | None = None) -> dict:
