@@ -572,6 +572,7 @@ def _format_prior_summary(built: BimPrior, summary: dict[str, Any]) -> str:
         lines.append(
             f"  {index}  {st['name'] or '(unnamed)':<20} {st['elevation_m']:+7.2f} m  "
             f"{st['rooms']:3d} rooms  {st['doors']:3d} doors{passages}  {st['objects']:4d} objects"
+            + (f"  ({st['floor']})" if st.get("floor") else "")
         )
     lines.append(f"rooms: {summary['rooms']}  (types: {_counts(summary['room_types'])})")
     for room in summary["room_list"]:

@@ -34,12 +34,16 @@ _WALL_CLASSES = ("IfcWall", "IfcCurtainWall")
 
 @dataclass(frozen=True)
 class Storey:
-    """A building storey; `index` orders storeys by elevation, 0 = lowest."""
+    """A building storey; `index` orders storeys by elevation, 0 = lowest. `is_floor`: a robot can stand on it
+    (`bim.prior.floor_levels`; a foundation, a roof or a reference level is kept, but holds no room), and
+    `floor_note` says why or why not."""
 
     index: int
     guid: str
     name: str
     elevation_m: float
+    is_floor: bool = True
+    floor_note: str = ""
 
 
 @dataclass

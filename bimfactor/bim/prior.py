@@ -14,6 +14,7 @@ add `evaluation.plots.save_floorplans`'s floorplan_<storey>.png).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import typing
@@ -44,7 +45,7 @@ from bimfactor.textfile import read_utf8
 log = logging.getLogger(__name__)
 
 PRIOR_FORMAT = "bimfactor-prior"
-PRIOR_VERSION = 2
+PRIOR_VERSION = 3  # 3: storeys say whether they are floors (`floor_levels`)
 _LAYERS = ("structure", "furniture", "clearance_m", "room_labels", "navigable")
 
 
@@ -195,6 +196,7 @@ class BimPrior:
                     "doors": sum(d.storey_index == s.storey.index and d.kind == "door" for d in self.doors),
                     "passages": sum(d.storey_index == s.storey.index and d.kind == "passage" for d in self.doors),
                     "objects": sum(o.storey_index == s.storey.index for o in self.objects),
+                    "floor": s.storey.floor_note,
                 }
                 for s in self.storeys
             ],
@@ -355,7 +357,7 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     storeys, rooms, doors, matches = [], [], [], []
     door_elements = model.of_class("IfcDoor")
     spaces = model.of_class("IfcSpace")
-    for storey in progress(model.storeys, desc="storeys", unit="storey"):
+    for storey in progress(floor_levels(model, furniture_classes), desc="storeys", unit="storey"):
         grid = build_storey_grid(storey, model.elements, spec, bim.grid, furniture_classes)
         z_lo, z_hi = storey.elevation_m + bim.grid.band_min_m, storey.elevation_m + bim.grid.band_max_m
         storey_doors = [(d, g) for d in door_elements if (g := room_ops.door_geometry(d, z_lo, z_hi)) is not None]
@@ -428,6 +430,37 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     return prior
 
 
+ROOF_SLAB = "ROOF"
+"""An IfcSlab's predefined type on a level with nothing else to stand on: the level is a roof."""
+
+
+def floor_levels(model: IfcModel, furniture_classes: list[str]) -> list[Storey]:
+    """The model's storeys, each marked a floor or not, with why. A floor holds, by the model's spatial structure,
+    something a robot moves among: a room (IfcSpace), a door or furniture; and not only roof slabs under it. A
+    foundation, a roof or a reference level holds none of these: its height slice would cut the walls and doors of
+    the floor above or below into a second copy of that floor. When no level qualifies, every level is a floor."""
+    notes = []
+    for storey in model.storeys:
+        own = [e for e in model.elements if e.storey_index == storey.index]
+        spaces = sum(e.ifc_class == "IfcSpace" for e in own)
+        doors = sum(e.is_a("IfcDoor") for e in own)
+        furniture = sum(any(e.is_a(c) for c in furniture_classes) for e in own)
+        slabs = [e.predefined_type.upper() for e in own if e.is_a("IfcSlab")]
+        counts = f"{spaces} IfcSpace, {doors} doors, {furniture} furniture"
+        if not spaces + doors + furniture:
+            notes.append((False, f"not a floor: no IfcSpace, door or furniture of its own ({len(own)} elements)"))
+        elif slabs and all(t == ROOF_SLAB for t in slabs):
+            notes.append((False, f"not a floor: its slabs are roof slabs ({counts})"))
+        else:
+            notes.append((True, f"floor: {counts}"))
+    if not any(is_floor for is_floor, _ in notes):
+        notes = [(True, "floor: no level holds a room, door or furniture, so every level is kept")] * len(notes)
+    return [
+        dataclasses.replace(storey, is_floor=is_floor, floor_note=note)
+        for storey, (is_floor, note) in zip(model.storeys, notes, strict=True)
+    ]
+
+
 def _check_rooms(
     ifc_path: str | Path, model: IfcModel, rooms: list[Room], storeys: list[StoreyLayers], cfg: Config
 ) -> None:
@@ -469,7 +502,7 @@ def _storey_rooms(grid, spec, storey_doors, storey_spaces, cfg: Config, first_ro
         match = RoomMatch(storey.index, len(space_regions), ious, rcfg.iou_match_threshold)
     use_spaces = rcfg.source == "ifcspace" or (rcfg.source == "auto" and bool(space_regions))
     regions = space_regions if use_spaces else flood
-    if not any(element is not None for element, _ in storey_doors) and not storey_spaces:
+    if not storey.is_floor or (not any(element is not None for element, _ in storey_doors) and not storey_spaces):
         regions = []
     ids = list(range(first_room_id, first_room_id + len(regions)))
     labels = room_ops.label_map(regions, ids, outside)

@@ -17,7 +17,7 @@ import pytest
 
 from bimfactor.bim import ifc as ifc_module
 from bimfactor.bim.ifc import load_ifc, read_schema
-from bimfactor.bim.prior import BimPrior, build_prior
+from bimfactor.bim.prior import PRIOR_VERSION, BimPrior, build_prior
 from bimfactor.bim.synth import write_building
 from bimfactor.errors import ConfigError, FormatError, IfcError
 from tests.cli import assert_one_line_error, invoke
@@ -336,17 +336,17 @@ def test_a_corrupt_prior_folder_is_a_one_line_format_error(case: str, tiny_prior
 
 
 def test_a_version_of_the_wrong_type_does_not_contradict_itself(tiny_prior: Path, tmp_path: Path) -> None:
-    """Before: 'prior format bimfactor-prior v2, this bimfactor reads bimfactor-prior v2'."""
+    """Before: 'prior format bimfactor-prior v2, this bimfactor reads bimfactor-prior v2' (the version as a string)."""
     folder = tmp_path / "prior"
     folder.mkdir()
     for item in tiny_prior.iterdir():
         (folder / item.name).write_bytes(item.read_bytes())
-    _json_edit(_set("version", "2"))(folder)
+    _json_edit(_set("version", str(PRIOR_VERSION)))(folder)
     with pytest.raises(FormatError) as raised:
         BimPrior.load(folder)
     assert "this bimfactor reads" not in str(raised.value)
     _json_edit(_set("version", 999))(folder)
-    with pytest.raises(FormatError, match="v999, this bimfactor reads bimfactor-prior v2"):
+    with pytest.raises(FormatError, match=f"v999, this bimfactor reads bimfactor-prior v{PRIOR_VERSION}"):
         BimPrior.load(folder)
 
 
