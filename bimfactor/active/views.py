@@ -24,11 +24,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from bimfactor.bim.field import LikelihoodField
 from bimfactor.bim.plates import door_plates, normalise_text
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config
-from bimfactor.localization.measurements.scan import LikelihoodField
 from bimfactor.types import CameraIntrinsics, SequenceMeta, wrap_angle
 
 PLATE_LEGIBLE_M = 2.5  # a 15 cm plate is legible to ~2.4 m at 320 px over 90° (perception.text.sim_min_height_px)

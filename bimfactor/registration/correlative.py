@@ -46,9 +46,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from bimfactor.backend.factors import covariance_world_to_body
+from bimfactor.bim.field import LikelihoodField, face_distances
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import BackendConfig
-from bimfactor.localization.measurements.scan import LikelihoodField, face_distances
 from bimfactor.types import wrap_angle
 
 LAPLACE_DEPTH = 8.0  # the quadratic is fitted to the fine cells within this much log-likelihood of the peak

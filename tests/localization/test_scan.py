@@ -126,7 +126,7 @@ def test_scan_score_peaks_at_the_pose_that_put_the_walls_where_they_are(box_prio
 def test_field_lookups_are_those_of_each_endpoint_placed_one_at_a_time(smcl_cfg: SmclConfig):
     """The batched lookup (one matrix product for all poses) against placing every endpoint by hand, on two storeys
     and with endpoints off the grid on every side (they score 0)."""
-    from bimfactor.localization.measurements.scan import LikelihoodField
+    from bimfactor.bim.field import LikelihoodField
     from tests.localization.handmade import make_prior
 
     prior = make_prior(n_storeys=2)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bimfactor.bim.field import LikelihoodField, face_distances
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import BackendConfig, Config
-from bimfactor.localization.measurements.scan import LikelihoodField, face_distances
 from bimfactor.registration.correlative import CorrelativeMatcher
 from bimfactor.types import wrap_angle
 from tests.localization.handmade import make_prior
