@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from bimfactor.bim import rooms as room_ops
 from bimfactor.bim.classify import RoomClassification, load_room_category_pool, type_rooms
 from bimfactor.bim.grid import GridSpec, StoreyGrid, build_storey_grid, grid_spec_for, rasterise_polygons
-from bimfactor.bim.ifc import FIXED_OBJECT_CLASSES, IfcElement, IfcModel, Storey, load_ifc
+from bimfactor.bim.ifc import FIXED_OBJECT_CLASSES, IfcElement, IfcModel, Storey, file_sha256, load_ifc
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.bim.vocabulary import Vocabulary, label_elements
 from bimfactor.config import Config, config_file
@@ -747,3 +747,26 @@ def _array_failure(exc: Exception) -> str:
     if not text or "pickle" in text.lower():
         return type(exc).__name__
     return f"{type(exc).__name__}: {text[:200]}"
+
+
+def source_model(prior: BimPrior, cfg: Config, prior_dir: str | Path | None = None) -> IfcModel:
+    """The IFC model `prior` was built from: its `source_file`, checked by SHA-256 (a prior stores no meshes).
+
+    Priors store the absolute path; a relative one (an older prior) is looked up from the working directory, then
+    from the prior folder and its parent. Last, a file of that name in or beside the prior folder (a prior moved
+    together with its IFC); the hash decides whether it is the same file.
+    """
+    source = Path(prior.source_file)
+    candidates = [source]
+    if prior_dir is not None:
+        folder = Path(prior_dir)
+        if not source.is_absolute():
+            candidates += [folder / source, folder.parent / source]
+        candidates += [folder / source.name, folder.parent / source.name]
+    path = next((p for p in candidates if p.is_file()), None)
+    where = f"the prior {prior_dir}" if prior_dir is not None else "the prior"
+    if path is None:
+        raise InputError(f"the IFC file {where} was built from is missing: {prior.source_file}")
+    if file_sha256(path) != prior.source_sha256:
+        raise InputError(f"{path} changed since {where} was built from it; rebuild the prior")
+    return load_ifc(path, cfg.bim.ifc)

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from bimfactor.backend.factors import covariance_world_to_body
-from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.prior import BimPrior, source_model
 from bimfactor.config import Config, RegistrationConfig, SensorConfig
 from bimfactor.localization.measurements.scan import DepthPoints
 from bimfactor.registration.gate import GateDecision, gate_with_probes
@@ -116,8 +116,6 @@ def surface_models_for(prior: BimPrior, cfg: Config, prior_dir: str | Path | Non
         cfg.seed,
     )
     if key not in _surface_cache:
-        from bimfactor.sim.simulate import source_model
-
         t0 = time.perf_counter()
         surfaces = build_surface_models(source_model(prior, cfg, prior_dir), rc, cfg.seed)
         log.info("surface models of %s built in %.1f s", Path(prior.source_file).name, time.perf_counter() - t0)

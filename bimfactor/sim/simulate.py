@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bimfactor.bim.ifc import IfcModel, file_sha256, load_ifc
-from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.ifc import IfcModel
+from bimfactor.bim.prior import BimPrior, source_model
 from bimfactor.config import Config, load_config
 from bimfactor.errors import InputError
 from bimfactor.progress import progress as progress_bar
@@ -187,26 +187,3 @@ def load_world_inputs(prior_dir: str | Path, cfg: Config | None = None) -> tuple
     cfg = cfg if cfg is not None else load_config()
     prior = BimPrior.load(prior_dir)
     return prior, source_model(prior, cfg, prior_dir)
-
-
-def source_model(prior: BimPrior, cfg: Config, prior_dir: str | Path | None = None) -> IfcModel:
-    """The IFC model `prior` was built from: its `source_file`, checked by SHA-256 (a prior stores no meshes).
-
-    Priors store the absolute path; a relative one (an older prior) is looked up from the working directory, then
-    from the prior folder and its parent. Last, a file of that name in or beside the prior folder (a prior moved
-    together with its IFC); the hash decides whether it is the same file.
-    """
-    source = Path(prior.source_file)
-    candidates = [source]
-    if prior_dir is not None:
-        folder = Path(prior_dir)
-        if not source.is_absolute():
-            candidates += [folder / source, folder.parent / source]
-        candidates += [folder / source.name, folder.parent / source.name]
-    path = next((p for p in candidates if p.is_file()), None)
-    where = f"the prior {prior_dir}" if prior_dir is not None else "the prior"
-    if path is None:
-        raise InputError(f"the IFC file {where} was built from is missing: {prior.source_file}")
-    if file_sha256(path) != prior.source_sha256:
-        raise InputError(f"{path} changed since {where} was built from it; rebuild the prior")
-    return load_ifc(path, cfg.bim.ifc)
