@@ -35,6 +35,15 @@ class DependencyError(BimfactorError):
     exit_code = 3
 
 
+class RunsLostError(BimfactorError):
+    """A benchmark's runs that its runner did not bring back: a Ray cluster's node or worker died on every try, or a
+    process of a local pool died. `missing` holds the lost jobs' indices."""
+
+    def __init__(self, message: str, missing: list[int] | None = None) -> None:
+        super().__init__(message)
+        self.missing = missing or []
+
+
 def import_optional(module: str, what: str, install_hint: str) -> ModuleType:
     """Import an optional library that `what` needs, or raise DependencyError naming it with the install hint."""
     try:

@@ -132,7 +132,7 @@ def run_buildings_bench(
             owners.append(name)
     desc = f"bench buildings ({len(priors)} buildings, {', '.join(cfg.evaluation.variants)})"
     where: dict = {}
-    results = run_jobs(jobs, desc, runner, workers, address, where)
+    results = run_jobs(jobs, desc, runner, workers, address, where, names=owners)
     report: dict = {
         "benchmark": "buildings",
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),

@@ -41,7 +41,7 @@ import sys
 from collections import Counter
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bimfactor.config import Config, EvaluationConfig, updated
-from bimfactor.errors import ConfigError, InputError
+from bimfactor.errors import ConfigError, InputError, RunsLostError
 from bimfactor.evaluation.metrics import (
     RouteOutcome,
     orientation_errors_deg,
@@ -114,6 +114,7 @@ class RunResult:
     challenges: int = 0  # steps at which the belief took a challenger's particles
     from_start: StepErrors | None = None  # scored from the filter's convergence: the first T steps, for comparison
     outcome: RouteOutcome | None = None  # the whole route from its first frame (`route_outcome`)
+    node: str = field(default="", compare=False)  # the Ray node that ran it (its id); "" in a process pool
 
 
 ACTIVE_SUFFIX = "+active"  # the active scenario's closed-loop runs of a variant (`evaluation.active`)
@@ -233,6 +234,20 @@ def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins:
     # run must not depend on the runner or on what its process loaded before.
     with threadpool_limits(limits=1):
         return _run_one_pinned(prior_dir, cfg_json, trajectory, repeat, twins)
+
+
+def _run_one_on_ray(
+    prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion]
+) -> list[RunResult]:
+    """`_run_one` in a Ray worker: each result records the node that ran it (Ray's node id, as `ray.nodes()` and
+    `ray status` name it)."""
+    import ray
+
+    results = _run_one(prior_dir, cfg_json, trajectory, repeat, twins)
+    node = ray.get_runtime_context().get_node_id()
+    for result in results:
+        result.node = node
+    return results
 
 
 def _run_one_pinned(
@@ -594,6 +609,10 @@ def paper_jobs(prior_dir: str | Path, cfg: Config, twins: dict[int, Motion]) -> 
     return [(str(prior_dir), cfg_json, k, r, twins) for k in range(ev.num_trajectories) for r in range(ev.repeats)]
 
 
+RAY_TASK_RETRIES = 3
+"""How often Ray runs a run again whose worker or node died (or whose result was lost with its node)."""
+
+
 def run_jobs(
     jobs: list[Job],
     desc: str,
@@ -601,19 +620,64 @@ def run_jobs(
     workers: int | None = None,
     address: str | None = None,
     where: dict | None = None,
+    names: list[str] | None = None,
 ) -> list[list[RunResult]]:
     """Each job's `_run_one` results, in the jobs' order, whichever runner ran them (they do not depend on it). On
-    Ray, `where` (when given) receives the nodes and CPUs that ran them."""
+    Ray, `where` (when given) receives the nodes and CPUs there and how many runs each node ran (`runs_per_node`, by
+    node id; each result's `node` says its own). A run lost with its node or worker is run again; runs still lost
+    are a `RunsLostError` naming each (its job's building in `names`, default its prior folder, trajectory and
+    repeat), raised once every other run is done."""
     check_runner(runner, address)
     if runner == "ray":
-        return _ray_jobs(jobs, desc, workers, address, where if where is not None else {})
+        results, lost = _ray_jobs(jobs, desc, workers, address, where if where is not None else {})
+    else:
+        results, lost = _pool_jobs(jobs, desc, workers)
+    if lost:
+        raise _runs_lost(jobs, lost, names, runner)
+    return results
+
+
+def _pool_jobs(jobs: list[Job], desc: str, workers: int | None) -> tuple[list[list[RunResult]], dict[int, str]]:
+    """`run_jobs` on a local process pool: the results, and the jobs lost with a process that died (by index)."""
+    from concurrent.futures.process import BrokenProcessPool
+
     workers = workers or min(len(jobs), os.cpu_count() or 1)
     if workers == 1:  # in this process: no worker start-up (imports, the sentence encoder) to pay for
-        return [_run_one(*job) for job in progress(jobs, desc=desc, unit="run")]
+        return [_run_one(*job) for job in progress(jobs, desc=desc, unit="run")], {}
+    results: list[list[RunResult]] = [[] for _ in jobs]
+    lost: dict[int, str] = {}
     # spawn, not fork: the parent already runs torch / Open3D threads, and a forked child can deadlock on them
     with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = [pool.submit(_run_one, *job) for job in jobs]
-        return [future.result() for future in progress(futures, desc=desc, unit="run")]
+        for i, future in enumerate(progress(futures, desc=desc, unit="run")):
+            try:
+                results[i] = future.result()
+            except BrokenProcessPool:  # a worker process died (killed, out of memory): this run and the ones after
+                lost[i] = "BrokenProcessPool"
+    return results, lost
+
+
+def _runs_lost(jobs: list[Job], lost: dict[int, str], names: list[str] | None, runner: str) -> RunsLostError:
+    """The error that names the lost runs (at most `SHOWN_LOST` of them) and why they were lost."""
+    shown = [
+        f"{names[i] if names is not None else jobs[i][0]} trajectory {jobs[i][2]} repeat {jobs[i][3]}"
+        for i in sorted(lost)[:SHOWN_LOST]
+    ]
+    more = f" and {len(lost) - SHOWN_LOST} more" if len(lost) > SHOWN_LOST else ""
+    why = ", ".join(f"{kind} ×{n}" if n > 1 else kind for kind, n in Counter(lost.values()).most_common())
+    how = (
+        f"the node or worker running each died on every try, {RAY_TASK_RETRIES} retries included"
+        if runner == "ray"
+        else "a worker process of the pool died"
+    )
+    return RunsLostError(
+        f"{len(lost)} of {len(jobs)} runs lost: {'; '.join(shown)}{more} ({why}: {how}); no results written",
+        sorted(lost),
+    )
+
+
+SHOWN_LOST = 10
+"""How many lost runs the error names one by one."""
 
 
 @contextlib.contextmanager
@@ -674,22 +738,33 @@ def _stderr_muted() -> Iterator[None]:
 
 def _ray_jobs(
     jobs: list[Job], desc: str, workers: int | None, address: str | None, where: dict
-) -> list[list[RunResult]]:
-    """`run_jobs` on Ray (`ray_session`)."""
+) -> tuple[list[list[RunResult]], dict[int, str]]:
+    """`run_jobs` on Ray (`ray_session`): the results, and the jobs whose tasks failed every retry (by index, with
+    the last failure's kind). A run's own exception (a RayTaskError) is raised as it is."""
     import ray
+    from ray.exceptions import RayError, RayTaskError
 
     with ray_session(workers, address) as session:
         where.update(session)
-        remote = ray.remote(num_cpus=1)(_run_one)
+        remote = ray.remote(num_cpus=1, max_retries=RAY_TASK_RETRIES)(_run_one_on_ray)
         refs = [remote.remote(*job) for job in jobs]
         order = {ref: i for i, ref in enumerate(refs)}
         results: list[list[RunResult]] = [[] for _ in jobs]
+        lost: dict[int, str] = {}
         pending = list(refs)
         bar = progress(range(len(refs)), desc=desc, unit="run")
         for _ in bar:
             done, pending = ray.wait(pending, num_returns=1)
-            results[order[done[0]]] = ray.get(done[0])
-        return results
+            i = order[done[0]]
+            try:
+                results[i] = ray.get(done[0])
+            except RayTaskError:
+                raise
+            except RayError as exc:  # its worker or node died (or its result was lost) on every try
+                lost[i] = type(exc).__name__
+        nodes = Counter(runs[0].node for runs in results if runs)
+        where["runs_per_node"] = dict(sorted(nodes.items()))
+        return results, lost
 
 
 def run_paper_bench(prior_dir: str | Path, cfg: Config, out_dir: str | Path, workers: int | None = None) -> dict:
