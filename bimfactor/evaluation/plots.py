@@ -48,7 +48,9 @@ def _block_max(codes: np.ndarray, extent: tuple, max_px: int) -> tuple[np.ndarra
     return reduced, (x0, x0 + (x1 - x0) * w / W, y0, y0 + (y1 - y0) * h / H)
 
 
-def draw_floorplan(ax: Axes, prior: BimPrior, storey_index: int, label_objects: bool = True) -> None:
+def draw_floorplan(
+    ax: Axes, prior: BimPrior, storey_index: int, label_objects: bool = True, label_rooms: bool = True
+) -> None:
     """Rooms coloured and named by type, walls black, furniture grey, doors, object labels."""
     layers = prior.storeys[storey_index]
     labels = layers.room_labels
@@ -66,7 +68,7 @@ def draw_floorplan(ax: Axes, prior: BimPrior, storey_index: int, label_objects: 
     palette[n + 1], palette[n + 2] = (0.62, 0.62, 0.62), (0.1, 0.1, 0.1)
     codes, extent = _block_max(codes, tuple(prior.grid.extent), FLOORPLAN_MAX_PX)
     ax.imshow(palette[codes], origin="lower", extent=extent, interpolation="nearest")
-    for room in rooms:
+    for room in rooms if label_rooms else []:
         name = room.category + (f"\n({room.space_name})" if room.space_name else "")
         ax.text(
             *room.centroid_xy,
@@ -160,13 +162,58 @@ def save_trajectory_plot(
         )
     ax.plot(*kf[0, :2], "o", color="tab:green", ms=8, label="start")
     ax.plot(*kf[-1, :2], "s", color="tab:red", ms=8, label="end")
-    # zoom onto the drive with a margin, keeping the building's context
-    lo, hi = gt_dense_xy.min(axis=0) - 4.0, gt_dense_xy.max(axis=0) + 4.0
-    ax.set_xlim(max(lo[0], x0), min(hi[0], x1))
-    ax.set_ylim(max(lo[1], y0), min(hi[1], y1))
-    ax.legend(loc="upper right", fontsize=7)
+    zoom_to(ax, prior, storey_index, gt_dense_xy)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
     ax.set_title(title)
     return save_figure(fig, path, dpi=120)
+
+
+ZOOM_MARGIN_M = 4.0  # around the drive when a figure zooms onto it
+INSET_BELOW = 0.6  # a zoomed map shows the whole storey in an inset when the zoom covers less of it than this
+ERROR_TICKS = (0.0, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)  # metres, on the error axis's symlog scale
+
+
+def zoom_to(ax: Axes, prior: BimPrior, storey_index: int, xy: np.ndarray) -> None:
+    """Zoom `ax` (a floor plan of the storey) onto the (N, 2) points with `ZOOM_MARGIN_M`, and, when that leaves
+    most of the storey out, draw the whole storey in an inset with the zoomed window marked."""
+    from matplotlib.patches import Rectangle
+
+    x0, x1, y0, y1 = prior.grid.extent
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    if not len(xy):
+        return
+    lo, hi = xy.min(axis=0) - ZOOM_MARGIN_M, xy.max(axis=0) + ZOOM_MARGIN_M
+    wx0, wx1, wy0, wy1 = max(lo[0], x0), min(hi[0], x1), max(lo[1], y0), min(hi[1], y1)
+    ax.set_xlim(wx0, wx1)
+    ax.set_ylim(wy0, wy1)
+    if (wx1 - wx0) * (wy1 - wy0) >= INSET_BELOW * (x1 - x0) * (y1 - y0):
+        return
+    inset = ax.inset_axes((1.02, 0.0, 0.3, 0.3))  # beside the map, under the legend: it hides nothing
+    draw_floorplan(inset, prior, storey_index, label_objects=False, label_rooms=False)
+    inset.add_patch(Rectangle((wx0, wy0), wx1 - wx0, wy1 - wy0, fill=False, ec="tab:red", lw=1.2))
+    inset.set_xlim(x0, x1)
+    inset.set_ylim(y0, y1)
+    inset.set_xticks([])
+    inset.set_yticks([])
+    inset.set_xlabel("")
+    inset.set_ylabel("")
+    inset.set_title("whole storey", fontsize=7)
+
+
+def error_axis(ax: Axes) -> None:
+    """A translation-error axis that reads at a glance: symlog (linear below 0.1 m), ticks at 0.03, 0.1, 0.3, 1, 3,
+    ... metres labelled as plain numbers."""
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator
+
+    ax.set_yscale("symlog", linthresh=0.1, linscale=0.5)
+    top = max(ax.get_ylim()[1], 0.3)
+    top = next((t for t in ERROR_TICKS if t >= top), top)  # up to a tick, so the largest error sits under one
+    ax.set_ylim(0.0, top)
+    ax.yaxis.set_major_locator(FixedLocator([t for t in ERROR_TICKS if t <= top]))
+    ax.yaxis.set_minor_locator(NullLocator())
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+    ax.grid(True, axis="y", alpha=0.3)
 
 
 def save_particle_snapshots(
@@ -224,12 +271,14 @@ def save_estimate_plot(
     other_colors = ("tab:gray", "tab:olive", "tab:cyan")
     fig, (ax, ax_err) = plt.subplots(2, 1, figsize=(9, 12), gridspec_kw={"height_ratios": [3, 1]})
     draw_floorplan(ax, prior, storey_index, label_objects=False)
-    if gt_poses is not None:
-        ax.plot(gt_poses[:, 0], gt_poses[:, 1], "-", color="black", lw=1.5, label="ground truth")
     for (name, poses), color in zip(others.items(), other_colors, strict=False):
-        ax.plot(poses[:, 0], poses[:, 1], "--", color=color, lw=1, label=name)
-    ax.plot(estimates[:, 0], estimates[:, 1], ".-", color="tab:red", lw=1, ms=4, label="estimate")
-    ax.legend(loc="upper right", fontsize=8)
+        ax.plot(poses[:, 0], poses[:, 1], "--", color=color, lw=1, label=name, zorder=5)
+    ax.plot(estimates[:, 0], estimates[:, 1], ".-", color="tab:red", lw=1.5, ms=5, label="estimate", zorder=6)
+    if gt_poses is not None:  # over the estimate: where they agree, the truth's thin line shows inside the estimate's
+        ax.plot(gt_poses[:, 0], gt_poses[:, 1], "-", color="black", lw=0.9, label="ground truth", zorder=7)
+    shown = [estimates[:, :2], *(p[:, :2] for p in others.values())]
+    zoom_to(ax, prior, storey_index, np.concatenate(shown + ([gt_poses[:, :2]] if gt_poses is not None else [])))
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ax.set_title(title)
     if gt_poses is not None:
         for (name, poses), color in zip(others.items(), other_colors, strict=False):
@@ -237,7 +286,7 @@ def save_estimate_plot(
         ax_err.plot(translation_errors_m(estimates, gt_poses), color="tab:red", label="translation error [m]")
         ax_twin = ax_err.twinx()
         ax_twin.plot(orientation_errors_deg(estimates, gt_poses), color="tab:blue", label="orientation error [°]")
-        ax_err.set_yscale("symlog", linthresh=1.0)
+        error_axis(ax_err)
         ax_err.set_xlabel("step")
         ax_err.set_ylabel("translation error [m]", color="tab:red")
         ax_twin.set_ylabel("orientation error [°]", color="tab:blue")

@@ -1,0 +1,38 @@
+"""Run figures a person reads at a glance: the map zooms onto the route (the whole storey in an inset beside it when
+the route covers little of it), the truth is drawn over the estimate, and the error axis has plain metre ticks."""
+
+from __future__ import annotations
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from bimfactor.evaluation.plots import draw_floorplan, error_axis, zoom_to
+from tests.localization.handmade import make_prior
+
+
+def test_the_map_zooms_onto_a_short_route_with_the_whole_storey_beside_it() -> None:
+    prior = make_prior()  # x ∈ [-1, 13], y ∈ [-1, 7]
+    fig, ax = plt.subplots()
+    draw_floorplan(ax, prior, 0, label_objects=False)
+    zoom_to(ax, prior, 0, np.array([[2.0, 2.0], [2.5, 3.0], [np.nan, np.nan]]))
+    assert ax.get_xlim() == (-1.0, 6.5) and ax.get_ylim() == (-1.0, 7.0)  # 4 m about it, within the building
+    (inset,) = ax.child_axes
+    assert inset.get_xlim() == tuple(prior.grid.extent[:2]) and inset.get_title() == "whole storey"
+    assert inset.get_position().x0 > ax.get_position().x1  # beside the map: it hides none of it
+    plt.close(fig)
+    fig, ax = plt.subplots()
+    draw_floorplan(ax, prior, 0, label_objects=False)
+    zoom_to(ax, prior, 0, np.array([[0.0, 0.0], [12.0, 6.0]]))  # a route over the whole storey: no inset
+    assert ax.child_axes == []
+    plt.close(fig)
+
+
+def test_the_error_axis_has_plain_metre_ticks() -> None:
+    fig, ax = plt.subplots()
+    ax.plot([0.004, 0.2, 2.4, 0.05])
+    error_axis(ax)
+    fig.canvas.draw()
+    labels = [t.get_text() for t in ax.get_yticklabels()]
+    assert labels == ["0", "0.03", "0.1", "0.3", "1", "3"]
+    assert ax.get_ylim()[0] == 0.0 and ax.yaxis.get_minorticklocs().size == 0
+    plt.close(fig)
