@@ -21,9 +21,33 @@ if TYPE_CHECKING:
     from bimfactor.bim.prior import BimPrior
 
 
+ROOM_LABEL = "room-label"  # the gid of a floor plan's room names, which `drop_colliding_labels` thins
+
+
+def drop_colliding_labels(fig: Figure) -> int:
+    """Hide each room name that would overlap one drawn before it on its axes (names come largest room first), or
+    that lies outside its axes' view; the number hidden. Run once the axes have their final limits."""
+    renderer = fig.canvas.get_renderer()
+    hidden = 0
+    for ax in fig.axes:
+        view = ax.get_window_extent(renderer)
+        placed = []
+        for text in (t for t in ax.texts if t.get_gid() == ROOM_LABEL and t.get_visible()):
+            box = text.get_window_extent(renderer).expanded(1.05, 1.1)
+            inside = view.contains(*box.p0) and view.contains(*box.p1)
+            if not inside or any(box.overlaps(other) for other in placed):
+                text.set_visible(False)
+                hidden += 1
+            else:
+                placed.append(box)
+    return hidden
+
+
 def save_figure(fig: Figure, path: str | Path, dpi: int = 120, tight: bool = True) -> Path:
-    """Write a figure as PNG atomically and close it."""
+    """Write a figure as PNG atomically and close it; room names that would collide are dropped first."""
     path = Path(path)
+    fig.set_dpi(dpi)
+    drop_colliding_labels(fig)
     with missing_glyphs_quiet(), atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format="png")
     plt.close(fig)
@@ -68,8 +92,9 @@ def draw_floorplan(
     palette[n + 1], palette[n + 2] = (0.62, 0.62, 0.62), (0.1, 0.1, 0.1)
     codes, extent = _block_max(codes, tuple(prior.grid.extent), FLOORPLAN_MAX_PX)
     ax.imshow(palette[codes], origin="lower", extent=extent, interpolation="nearest")
-    for room in rooms if label_rooms else []:
-        name = room.category + (f"\n({room.space_name})" if room.space_name else "")
+    for room in sorted(rooms, key=lambda r: -r.area_m2) if label_rooms else []:  # the largest kept in a collision
+        named = room.space_name and room.space_name.strip().lower() != room.category.lower()
+        name = room.category + (f"\n({room.space_name})" if named else "")
         ax.text(
             *room.centroid_xy,
             name,
@@ -79,6 +104,7 @@ def draw_floorplan(
             weight="bold",
             clip_on=True,
             bbox={"boxstyle": "round,pad=0.2", "fc": "white", "alpha": 0.7, "lw": 0},
+            gid=ROOM_LABEL,
         )
     for door in (d for d in prior.doors if d.storey_index == storey_index):
         c, a = np.asarray(door.center_xy), np.asarray(door.axis_xy) * door.width_m / 2
@@ -238,17 +264,43 @@ def save_particle_snapshots(
             if gt_poses is not None:
                 ax.plot(*gt_poses[step, :2], "*", color="tab:green", ms=14, zorder=5, label="truth")
             ax.plot(*estimates[step, :2], "X", color="tab:red", ms=10, zorder=5, label="estimate")
-            ax.legend(loc="upper right", fontsize=7)
         ax.set_title("initial particles" if step < 0 else f"after step {step}")
-        # Panels of one floor plan need no coordinates (the trajectory plot has them); their tick labels were half
-        # of this figure's rendering time.
+        # Panels of one floor plan need no coordinates, a scale bar says how large it is; tick labels were half of
+        # this figure's rendering time.
         ax.set_xticks([])
         ax.set_yticks([])
         ax.set_xlabel("")
         ax.set_ylabel("")
-    for ax in axes.ravel()[len(steps) :]:
+        _scale_bar(ax, prior.grid.extent)
+    particles_key = plt.Line2D(
+        [], [], ls="", marker="o", color="tab:purple", alpha=0.5, label="particles (size = weight)"
+    )
+    truth_key = plt.Line2D([], [], ls="", marker="*", color="tab:green", ms=12, label="truth")
+    estimate_key = plt.Line2D([], [], ls="", marker="X", color="tab:red", ms=9, label="estimate")
+    handles = [particles_key, *([truth_key] if gt_poses is not None else []), estimate_key]
+    spare = axes.ravel()[len(steps) :]
+    for ax in spare:
         ax.axis("off")
+    if len(spare):  # the legend fills the first empty panel, so none is left empty
+        spare[0].legend(handles=handles, loc="center", fontsize=10, frameon=False)
+    else:
+        fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=9, frameon=False)
     return save_figure(fig, path, dpi=110)
+
+
+def _scale_bar(ax: Axes, extent: tuple) -> None:
+    """A bar of a round length (about a fifth of the plan's width) under the panel's lower left corner, in metres: it
+    hides nothing of the plan."""
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    width = float(extent[1] - extent[0])
+    length = min((1, 2, 5, 10, 20, 50, 100, 200), key=lambda m: abs(m - width / 5))
+    bar = AnchoredSizeBar(
+        ax.transData, length, f"{length} m", "upper left", pad=0.1, sep=2, frameon=False,
+        size_vertical=width / 150, fontproperties={"size": 8},
+        bbox_to_anchor=(0.0, 0.0), bbox_transform=ax.transAxes,
+    )  # fmt: skip
+    ax.add_artist(bar)
 
 
 def save_estimate_plot(

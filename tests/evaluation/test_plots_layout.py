@@ -36,3 +36,20 @@ def test_the_error_axis_has_plain_metre_ticks() -> None:
     assert labels == ["0", "0.03", "0.1", "0.3", "1", "3"]
     assert ax.get_ylim()[0] == 0.0 and ax.yaxis.get_minorticklocs().size == 0
     plt.close(fig)
+
+
+def test_room_names_that_would_collide_are_dropped_the_larger_room_kept() -> None:
+    from bimfactor.evaluation.plots import ROOM_LABEL, drop_colliding_labels
+
+    fig, ax = plt.subplots(figsize=(4, 4))
+    ax.set_xlim(0, 10)
+    ax.set_ylim(0, 10)
+    large = ax.text(5.0, 5.0, "living room", gid=ROOM_LABEL)  # drawn first: the larger room's
+    small = ax.text(5.2, 5.0, "bathroom", gid=ROOM_LABEL)
+    apart = ax.text(1.0, 1.0, "kitchen", gid=ROOM_LABEL)
+    outside = ax.text(9.9, 9.9, "meeting room", gid=ROOM_LABEL)
+    other = ax.text(5.1, 5.0, "not a room name")
+    assert drop_colliding_labels(fig) == 2
+    assert large.get_visible() and apart.get_visible() and other.get_visible()
+    assert not small.get_visible() and not outside.get_visible()
+    plt.close(fig)
