@@ -134,6 +134,22 @@ def draw_floorplan(
     ax.set_ylabel("y [m]")
 
 
+def floorplan_key() -> list:
+    """Legend handles for what `draw_floorplan` draws (room colours are per room, named on the plan)."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    return [
+        Patch(fc=(0.1, 0.1, 0.1), label="walls, columns (structure)"),
+        Patch(fc=(0.62, 0.62, 0.62), label="furniture"),
+        Patch(fc=(0.8, 0.88, 0.95), ec="0.6", label="a room (colour per room)"),
+        Line2D([], [], color="tab:green", lw=2.5, label="door joining two places"),
+        Line2D([], [], color="tab:green", lw=2.5, ls=":", label="doorway without a leaf"),
+        Line2D([], [], color="tab:red", lw=2.5, label="door leading nowhere known"),
+        Line2D([], [], ls="", marker="o", ms=4, color="tab:blue", label="labelled object"),
+    ]
+
+
 def save_floorplans(prior: BimPrior, out_dir: str | Path) -> list[Path]:
     """One PNG per storey, `floorplan_<index>.png`, sized to the building."""
     out_dir = Path(out_dir)
@@ -144,10 +160,12 @@ def save_floorplans(prior: BimPrior, out_dir: str | Path) -> list[Path]:
         fig, ax = plt.subplots(figsize=(10, max(3.0, min(10 * aspect, 14))))
         draw_floorplan(ax, prior, layers.storey.index)
         n_rooms = sum(r.storey_index == layers.storey.index for r in prior.rooms)
+        floor = "" if layers.storey.is_floor else " (not a floor)"
         ax.set_title(
             f"{Path(prior.source_file).name} — {layers.storey.name} "
-            f"({layers.storey.elevation_m:+.2f} m), {n_rooms} rooms"
+            f"({layers.storey.elevation_m:+.2f} m){floor}, {n_rooms} rooms"
         )
+        ax.legend(handles=floorplan_key(), loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
         paths.append(save_figure(fig, out_dir / f"floorplan_{layers.storey.index}.png", dpi=130))
     return paths
 
