@@ -431,8 +431,8 @@ class Localizer:
         self._stages = (*graph, *fine, *report, self._twin_step, self._remember)
         self._uses_scan = bool(cfg.smcl.scan.enabled or self.matcher)
         self._uses_depth = self._uses_scan or self.fine is not None
-        # The keyframes before the current one that a submap stitches in (registration.submap_keyframes − 1).
-        self._recent: deque[Keyframe] = deque(maxlen=cfg.registration.submap_keyframes - 1)
+        # The frames before the current one that a submap stitches in (registration.submap_keyframes − 1).
+        self._recent: deque[Frame] = deque(maxlen=cfg.registration.submap_keyframes - 1)
         # Odometry bookkeeping (`_odometry_step`): the last trusted frame's raw odometry pose and time, the previous
         # frame's, the motion guessed across jumps since the trusted frame, the increment of the last trusted step,
         # the odometry pose the filter believes at the last step, and the map of a re-based odometry onto the first.
@@ -542,9 +542,9 @@ class Localizer:
         out.twin_share = float(weights[near].sum() / weights.sum())
 
     def _remember(self, key: Keyframe, out: LocalizerStep) -> None:
-        """A used keyframe joins the submap's recent frames."""
+        """A used keyframe's frame joins the submap's recent frames."""
         if key.skipped is None:
-            self._recent.append(key)
+            self._recent.append(key.frame)
 
     def _plate_columns(self, increment: np.ndarray | None) -> np.ndarray | None:
         """(W,) bool: the image columns where the belief, moved by this step's odometry, holds a door plate in reading
@@ -728,7 +728,7 @@ class Localizer:
             return
         started = time.perf_counter()
         best = out.graph.best
-        scan = self.fine.scan(key.frame, self.meta, [k.frame for k in self._recent], points=key.points)
+        scan = self.fine.scan(key.frame, self.meta, self._recent, points=key.points)
         gate_covariance = self.cfg.localization.fine_covariance_scale * best.covariance
         out.fine = self.fine.register_scan(scan, best.pose, best.storey, gate_covariance)
         if out.fine.accepted:

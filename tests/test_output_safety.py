@@ -153,23 +153,10 @@ def test_usage_errors_are_one_line(args: tuple[str, ...]) -> None:
     assert line.endswith("(see --help)")
 
 
-@pytest.mark.parametrize(("signum", "says"), [(signal.SIGTERM, "terminated"), (signal.SIGHUP, "hung up")])
-def test_sigterm_and_sighup_are_handled_like_ctrl_c(
-    tmp_path: Path, config_overrides: list[str], signum: int, says: str
-) -> None:
-    """`timeout`, `docker stop` and systemd send SIGTERM, a closed terminal SIGHUP: the demo stops with one line
-    (exit 128 + the signal) and leaves no temporaries."""
-    out = tmp_path / "demo"
+def _demo_under_way(out: Path, sets: list[str]) -> subprocess.Popen:
+    """`bimfactor demo -o OUT` in a child process, once it has written its building (or ended, or 2 min passed)."""
     proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "bimfactor",
-            "demo",
-            "-o",
-            str(out),
-            *(a for o in config_overrides for a in ("--set", o)),
-        ],
+        [sys.executable, "-m", "bimfactor", "demo", "-o", str(out), *sets],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -177,6 +164,17 @@ def test_sigterm_and_sighup_are_handled_like_ctrl_c(
     deadline = time.monotonic() + 120
     while not (out / "paper-floor.ifc").is_file() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
+    return proc
+
+
+@pytest.mark.parametrize(("signum", "says"), [(signal.SIGTERM, "terminated"), (signal.SIGHUP, "hung up")])
+def test_sigterm_and_sighup_are_handled_like_ctrl_c(
+    tmp_path: Path, config_overrides: list[str], signum: int, says: str
+) -> None:
+    """`timeout`, `docker stop` and systemd send SIGTERM, a closed terminal SIGHUP: the demo stops with one line
+    (exit 128 + the signal) and leaves no temporaries."""
+    out = tmp_path / "demo"
+    proc = _demo_under_way(out, [a for o in config_overrides for a in ("--set", o)])
     proc.send_signal(signum)
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signum, stderr
@@ -263,15 +261,7 @@ def test_a_second_demo_into_the_folder_a_first_is_writing_is_refused(
     line and exit 2 while the first runs, and the first ends complete."""
     out = tmp_path / "demo"
     sets = [a for o in config_overrides for a in ("--set", o)]
-    first = subprocess.Popen(
-        [sys.executable, "-m", "bimfactor", "demo", "-o", str(out), *sets],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    deadline = time.monotonic() + 120
-    while not (out / "paper-floor.ifc").is_file() and first.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
+    first = _demo_under_way(out, sets)
     second = invoke("demo", "-o", out, *sets)
     _, stderr = first.communicate(timeout=300)
     assert first.returncode == 0, stderr

@@ -532,7 +532,20 @@ RAY_ADDRESS = re.compile(r"^(auto|local|(ray://)?[A-Za-z0-9_.\-]+:\d{1,5})$")
 
 CLUSTER_ANSWER_S = 30.0
 """How long a cluster given by `--address` has to accept a driver before the benchmark says it cannot reach it."""
-_PROBE = "import sys; from bimfactor.evaluation.paper import ray_session as s\nwith s(None, sys.argv[1]): pass"
+_PROBE = "import sys; from bimfactor.evaluation.paper import probe_cluster; probe_cluster(sys.argv[1])"
+
+
+def probe_cluster(address: str) -> None:
+    """Connect to the cluster at `address` and leave (`check_cluster`'s child process): exit 0, or the error's one
+    line on stderr and its exit code."""
+    from bimfactor.errors import BimfactorError
+
+    try:
+        with ray_session(None, address):
+            pass
+    except BimfactorError as exc:
+        print(exc, file=sys.stderr)
+        sys.exit(exc.exit_code)
 
 
 def _use_cluster_token() -> None:
@@ -579,11 +592,9 @@ def check_cluster(address: str) -> None:
         raise InputError(f"--address {address}: the Ray cluster did not answer within {CLUSTER_ANSWER_S:g} s") from exc
     if done.returncode == 0:
         return
-    if "ray[client]" in done.stderr:
-        raise DependencyError(f"--address {address} needs Ray Client: pip install 'ray[client]'")
-    errors = [line.strip() for line in done.stderr.splitlines() if re.match(r"^\w*(Error|Exception)\b", line.strip())]
-    why = errors[-1] if errors else f"exit {done.returncode}"
-    raise InputError(f"--address {address}: no Ray cluster answers there ({why})")
+    said = [line for line in done.stderr.splitlines() if line.startswith(f"--address {address}")]  # probe_cluster's
+    why = said[-1] if said else f"--address {address}: no Ray cluster answers there (exit {done.returncode})"
+    raise (DependencyError if done.returncode == DependencyError.exit_code else InputError)(why)
 
 
 def check_runner(runner: str, address: str | None = None) -> None:

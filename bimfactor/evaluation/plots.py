@@ -46,7 +46,6 @@ def drop_colliding_labels(fig: Figure) -> int:
 def save_figure(fig: Figure, path: str | Path, dpi: int = 120, tight: bool = True) -> Path:
     """Write a figure as PNG atomically and close it; room names that would collide are dropped first."""
     path = Path(path)
-    fig.set_dpi(dpi)
     drop_colliding_labels(fig)
     with missing_glyphs_quiet(), atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format="png")
@@ -54,6 +53,7 @@ def save_figure(fig: Figure, path: str | Path, dpi: int = 120, tight: bool = Tru
     return path
 
 
+WALL_RGB, FURNITURE_RGB = (0.1, 0.1, 0.1), (0.62, 0.62, 0.62)  # a floor plan's structure and furniture
 FLOORPLAN_MAX_PX = 500  # a floor plan is drawn from at most this many pixels a side (a figure panel is ~500 px)
 
 
@@ -89,7 +89,7 @@ def draw_floorplan(
     codes[layers.structure] = n + 2
     palette = np.ones((n + 3, 3))
     palette[1 : n + 1] = 0.55 + 0.45 * np.asarray([cmap(k % 20)[:3] for k in range(n)]).reshape(-1, 3)
-    palette[n + 1], palette[n + 2] = (0.62, 0.62, 0.62), (0.1, 0.1, 0.1)
+    palette[n + 1], palette[n + 2] = FURNITURE_RGB, WALL_RGB
     codes, extent = _block_max(codes, tuple(prior.grid.extent), FLOORPLAN_MAX_PX)
     ax.imshow(palette[codes], origin="lower", extent=extent, interpolation="nearest")
     for room in sorted(rooms, key=lambda r: -r.area_m2) if label_rooms else []:  # the largest kept in a collision
@@ -140,8 +140,8 @@ def floorplan_key() -> list:
     from matplotlib.patches import Patch
 
     return [
-        Patch(fc=(0.1, 0.1, 0.1), label="walls, columns (structure)"),
-        Patch(fc=(0.62, 0.62, 0.62), label="furniture"),
+        Patch(fc=WALL_RGB, label="walls, columns (structure)"),
+        Patch(fc=FURNITURE_RGB, label="furniture"),
         Patch(fc=(0.8, 0.88, 0.95), ec="0.6", label="a room (colour per room)"),
         Line2D([], [], color="tab:green", lw=2.5, label="door joining two places"),
         Line2D([], [], color="tab:green", lw=2.5, ls=":", label="doorway without a leaf"),
