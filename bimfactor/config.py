@@ -11,11 +11,11 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Annotated, Any, ClassVar, Literal, TypeVar
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, PositiveFloat, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, model_validator
 from pydantic.fields import FieldInfo
 
 from bimfactor.errors import ConfigError
@@ -38,7 +38,8 @@ class _Strict(BaseModel):
 
 
 class IfcReadConfig(_Strict):
-    geometry_threads: int = Field(ge=1, description="Threads for ifcopenshell's geometry iterator.")
+    # Threads for ifcopenshell's geometry iterator.
+    geometry_threads: ClassVar[int] = 2
     cache_dir: str = Field(
         description="Folder for the per-file geometry cache (keyed by the IFC's SHA-256); '' disables it."
     )
@@ -49,9 +50,21 @@ class GridConfig(_Strict):
     band_min_m: float = Field(description="Lower edge of the obstacle band, above the storey elevation.")
     band_max_m: float = Field(description="Upper edge of the obstacle band (robot sensing height).")
     robot_radius_m: float = Field(ge=0.0, description="Robot footprint radius; free space is eroded by it.")
-    padding_m: float = Field(ge=0.0, description="Margin added around the building's footprint.")
-    obstacle_exclude_classes: list[str] = Field(
-        description="IFC classes never rasterised as obstacles (open doors, slabs, spaces, annotations)."
+    # Margin added around the building's footprint.
+    padding_m: ClassVar[float] = 1.0
+    # IFC classes never rasterised as obstacles (open doors, slabs, spaces, annotations).
+    obstacle_exclude_classes: ClassVar[tuple[str, ...]] = (
+        "IfcDoor",
+        "IfcSlab",
+        "IfcCovering",
+        "IfcRoof",
+        "IfcSpace",
+        "IfcOpeningElement",
+        "IfcAnnotation",
+        "IfcSite",
+        "IfcVirtualElement",
+        "IfcFooting",
+        "IfcSpatialZone",
     )
 
 
@@ -59,48 +72,54 @@ class RoomsConfig(_Strict):
     source: Literal["floodfill", "ifcspace", "auto"] = Field(
         description="Where rooms come from: the paper's flood fill, the model's IfcSpace, or IfcSpace when present."
     )
-    min_room_area_m2: float = Field(gt=0.0, description="Free-space components smaller than this are no room.")
-    door_seal_margin_m: float = Field(
-        ge=0.0, description="How far a door's footprint is grown when it is closed for the flood fill."
-    )
-    door_probe_m: float = Field(gt=0.0, description="How far beyond the wall a door looks for its rooms.")
-    min_opening_m: float = Field(
-        gt=0.0, description="Rooms touching along at least this much free boundary are joined as open plan."
-    )
-    lintel_band_min_m: float = Field(
-        description="Lower edge of the band above door height where a wall with no wall below it marks a doorway."
-    )
-    lintel_band_max_m: float = Field(description="Upper edge of that lintel band, above the storey elevation.")
-    lintel_classes: list[str] = Field(description="IFC classes whose geometry in the lintel band can mark a doorway.")
-    iou_match_threshold: float = Field(
-        gt=0.0, le=1.0, description="IoU at which a flood-fill room matches an IfcSpace."
-    )
+    # Free-space components smaller than this are no room.
+    min_room_area_m2: ClassVar[float] = 1.0
+    # How far a door's footprint is grown when it is closed for the flood fill.
+    door_seal_margin_m: ClassVar[float] = 0.1
+    # How far beyond the wall a door looks for its rooms.
+    door_probe_m: ClassVar[float] = 0.4
+    # Rooms touching along at least this much free boundary are joined as open plan. IfcSpace rooms that touch along a
+    # wall-less edge this long are open-plan neighbours
+    min_opening_m: ClassVar[float] = 0.6
+    # Lower edge of the band above door height where a wall with no wall below it marks a doorway. a leafless doorway:
+    # wall above door height with none below it
+    lintel_band_min_m: ClassVar[float] = 2.15
+    # Upper edge of that lintel band, above the storey elevation.
+    lintel_band_max_m: ClassVar[float] = 2.4
+    # IFC classes whose geometry in the lintel band can mark a doorway. walls above an opening, downstand beams over a
+    # passage
+    lintel_classes: ClassVar[tuple[str, ...]] = ("IfcWall", "IfcBeam")
+    # IoU at which a flood-fill room matches an IfcSpace.
+    iou_match_threshold: ClassVar[float] = 0.5
 
 
 class ObjectsConfig(_Strict):
     classes: list[str] = Field(description="IFC classes (and their subclasses) that become object nodes.")
-    proximity_edge_m: float = Field(gt=0.0, description="Objects closer than this are joined by an edge.")
-    vocabulary_file: str = Field(description="Label table, relative to bimfactor/configs/.")
-    embedding_fallback_min_sim: float = Field(
-        description="Minimum cosine similarity for the nearest-embedding label fallback."
-    )
+    # Objects closer than this are joined by an edge.
+    proximity_edge_m: ClassVar[float] = 2.0
+    # Label table, relative to bimfactor/configs/.
+    vocabulary_file: ClassVar[str] = "vocabulary.yaml"
+    # Minimum cosine similarity for the nearest-embedding label fallback.
+    embedding_fallback_min_sim: ClassVar[float] = 0.45
 
 
 class ClassifyConfig(_Strict):
-    room_categories_file: str = Field(description="Room-category pool, relative to bimfactor/configs/.")
+    # Room-category pool, relative to bimfactor/configs/.
+    room_categories_file: ClassVar[str] = "room_categories.yaml"
     min_objects: int = Field(ge=0, description="Rooms with fewer labelled objects are typed 'unknown'.")
-    hallway_min_doors: int = Field(
-        ge=0, description="A room with no labelled objects but doors to at least this many places is a hallway; 0: off."
-    )
-    ignore_labels: list[str] = Field(
-        description="Object labels left out of a room's sentence because every room has them (door, window)."
-    )
+    # A room with no labelled objects but doors to at least this many places is a hallway; 0: off. topology: an
+    # object-less room joining three or more places is a corridor
+    hallway_min_doors: ClassVar[int] = 3
+    # Object labels left out of a room's sentence because every room has them (door, window). in every kind of room,
+    # or circulation
+    ignore_labels: ClassVar[tuple[str, ...]] = ("door", "window", "stairs", "elevator", "escalator")
 
 
 class VisibilityConfig(_Strict):
     """The prior's table of the objects in line of sight from each lattice cell (`bim.visibility`)."""
 
-    cell_m: float = Field(gt=0.0, description="Lattice of the precomputed visible-object table.")
+    # Lattice of the precomputed visible-object table.
+    cell_m: ClassVar[float] = 0.25
     radius_m: float = Field(gt=0.0, description="The visibility sector's radius r (not given in the paper).")
 
 
@@ -251,33 +270,39 @@ class PerceptionConfig(_Strict):
         description="Error preset of the sim backend: a name in `sim_presets_file` (yolox: the shipped detector's "
         "eyes; paper: the paper's open-vocabulary ones)."
     )
-    sim_presets_file: str = Field(description="Table of sim error presets, relative to bimfactor/configs/.")
+    # Table of sim error presets, relative to bimfactor/configs/.
+    sim_presets_file: ClassVar[str] = "perception_sim.yaml"
     vlm: VlmConfig
     box_threshold: float = Field(ge=0.0, le=1.0, description="Detector box score threshold (paper: 0.25).")
     text_threshold: float = Field(ge=0.0, le=1.0, description="Detector text score threshold (paper: 0.25).")
     sim_threshold: float = Field(ge=-1.0, le=1.0, description="δ_sim, cosine similarity to fuse (paper: 0.7).")
     iou_threshold: float = Field(ge=0.0, le=1.0, description="δ_IoU, 3D overlap to fuse (paper: 0.7).")
-    voxel_size_m: float = Field(gt=0.0, description="Voxel of the instance point sets (downsampling and fusion).")
+    # Voxel of the instance point sets (downsampling and fusion).
+    voxel_size_m: ClassVar[float] = 0.05
     max_depth_m: float = Field(gt=0.0, description="Depth beyond this is not lifted.")
     max_points: int = Field(ge=1, description="At most this many masked pixels are lifted per detection.")
-    dbscan_eps_m: float = Field(gt=0.0, description="DBSCAN neighbourhood radius (on voxel centres).")
-    dbscan_min_points: int = Field(ge=1, description="DBSCAN core-point neighbour count.")
-    min_instance_voxels: int = Field(ge=1, description="Lifted instances with fewer voxels are dropped.")
+    # DBSCAN neighbourhood radius (on voxel centres).
+    dbscan_eps_m: ClassVar[float] = 0.12
+    # DBSCAN core-point neighbour count.
+    dbscan_min_points: ClassVar[int] = 4
+    # Lifted instances with fewer voxels are dropped.
+    min_instance_voxels: ClassVar[int] = 8
     overlap_measure: Literal["iou", "overlap"] = Field(
         description="IoU_3 of the boxes, or their overlap coefficient (intersection / smaller volume)."
     )
-    iou_padding_m: float = Field(ge=0.0, description="Boxes are grown by this on every side before the 3D IoU.")
-    occlusion_tolerance_m: float = Field(
-        ge=0.0, description="A node voxel this far behind the observed depth counts as hidden in the current view."
-    )
-    prune_every: int = Field(ge=1, description="Prune the graph every this many frames.")
-    prune_size_ratio: float = Field(ge=0.0, description="Prune nodes with fewer voxels than this × the median node.")
-    prune_stale_frames: int = Field(ge=1, description="Prune nodes seen once and not for this many frames.")
-    observation_nodes: Literal["in_view", "detected"] = Field(
-        description="What the localizer is given each frame: the graph's nodes in view, or those of them "
-        "detected in this frame (the paper's 'whenever new observations arrive')."
-    )
-    edge_distance_m: float = Field(gt=0.0, description="Nodes whose centroids are closer than this are joined.")
+    # Boxes are grown by this on every side before the 3D IoU. one voxel: a single-face view is a box, not a sheet
+    iou_padding_m: ClassVar[float] = 0.05
+    # A node voxel this far behind the observed depth counts as hidden in the current view.
+    occlusion_tolerance_m: ClassVar[float] = 0.15
+    # Prune the graph every this many frames.
+    prune_every: ClassVar[int] = 5
+    # Prune nodes with fewer voxels than this × the median node. nodes below a tenth of the median node size are
+    # pruned
+    prune_size_ratio: ClassVar[float] = 0.1
+    # Prune nodes seen once and not for this many frames. nodes seen once and not in the last 10 frames are pruned
+    prune_stale_frames: ClassVar[int] = 10
+    # Nodes whose centroids are closer than this are joined. as bim.objects.proximity_edge_m
+    edge_distance_m: ClassVar[float] = 2.0
     text: TextReadingConfig
 
     @model_validator(mode="after")
@@ -313,13 +338,16 @@ class ScanConfig(_Strict):
     scan term and the pose graphs' scan factor."""
 
     beam_deg: float = Field(gt=0.0, description="One endpoint (the nearest surface) per bearing bin this wide.")
-    surface_m: float = Field(
-        gt=0.0,
-        description="A bin's returns within surface_sigmas σ(r) of its nearest one (r), at least surface_min_m and "
-        "at most this, are its surface; the endpoint is their median.",
-    )
-    surface_min_m: float = Field(gt=0.0, description="The nearest surface's least depth (see above).")
-    surface_sigmas: float = Field(gt=0.0, description="The nearest surface's depth in σ of the depth noise.")
+    # A bin's returns within surface_sigmas σ(r) of its nearest one (r), at least surface_min_m and at most this, are
+    # its surface; the endpoint is their median. its median return, not the nearest (biased short by ~3σ of the depth
+    # noise) ...
+    surface_m: ClassVar[float] = 0.3
+    # The nearest surface's least depth (see above). ... over the returns within 6σ(r) of the nearest, 2 cm … 0.3 m: a
+    # wall's spread, not a
+    surface_min_m: ClassVar[float] = 0.02
+    # The nearest surface's depth in σ of the depth noise. low table's top seen from above (bench scanmatch on
+    # duplex.ifc: p90 12 → 8 cm)
+    surface_sigmas: ClassVar[float] = 6.0
 
 
 class OdometryConfig(_Strict):
@@ -362,9 +390,12 @@ class ResamplerConfig(_Strict):
     )
     max_particles: int = Field(ge=1, description="kld: the initial and largest particle count.")
     epsilon: float = Field(gt=0.0, lt=1.0, description="kld: bound ε on the KL divergence.")
-    z: float = Field(gt=0.0, description="kld: z_(1−δ), the standard normal quantile (2.33: δ = 0.01).")
-    bin_m: float = Field(gt=0.0, description="kld: bin size in x and y.")
-    bin_deg: float = Field(gt=0.0, description="kld: bin size in yaw.")
+    # kld: z_(1−δ), the standard normal quantile (2.33: δ = 0.01). δ = 0.01
+    z: ClassVar[float] = 2.33
+    # kld: bin size in x and y. AMCL's bins
+    bin_m: ClassVar[float] = 0.5
+    # kld: bin size in yaw.
+    bin_deg: ClassVar[float] = 10.0
 
 
 class SemanticTermConfig(_Strict):
@@ -383,7 +414,8 @@ class SemanticTermConfig(_Strict):
     similarity: Literal["cosine", "softmax"] = Field(
         description="φ_sem: the paper's cosine, or the softmax class probability over the prior's labels."
     )
-    softmax_temperature: float = Field(gt=0.0, description="τ of the softmax φ_sem (CLIP: 0.01).")
+    # τ of the softmax φ_sem (CLIP: 0.01). CLIP's logit scale 100
+    softmax_temperature: ClassVar[float] = 0.01
     threshold: float = Field(
         ge=0.0, le=1.0, description="Pairs whose φ_sem is below this score 0 (depends on `similarity`)."
     )
@@ -406,22 +438,16 @@ class ScanTermConfig(_Strict):
 class TextTermConfig(_Strict):
     """Door-plate readings (`perception.text`), beyond the paper."""
 
-    edit_cost: float = Field(
-        gt=0.0,
-        description="Each edit (substitution, insertion, deletion) between a reading and a plate's text divides its "
-        "match by exp(this).",
-    )
-    look_alike_cost: float = Field(
-        gt=0.0,
-        description="What a substitution of look-alike characters ('8' for 'B') costs instead (OCR's common misreads; "
-        "bim.plates.LOOK_ALIKE_GROUPS).",
-    )
-    unexplained: float = Field(
-        gt=0.0,
-        lt=1.0,
-        description="ε in P(reading | x) = ε + (1 − ε) · best plate match; the chance that a reading is a misread or "
-        "a plate the BIM does not know, which bounds what one reading can say.",
-    )
+    # Each edit (substitution, insertion, deletion) between a reading and a plate's text divides its match by
+    # exp(this): one wrong character matches a plate by e^-6 (the sim reader's rates: ln(0.84 / (0.07 / 35))).
+    edit_cost: ClassVar[float] = 6.0
+    # What a substitution of look-alike characters ('8' for 'B') costs instead (OCR's common misreads;
+    # bim.plates.LOOK_ALIKE_GROUPS): e^-3.5, ln(0.84 / (0.06 / 2)).
+    look_alike_cost: ClassVar[float] = 3.5
+    # ε in P(reading | x) = ε + (1 − ε) · best plate match; the chance that a reading is a misread or a plate the BIM
+    # does not know, which bounds what one reading can say. P(reading | x) = ε + (1 − ε)·match: a reading moves the
+    # weights by at most 1/ε
+    unexplained: ClassVar[float] = 0.02
 
 
 class AugmentedConfig(_Strict):
@@ -430,8 +456,11 @@ class AugmentedConfig(_Strict):
         description="Where the random particles come from: free space, or poses that explain one of the step's "
         "observations (sensor resetting)."
     )
-    alpha_slow: float = Field(gt=0.0, le=1.0, description="Long-term likelihood average rate.")
-    alpha_fast: float = Field(gt=0.0, le=1.0, description="Short-term likelihood average rate.")
+    # Long-term likelihood average rate. Thrun's 0.001 / 0.1 suit high-rate filters; these suit one update per
+    # keyframe
+    alpha_slow: ClassVar[float] = 0.05
+    # Short-term likelihood average rate. 0.3 injected on every bad perception step (docs/filter.md)
+    alpha_fast: ClassVar[float] = 0.1
 
 
 class TextResetConfig(_Strict):
@@ -439,16 +468,14 @@ class TextResetConfig(_Strict):
         description="Redraw particles in front of the plates a door-plate reading names when the belief does not "
         "explain it (sensor resetting), beyond the paper."
     )
-    share: float = Field(gt=0.0, le=1.0, description="The share of the particles redrawn.")
-    below: float = Field(
-        gt=0.0,
-        lt=1.0,
-        description="A reading is unexplained when the belief's P(reading | x) − ε averages below this share of its "
-        "most (a particle right before the plate its text matches best).",
-    )
-    oversample: int = Field(
-        ge=1, description="Draw this many times as many and keep those the frame's scan favours (1: no screen)."
-    )
+    # The share of the particles redrawn. this share of the particles ...
+    share: ClassVar[float] = 0.2
+    # A reading is unexplained when the belief's P(reading | x) − ε averages below this share of its most (a particle
+    # right before the plate its text matches best). ... when its P − ε averages below this share of its most ...
+    below: ClassVar[float] = 0.1
+    # Draw this many times as many and keep those the frame's scan favours (1: no screen). ... from 4× as many drawn,
+    # those the frame's scan favours (1: no screen)
+    oversample: ClassVar[int] = 4
 
 
 class RelocalizeConfig(_Strict):
@@ -456,19 +483,23 @@ class RelocalizeConfig(_Strict):
         description="Beyond the paper: when the belief stops explaining the depth scans (a kidnapped robot), spread "
         "the particles over the whole building again, as at the start."
     )
-    fit_ratio: float = Field(
-        gt=0.0, lt=1.0, description="Lost: a sudden drop, the belief's scan fit below this share of its average ..."
-    )
-    frames: int = Field(ge=1, description="... on this many consecutive frames with a scan; or ...")
-    cusum_drift: float = Field(
-        ge=0.0, description="... a held drop: Page's CUSUM of ln(average fit / fit), less this drift a frame, ..."
-    )
-    cusum_threshold: float = Field(gt=0.0, description="... exceeds this ...")
-    min_fit: float = Field(
-        ge=0.0, le=1.0, description="... once the running average has reached this fit (a belief that was tracking)."
-    )
-    fit_alpha: float = Field(gt=0.0, le=1.0, description="Rate of the scan fit's running average.")
-    min_endpoints: int = Field(ge=1, description="Frames with fewer scan endpoints say nothing about being lost.")
+    # Lost: a sudden drop, the belief's scan fit below this share of its average ... lost: the belief's predicted scan
+    # fit under half its running average ...
+    fit_ratio: ClassVar[float] = 0.5
+    # ... on this many consecutive frames with a scan; or ... ... on 2 frames in a row, or ...
+    frames: ClassVar[int] = 2
+    # ... a held drop: Page's CUSUM of ln(average fit / fit), less this drift a frame, ... ... the CUSUM of ln(average
+    # / fit), less 0.4 a frame, ...
+    cusum_drift: ClassVar[float] = 0.4
+    # ... exceeds this ... ... above 1.0 (bench paper --scenario kidnap and guess) ...
+    cusum_threshold: ClassVar[float] = 1.0
+    # ... once the running average has reached this fit (a belief that was tracking). ... once the average reached
+    # 0.35 (a belief that tracked; the uniform cloud fits ~0.1)
+    min_fit: ClassVar[float] = 0.35
+    # Rate of the scan fit's running average. over 1 / 0.1 = 10 frames at least
+    fit_alpha: ClassVar[float] = 0.1
+    # Frames with fewer scan endpoints say nothing about being lost.
+    min_endpoints: ClassVar[int] = 10
 
 
 class ChallengerConfig(_Strict):
@@ -478,17 +509,20 @@ class ChallengerConfig(_Strict):
         "CUSUM of the log predictive-likelihood ratio) at a place the belief is not, the belief takes its particles."
     )
     particles: int = Field(ge=1, description="The challenger's particles.")
-    oversample: int = Field(
-        ge=1, description="Drawn from this many times as many poses, those the frame's scan favours (1: no screen)."
-    )
-    threshold_nats: float = Field(
-        gt=0.0, description="The CUSUM of ln p(z | challenger) − ln p(z | belief) that hands the belief over."
-    )
-    agree_m: float = Field(
-        gt=0.0, description="A challenger whose estimate lies within this of the belief's agrees ..."
-    )
-    agree_frames: int = Field(ge=1, description="... and is drawn again after agreeing this many frames in a row ...")
-    max_frames: int = Field(ge=1, description="... or after this many frames without winning.")
+    # Drawn from this many times as many poses, those the frame's scan favours (1: no screen). drawn from 4× as many
+    # poses, those the frame's scan favours
+    oversample: ClassVar[int] = 4
+    # The CUSUM of ln p(z | challenger) − ln p(z | belief) that hands the belief over. Page's CUSUM of ln p(z |
+    # challenger) - ln p(z | belief) that hands over (10 handed a right belief over)
+    threshold_nats: ClassVar[float] = 20.0
+    # A challenger whose estimate lies within this of the belief's agrees ... within this of the belief's estimate it
+    # agrees ...
+    agree_m: ClassVar[float] = 1.5
+    # ... and is drawn again after agreeing this many frames in a row ... ... and is drawn again after agreeing 3
+    # frames in a row ...
+    agree_frames: ClassVar[int] = 3
+    # ... or after this many frames without winning. ... or after 15 frames without winning
+    max_frames: ClassVar[int] = 15
 
 
 class ConvergedConfig(_Strict):
@@ -509,7 +543,7 @@ class SmclConfig(_Strict):
     resampler: ResamplerConfig
     semantic: SemanticTermConfig
     scan: ScanTermConfig
-    text: TextTermConfig
+    text: ClassVar[TextTermConfig] = TextTermConfig()
     augmented: AugmentedConfig
     text_reset: TextResetConfig
     relocalize: RelocalizeConfig
@@ -542,25 +576,33 @@ class DepthDropoutConfig(_Strict):
 
 
 class RobotConfig(_Strict):
-    max_speed_mps: float = Field(gt=0.0, description="Linear speed limit (Jackal: 2.0).")
-    max_turn_rate_deg_s: float = Field(gt=0.0, description="Angular speed limit.")
-    control_dt_s: float = Field(gt=0.0, description="Controller / odometry integration step.")
+    # Linear speed limit (Jackal: 2.0).
+    max_speed_mps: ClassVar[float] = 0.8
+    # Angular speed limit.
+    max_turn_rate_deg_s: ClassVar[float] = 90.0
+    # Controller / odometry integration step.
+    control_dt_s: ClassVar[float] = 0.05
 
 
 class TrajectorySimConfig(_Strict):
-    min_start_goal_m: float = Field(ge=0.0, description="Start and goal at least this far apart.")
-    inflation_m: float = Field(ge=0.0, description="Obstacle inflation for path planning.")
+    # Start and goal at least this far apart.
+    min_start_goal_m: ClassVar[float] = 8.0
+    # Obstacle inflation for path planning.
+    inflation_m: ClassVar[float] = 0.35
     route: Literal["viewpoints", "rooms"] = Field(
         description="viewpoints: start and goals where objects are in view, facing them on arrival; "
         "rooms: any roomy place of another room."
     )
-    view_radius_m: float = Field(gt=0.0, description="A viewpoint sees objects (not doors) within this distance.")
-    min_view_objects: int = Field(ge=1, description="A viewpoint sees at least this many objects.")
+    # A viewpoint sees objects (not doors) within this distance.
+    view_radius_m: ClassVar[float] = 4.0
+    # A viewpoint sees at least this many objects.
+    min_view_objects: ClassVar[int] = 2
 
 
 class AsBuiltConfig(_Strict):
     moved_fraction: float = Field(ge=0.0, le=1.0, description="Share of BIM objects moved in the simulated world.")
-    moved_max_m: float = Field(ge=0.0, description="Largest displacement of a moved object.")
+    # Largest displacement of a moved object.
+    moved_max_m: ClassVar[float] = 1.0
     removed_fraction: float = Field(ge=0.0, le=1.0, description="Share of BIM objects missing in the world.")
     clutter_count: int = Field(ge=0, description="Objects in the world that the BIM does not contain.")
 
@@ -569,18 +611,19 @@ class DoorPlateSimConfig(_Strict):
     """Door plates in the simulated world (`bim.plates`): a room number beside each door into a numbered room."""
 
     enabled: bool = Field(description="Hang the plates (off: the world is the IFC model's elements alone).")
-    size_m: Annotated[list[PositiveFloat], Field(min_length=2, max_length=2)] = Field(
-        description="Plate width and height."
-    )
-    height_m: float = Field(gt=0.0, description="Plate centre above the storey's floor.")
-    beside_m: float = Field(ge=0.0, description="Gap between the door opening and the plate's near edge.")
+    # Plate width and height.
+    size_m: ClassVar[tuple[float, float]] = (0.3, 0.15)
+    # Plate centre above the storey's floor.
+    height_m: ClassVar[float] = 1.4
+    # Gap between the door opening and the plate's near edge.
+    beside_m: ClassVar[float] = 0.15
 
 
 class SimConfig(_Strict):
     camera: CameraSimConfig
     depth_dropout: DepthDropoutConfig
     rgb_noise_std: float = Field(ge=0.0, description="Gaussian RGB noise, in 8-bit levels.")
-    robot: RobotConfig
+    robot: ClassVar[RobotConfig] = RobotConfig()
     trajectory: TrajectorySimConfig
     as_built: AsBuiltConfig
     door_plates: DoorPlateSimConfig
@@ -611,22 +654,38 @@ class RosbagConfig(_Strict):
 
 class IoConfig(_Strict):
     rosbag: RosbagConfig
-    tum_max_sync_dt_s: float = Field(
-        gt=0.0, description="Largest time offset when pairing TUM RGB-D rgb, depth and ground truth."
-    )
+    # Largest time offset when pairing TUM RGB-D rgb, depth and ground truth. the TUM benchmark's associate.py default
+    tum_max_sync_dt_s: ClassVar[float] = 0.02
 
 
 class RegistrationConfig(_Strict):
     """Fine registration of depth scans against the BIM's structural surfaces (bimfactor.registration)."""
 
-    surface_classes: list[str] = Field(description="IFC classes (and subclasses) sampled into the surface model.")
-    include_slabs: bool = Field(description="Also sample IfcSlab (floors, ceilings); they constrain no planar DoF.")
-    surface_density_per_m2: float = Field(gt=0.0, description="Surface sample points per square metre of mesh.")
-    top_storey_height_m: float = Field(gt=0.0, description="Band height of the top storey (others: next elevation).")
-    scan_voxel_m: float = Field(gt=0.0, description="Voxel size of the downsampled scan (the default scale).")
-    scan_max_z_m: float = Field(description="Scan points above this height above the floor are dropped (ceiling).")
+    # IFC classes (and subclasses) sampled into the surface model. IfcDoor is left out: doors stand open (in the
+    # simulator always), and a closed leaf drags scans off doorways.
+    surface_classes: ClassVar[tuple[str, ...]] = (
+        "IfcWall",
+        "IfcColumn",
+        "IfcCurtainWall",
+        "IfcWindow",
+        "IfcPlate",
+        "IfcMember",
+    )
+    # Also sample IfcSlab (floors, ceilings); they constrain no planar DoF.
+    include_slabs: ClassVar[bool] = False
+    # Surface sample points per square metre of mesh. one point per 10 x 10 cm
+    surface_density_per_m2: ClassVar[float] = 100.0
+    # Band height of the top storey (others: next elevation).
+    top_storey_height_m: ClassVar[float] = 3.0
+    # Voxel size of the downsampled scan (the default scale).
+    scan_voxel_m: ClassVar[float] = 0.1
+    # Scan points above this height above the floor are dropped (ceiling). drop the ceiling: walls only (from
+    # sensor.min_z_m)
+    scan_max_z_m: ClassVar[float] = 2.2
     submap_keyframes: int = Field(ge=1, description="Keyframes stitched into the local submap (1: the scan alone).")
-    max_scan_points: int = Field(ge=10, description="Registrars thin the scan to at most this many points (strided).")
+    # Registrars thin the scan to at most this many points (strided). evenly strided; fitness and information use the
+    # whole scan
+    max_scan_points: ClassVar[int] = 1000
     method: Literal["point_to_plane", "planar", "point_to_point", "robust", "gicp", "small_gicp", "kiss_icp"] = Field(
         description="The fine registrar (bimfactor.registration.icp.REGISTRARS); small_gicp and kiss_icp need "
         "pip install 'bimfactor[registrars]'."
@@ -634,40 +693,49 @@ class RegistrationConfig(_Strict):
     max_correspondence_m: float = Field(gt=0.0, description="Largest point-to-surface distance of a correspondence.")
     final_correspondence_m: float = Field(gt=0.0, description="The planar registrar shrinks the distance to this.")
     max_iterations: int = Field(ge=1, description="ICP iterations per scale.")
-    multiscale_voxels_m: list[float] = Field(
-        min_length=1, description="point_to_plane's coarse-to-fine scan voxel schedule."
-    )
-    multiscale_correspondence_m: list[float] = Field(
-        min_length=1, description="Max correspondence distance per scale (same length as the voxel schedule)."
-    )
+    # point_to_plane's coarse-to-fine scan voxel schedule. then the planar polish at final_correspondence_m (a third
+    # Open3D scale added nothing)
+    multiscale_voxels_m: ClassVar[tuple[float, ...]] = (0.4, 0.2)
+    # Max correspondence distance per scale (same length as the voxel schedule).
+    multiscale_correspondence_m: ClassVar[tuple[float, ...]] = (1.0, 0.5)
     robust_kernel: Literal["tukey", "huber"] = Field(description="Robust loss of the 'robust' registrar.")
-    robust_k_m: float = Field(gt=0.0, description="Scale of the robust loss.")
-    noise_sigma_m: float = Field(gt=0.0, description="σ of a point-to-plane residual; information = JᵀJ / σ².")
-    crop_margin_m: float = Field(ge=0.0, description="The surface is cropped to the scan's reach plus this margin.")
+    # Scale of the robust loss.
+    robust_k_m: ClassVar[float] = 0.3
+    # σ of a point-to-plane residual; information = JᵀJ / σ².
+    noise_sigma_m: ClassVar[float] = 0.02
+    # The surface is cropped to the scan's reach plus this margin.
+    crop_margin_m: ClassVar[float] = 1.0
     min_fitness: float = Field(ge=0.0, le=1.0, description="Gate: least share of scan points with a correspondence.")
     max_rmse_m: float = Field(gt=0.0, description="Gate: largest inlier RMSE.")
     max_correction_m: float = Field(gt=0.0, description="Gate: largest translation away from the initial pose.")
     max_correction_deg: float = Field(gt=0.0, description="Gate: largest rotation away from the initial pose.")
-    min_degeneracy_ratio: float = Field(
-        ge=0.0, le=1.0, description="Gate: least λmin/λmax of the translational information (corridor check)."
-    )
-    consistency_chi2: float = Field(
-        gt=0.0, description="Gate, given the coarse pose's covariance: largest χ² of the correction under it."
-    )
+    # Gate: least λmin/λmax of the translational information (corridor check). a corridor or a single wall: ≈ 0
+    min_degeneracy_ratio: ClassVar[float] = 0.08
+    # Gate, given the coarse pose's covariance: largest χ² of the correction under it. χ² with 3 DoF at 99 %
+    consistency_chi2: ClassVar[float] = 11.34
     ambiguity_probes: bool = Field(
         description="Gate: re-register from probe starts around the result; reject if another fit is as good."
     )
-    ambiguity_probe_m: float = Field(gt=0.0, description="Probe starts this far along both translational axes ...")
-    ambiguity_probe_deg: float = Field(gt=0.0, description="... and this far in yaw, each way.")
-    ambiguity_separation_m: float = Field(gt=0.0, description="A probe's fit is another place beyond this ...")
-    ambiguity_separation_deg: float = Field(gt=0.0, description="... or beyond this rotation from the result.")
-    ambiguity_fitness_margin: float = Field(
-        ge=0.0, le=1.0, description="Another place is as good when its fitness is at most this much lower ..."
-    )
-    ambiguity_rmse_ratio: float = Field(ge=1.0, description="... and its inlier RMSE at most this times the result's.")
-    ambiguity_probe_points: int = Field(ge=10, description="Probes register this many scan points (evenly strided).")
-    factor_min_sigma_m: float = Field(gt=0.0, description="Fine factor: σ floor added to x and y (ICP overconfident).")
-    factor_min_sigma_deg: float = Field(gt=0.0, description="Fine factor: σ floor added to yaw.")
+    # Probe starts this far along both translational axes ...
+    ambiguity_probe_m: ClassVar[float] = 0.6
+    # ... and this far in yaw, each way.
+    ambiguity_probe_deg: ClassVar[float] = 10.0
+    # A probe's fit is another place beyond this ...
+    ambiguity_separation_m: ClassVar[float] = 0.1
+    # ... or beyond this rotation from the result.
+    ambiguity_separation_deg: ClassVar[float] = 1.0
+    # Another place is as good when its fitness is at most this much lower ...
+    ambiguity_fitness_margin: ClassVar[float] = 0.02
+    # ... and its inlier RMSE at most this times the result's.
+    ambiguity_rmse_ratio: ClassVar[float] = 1.25
+    # Probes register this many scan points (evenly strided). same decisions as the full scan on the 3 comparison
+    # buildings; probes 15-40 % faster
+    ambiguity_probe_points: ClassVar[int] = 300
+    # Fine factor: σ floor added to x and y (ICP overconfident). accepted fits on simulated keyframes: 9 mm RMS error
+    # (JᵀJ/σ² says 1 mm)
+    factor_min_sigma_m: ClassVar[float] = 0.01
+    # Fine factor: σ floor added to yaw. ... and 0.1° RMS (JᵀJ/σ² says 0.02°)
+    factor_min_sigma_deg: ClassVar[float] = 0.2
     success_trans_m: float = Field(gt=0.0, description="Comparison: a registration succeeds below this error ...")
     success_rot_deg: float = Field(gt=0.0, description="... and below this rotation error.")
     compare_keyframes: int = Field(ge=1, description="Comparison: keyframes per building.")
@@ -680,107 +748,134 @@ class BackendConfig(_Strict):
     """Multi-hypothesis back end: particle-filter modes, one GTSAM pose graph per mode."""
 
     max_modes: int = Field(ge=1, description="K, the strongest particle clusters kept as modes each step.")
-    cluster_radius_m: float = Field(gt=0.0, description="Mean-shift window radius in x, y (also the seed grid cell).")
-    cluster_yaw_deg: float = Field(gt=0.0, le=180.0, description="Mean-shift window half-width in yaw (wrapped).")
-    min_cluster_weight: float = Field(ge=0.0, le=1.0, description="Clusters holding less particle weight are dropped.")
-    spawn_weight: float = Field(ge=0.0, le=1.0, description="An unmatched cluster at least this heavy spawns a mode.")
-    track_gate_m: float = Field(gt=0.0, description="A cluster continues a mode whose predicted pose is this close ...")
-    track_gate_yaw_deg: float = Field(gt=0.0, le=180.0, description="... and whose yaw differs by less than this.")
-    merge_distance_m: float = Field(gt=0.0, description="Two modes on one storey closer than this ...")
-    merge_yaw_deg: float = Field(gt=0.0, le=180.0, description="... and within this yaw are merged into one.")
-    prune_probability: float = Field(ge=0.0, lt=1.0, description="Modes whose probability falls below this are pruned.")
-    missed_decay: float = Field(ge=0.0, le=1.0, description="Particle weight kept by a mode no cluster continues.")
-    prior_min_sigma_m: float = Field(gt=0.0, description="Floor on the position σ of a new mode's pose prior.")
-    prior_min_sigma_deg: float = Field(gt=0.0, description="Floor on the yaw σ of a new mode's pose prior.")
+    # Mean-shift window radius in x, y (also the seed grid cell).
+    cluster_radius_m: ClassVar[float] = 1.0
+    # Mean-shift window half-width in yaw (wrapped).
+    cluster_yaw_deg: ClassVar[float] = 30.0
+    # Clusters holding less particle weight are dropped.
+    min_cluster_weight: ClassVar[float] = 0.02
+    # An unmatched cluster at least this heavy spawns a mode.
+    spawn_weight: ClassVar[float] = 0.05
+    # A cluster continues a mode whose predicted pose is this close ...
+    track_gate_m: ClassVar[float] = 1.0
+    # ... and whose yaw differs by less than this.
+    track_gate_yaw_deg: ClassVar[float] = 30.0
+    # Two modes on one storey closer than this ...
+    merge_distance_m: ClassVar[float] = 0.3
+    # ... and within this yaw are merged into one.
+    merge_yaw_deg: ClassVar[float] = 10.0
+    # Modes whose probability falls below this are pruned.
+    prune_probability: ClassVar[float] = 0.01
+    # Particle weight kept by a mode no cluster continues.
+    missed_decay: ClassVar[float] = 0.5
+    # Floor on the position σ of a new mode's pose prior. a cluster's spread is cut off by the mean-shift window (±1
+    # m, ±30°): floor it
+    prior_min_sigma_m: ClassVar[float] = 0.3
+    # Floor on the yaw σ of a new mode's pose prior.
+    prior_min_sigma_deg: ClassVar[float] = 10.0
     odom_sigma_trans_m: float = Field(gt=0.0, description="Odometry factor: a floor on the translation σ ...")
     odom_sigma_rot_deg: float = Field(gt=0.0, description="... and on the yaw σ.")
-    odom_robust_kernel: Literal["huber", "cauchy", "none"] = Field(
-        description="M-estimator on the odometry factors: a wheel slip is an outlier of the motion model."
-    )
-    odom_robust_k: float = Field(gt=0.0, description="Its width in σ units.")
+    # M-estimator on the odometry factors: a wheel slip is an outlier of the motion model. σ is the model's at the
+    # measured step: a turn the wheels measured short is 10σ off and
+    odom_robust_kernel: ClassVar[Literal["huber", "cauchy", "none"]] = "cauchy"
+    # Its width in σ units. more; heavy tails let the landmark and scan factors overrule it (docs/pose-graphs.md)
+    odom_robust_k: ClassVar[float] = 2.385
     range_sigma_m: float = Field(gt=0.0, description="σ of an observed object's range.")
     bearing_sigma_deg: float = Field(gt=0.0, description="σ of an observed object's bearing.")
     landmark_sigma_m: float = Field(gt=0.0, description="σ tying a BIM landmark to its BIM position (as-built drift).")
-    robust_kernel: Literal["huber", "cauchy", "none"] = Field(description="M-estimator on the landmark factors.")
-    robust_k: float = Field(gt=0.0, description="Kernel width in σ units (Huber 1.345, Cauchy 2.385: 95 % efficiency).")
-    outlier_chi2: float = Field(gt=0.0, description="Cap on one observation's χ² in a mode's residual.")
-    residual_temperature: float = Field(gt=0.0, description="τ in p_k ∝ w_k · exp(−C_k / (2τ)).")
-    reassociate_distance_m: float = Field(ge=0.0, description="Re-associate when the estimate moves this far ...")
-    reassociate_yaw_deg: float = Field(ge=0.0, description="... or turns this much from the pose that associated.")
-    relinearize_threshold: float = Field(gt=0.0, description="ISAM2 relinearization threshold.")
-    relinearize_skip: int = Field(
-        ge=1,
-        description="ISAM2 considers relinearizing every this many updates (1: every keyframe; GTSAM's default 10).",
-    )
-    lm_max_iterations: int = Field(ge=1, description="Levenberg–Marquardt iterations of the offline batch refine.")
+    # M-estimator on the landmark factors.
+    robust_kernel: ClassVar[Literal["huber", "cauchy", "none"]] = "cauchy"
+    # Kernel width in σ units (Huber 1.345, Cauchy 2.385: 95 % efficiency).
+    robust_k: ClassVar[float] = 2.385
+    # Cap on one observation's χ² in a mode's residual. χ²(2 dof) 99 %
+    outlier_chi2: ClassVar[float] = 9.21
+    # τ in p_k ∝ w_k · exp(−C_k / (2τ)).
+    residual_temperature: ClassVar[float] = 1.0
+    # Re-associate when the estimate moves this far ...
+    reassociate_distance_m: ClassVar[float] = 0.25
+    # ... or turns this much from the pose that associated.
+    reassociate_yaw_deg: ClassVar[float] = 5.0
+    # ISAM2 relinearization threshold.
+    relinearize_threshold: ClassVar[float] = 0.01
+    # ISAM2 considers relinearizing every this many updates (1: every keyframe; GTSAM's default 10). GTSAM's default;
+    # 1 (every keyframe): bench backend 9–13 ms instead of 3–6 ms on the slowest machine, bench paper's graph, refine
+    # and full rows alike (docs/pose-graphs.md)
+    relinearize_skip: ClassVar[int] = 10
+    # Levenberg–Marquardt iterations of the offline batch refine.
+    lm_max_iterations: ClassVar[int] = 100
     refine_rounds: int = Field(
         ge=0, description="Offline refine: rounds of re-association at the refined poses (0: the forward matches)."
     )
-    refine_retired_min_keyframes: int = Field(
-        ge=1,
-        description="Offline refine: modes pruned in the forward pass after this many keyframes are refined too "
-        "(tracked to the end by odometry and scan matching) and compete by their fit to the whole sequence.",
-    )
-    refine_seam_window: int = Field(
-        ge=0,
-        description="Offline refine of a relocalized run: the seam between two stretches is searched this many "
-        "keyframes either side of the lost monitor's change point, where the two stretches' refined trajectories "
-        "explain the frames best (0: the monitor's point).",
-    )
-    refine_seam_min_log_ratio: float = Field(
-        ge=0.0,
-        description="Offline refine: the searched seam replaces the monitor's only when the frames' log-likelihood "
-        "is higher there by this much (1: e ≈ 2.7 times as likely).",
-    )
-    refine_join: bool = Field(
-        description="Offline refine: two stretches of a relocalized run are refined as one where no mode born in "
-        "them, refined over both, gives way to another (as refine_split judges it): the relocalization was a false "
-        "alarm."
-    )
-    refine_split: bool = Field(
-        description="Offline refine: a stretch is parted again where one refined mode explains the keyframes "
-        "before a step and another, born after it, those from it on, by far better than any one mode explains all "
-        "(a robot carried off while the filter kept tracking, never relocalized)."
-    )
-    refine_split_min_log_ratio: float = Field(
-        ge=0.0,
-        description="Offline refine: the two modes must explain the frames better than the stretch's best fit by "
-        "this much log-likelihood (10: e¹⁰ ≈ 22 000 times as likely) ...",
-    )
-    refine_split_min_keyframe_log_ratio: float = Field(
-        ge=0.0,
-        description="... each explaining its own part better than the other by this much per keyframe on average ...",
-    )
-    refine_split_min_keyframes: int = Field(ge=1, description="... and each part must hold this many keyframes.")
+    # Offline refine: modes pruned in the forward pass after this many keyframes are refined too (tracked to the end
+    # by odometry and scan matching) and compete by their fit to the whole sequence. a pruned mode that lived this
+    # long is a refine candidate; the best fit wins
+    refine_retired_min_keyframes: ClassVar[int] = 5
+    # Offline refine of a relocalized run: the seam between two stretches is searched this many keyframes either side
+    # of the lost monitor's change point, where the two stretches' refined trajectories explain the frames best (0:
+    # the monitor's point). a relocalized run's seam, searched this far either side of the monitor's change point
+    refine_seam_window: ClassVar[int] = 10
+    # Offline refine: the searched seam replaces the monitor's only when the frames' log-likelihood is higher there by
+    # this much (1: e ≈ 2.7 times as likely). ... and moved only when the frames are e ≈ 2.7 times as likely there
+    refine_seam_min_log_ratio: ClassVar[float] = 1.0
+    # Offline refine: two stretches of a relocalized run are refined as one where no mode born in them, refined over
+    # both, gives way to another (as refine_split judges it): the relocalization was a false alarm. a relocalization
+    # that no mode change bears out (as refine_split judges) is joined again
+    refine_join: ClassVar[bool] = True
+    # Offline refine: a stretch is parted again where one refined mode explains the keyframes before a step and
+    # another, born after it, those from it on, by far better than any one mode explains all (a robot carried off
+    # while the filter kept tracking, never relocalized). a stretch is parted again where two modes, one after the
+    # other, explain it by far best
+    refine_split: ClassVar[bool] = True
+    # Offline refine: the two modes must explain the frames better than the stretch's best fit by this much log-
+    # likelihood (10: e¹⁰ ≈ 22 000 times as likely) ... ... better than its best single mode by this much log-
+    # likelihood
+    refine_split_min_log_ratio: ClassVar[float] = 10.0
+    # ... each explaining its own part better than the other by this much per keyframe on average ... ... each better
+    # on its own part than the other by this per keyframe
+    refine_split_min_keyframe_log_ratio: ClassVar[float] = 1.0
+    # ... and each part must hold this many keyframes. ... each part this long
+    refine_split_min_keyframes: ClassVar[int] = 5
     scan_factor: bool = Field(
         description="Each mode's graph also gets a pose factor from correlative matching of the keyframe's 2-D scan "
         "against the likelihood field (registration.correlative; beyond the paper)."
     )
-    scan_window_m: float = Field(gt=0.0, description="Scan matching: search ± this in x and y around the mode ...")
-    scan_window_deg: float = Field(gt=0.0, le=90.0, description="... and ± this in yaw.")
+    # Scan matching: search ± this in x and y around the mode ... the mode's prediction: its last pose moved by
+    # odometry (σ ≈ 0.11 m, 4° per 0.5 m)
+    scan_window_m: ClassVar[float] = 0.5
+    # ... and ± this in yaw.
+    scan_window_deg: ClassVar[float] = 18.0
     scan_recentre: int = Field(ge=0, description="An optimum on the window's edge: search again about it this often.")
-    scan_step_m: float = Field(gt=0.0, description="Scan matching: the coarse search's step in x and y ...")
+    # Scan matching: the coarse search's step in x and y ...
+    scan_step_m: ClassVar[float] = 0.1
     scan_step_deg: float = Field(gt=0.0, description="... and in yaw.")
-    scan_fine_step_m: float = Field(gt=0.0, description="Scan matching: the fine search's step in x and y ...")
-    scan_fine_step_deg: float = Field(gt=0.0, description="... and in yaw (over one coarse cell around its best).")
-    scan_sigma_m: float = Field(gt=0.0, description="Scan matching: σ of an endpoint's distance to the BIM's faces.")
-    scan_coarse_sigma_m: float = Field(
-        gt=0.0, description="Scan matching: the coarse search's σ (a smoother field, so its steps cannot miss a peak)."
-    )
+    # Scan matching: the fine search's step in x and y ...
+    scan_fine_step_m: ClassVar[float] = 0.025
+    # ... and in yaw (over one coarse cell around its best).
+    scan_fine_step_deg: ClassVar[float] = 0.5
+    # Scan matching: σ of an endpoint's distance to the BIM's faces.
+    scan_sigma_m: ClassVar[float] = 0.1
+    # Scan matching: the coarse search's σ (a smoother field, so its steps cannot miss a peak).
+    scan_coarse_sigma_m: ClassVar[float] = 0.2
     scan_candidates: int = Field(ge=1, description="Scan matching: the best coarse poses the fine search refines.")
-    scan_clear_before_m: float = Field(
-        ge=0.0,
-        description="Scan matching: an endpoint whose ray is inside a wall this far before it scores as an "
-        "outlier (seen through a wall).",
-    )
-    scan_outlier: float = Field(gt=0.0, description="Scan matching: ε in log(f + ε), what an off-BIM endpoint costs.")
-    scan_effective_endpoints: float = Field(
-        gt=0.0, description="Scan matching: how many of the endpoints count as independent measurements."
-    )
-    scan_min_endpoints: int = Field(ge=1, description="Scan matching: scans with fewer endpoints are not matched.")
-    scan_min_inliers: int = Field(ge=1, description="Scan matching: least endpoints on the BIM's faces at the match.")
-    scan_min_sigma_m: float = Field(gt=0.0, description="Scan matching: floor on the factor's position σ ...")
-    scan_min_sigma_deg: float = Field(gt=0.0, description="... and on its yaw σ.")
+    # Scan matching: an endpoint whose ray is inside a wall this far before it scores as an outlier (seen through a
+    # wall). a return from behind a wall: its ray crossed the wall
+    scan_clear_before_m: ClassVar[float] = 0.15
+    # Scan matching: ε in log(f + ε), what an off-BIM endpoint costs.
+    scan_outlier: ClassVar[float] = 0.05
+    # Scan matching: how many of the endpoints count as independent measurements. 95 % ellipsoids hold 96 % of the
+    # true poses (bimfactor bench scanmatch)
+    scan_effective_endpoints: ClassVar[float] = 20.0
+    # Scan matching: scans with fewer endpoints are not matched. a sparse scan counts each endpoint once (at most
+    # scan_effective_endpoints), so a
+    scan_min_endpoints: ClassVar[int] = 6
+    # Scan matching: least endpoints on the BIM's faces at the match. 6-endpoint scan is a weak but honest factor: it
+    # holds the heading through blind stretches
+    scan_min_inliers: ClassVar[int] = 6
+    # Scan matching: floor on the factor's position σ ... the grid's walls sit a few cm off the rendered faces in
+    # places; refine adds it to every marginal
+    scan_min_sigma_m: ClassVar[float] = 0.03
+    # ... and on its yaw σ.
+    scan_min_sigma_deg: ClassVar[float] = 0.5
 
 
 LocalizerVariant = Literal["smcl", "smcl+graph", "full"]
@@ -807,14 +902,12 @@ class LocalizationConfig(_Strict):
         "geometric median (the position minimising the expected position error), the median itself when no mode "
         "is within `output_mode_radius_m` of it."
     )
-    output_mode_radius_m: float = Field(
-        gt=0.0, description="belief_median: a mode this near the median reports its graph pose."
-    )
-    fine_covariance_scale: float = Field(
-        ge=1.0,
-        description="full: the best mode's covariance times this is what the fine stage's gate sees (consistency "
-        "χ² and probes); the graph's marginals are overconfident (95 % ellipses cover about half the errors).",
-    )
+    # belief_median: a mode this near the median reports its graph pose.
+    output_mode_radius_m: ClassVar[float] = 2.0
+    # full: the best mode's covariance times this is what the fine stage's gate sees (consistency χ² and probes); the
+    # graph's marginals are overconfident (95 % ellipses cover about half the errors). σ × 2: smcl+graph's 95 %
+    # ellipses cover ~48 % of errors; 1.0 rejected correct fits
+    fine_covariance_scale: ClassVar[float] = 4.0
 
 
 class EvaluationConfig(_Strict):
@@ -842,8 +935,11 @@ class EvaluationConfig(_Strict):
         description="global and kidnap: the robot knows the storey it starts on (the uniform start covers the first "
         "frame's true storey only, `smcl.start.storeys`); false: every storey (the paper's single floor has one)."
     )
-    guess_offset_m: float = Field(ge=0.0, description="guess: the guess's distance from the true first position.")
-    guess_offset_deg: float = Field(ge=0.0, le=180.0, description="guess: its heading error (seeded sign).")
+    # guess: the guess's distance from the true first position. guess: this far from the first frame's true position,
+    # in a seeded direction ...
+    guess_offset_m: ClassVar[float] = 1.0
+    # guess: its heading error (seeded sign). ... and turned this much, of seeded sign
+    guess_offset_deg: ClassVar[float] = 20.0
     kidnap_at: int = Field(ge=1, description="kidnap: keyframes driven before the robot is carried off.")
     kidnap_resume_at: int = Field(ge=0, description="kidnap: the keyframe of the other route it is put down at.")
 

@@ -174,11 +174,7 @@ def check_grid_memory(
     available = available_memory_bytes() if available is None else available
     if available is None or need <= available:
         return
-    named = []
-    if grid >= SIGNIFICANT_SHARE * need:
-        named.append(("bim.grid.resolution_m", cfg.bim.grid.resolution_m))
-    if lattice >= SIGNIFICANT_SHARE * need:
-        named.append(("bim.visibility.cell_m", cfg.bim.visibility.cell_m))
+    named = [("bim.grid.resolution_m", cfg.bim.grid.resolution_m)]  # the one setting of the two grids' sizes
     pad = 0.0 if padding_included else 2.0 * cfg.bim.grid.padding_m
     width, height = (float(v) + pad for v in extent_xy_m)
     raise ConfigError(

@@ -27,6 +27,22 @@ text_embedder = sim_fixtures.text_embedder
 SEED = 3  # the localizer's seed in `runs` and the tests beside it
 
 
+@pytest.fixture
+def fixed_value(monkeypatch: pytest.MonkeyPatch):
+    """Set one of a stage's fixed values (a ClassVar of its config model, e.g. `fixed_value("smcl.challenger.
+    threshold_nats", 5.0)`) for the test: no preset or `--set` can."""
+
+    def set_value(dotted: str, value: object) -> None:
+        *blocks, name = dotted.split(".")
+        model: type = Config
+        for block in blocks:
+            model = model.model_fields[block].annotation
+        assert name in model.__class_vars__, f"{dotted} is a config key, not a fixed value"
+        monkeypatch.setattr(model, name, value)
+
+    return set_value
+
+
 @pytest.fixture(scope="session")
 def ifc_dir() -> Path:
     """`../shared/data/ifc` (the five real IFC buildings); the test is skipped when it is absent."""

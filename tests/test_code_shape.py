@@ -1,5 +1,5 @@
-"""The shape of the code, read with `ast` (nothing is imported): one back-projection in the package, and a localizer
-step that is a fixed chain of stages."""
+"""The shape of the code, read with `ast`: one back-projection in the package, a localizer
+step that is a fixed chain of stages, and at most 150 config keys."""
 
 from __future__ import annotations
 
@@ -55,3 +55,19 @@ def test_the_localizer_step_is_a_fixed_chain_of_stages() -> None:
     assert branches == [], branches
     names = {node.attr for node in ast.walk(step) if isinstance(node, ast.Attribute)}
     assert {"keyframe", "filter", "_stages"} <= names and "variant" not in names
+
+
+def test_the_configuration_has_at_most_150_keys() -> None:
+    """Counted as a user sees them: the leaves of `bimfactor config --all`."""
+    import yaml
+    from typer.testing import CliRunner
+
+    from bimfactor.cli import app
+
+    result = CliRunner().invoke(app, ["config", "--all"])
+    assert result.exit_code == 0, result.output
+
+    def leaves(node: object) -> int:
+        return sum(leaves(v) for v in node.values()) if isinstance(node, dict) else 1
+
+    assert 100 < leaves(yaml.safe_load(result.stdout)) <= 150

@@ -86,12 +86,13 @@ def test_the_graph_output_is_the_mode_at_the_belief_median(runs: dict[str, Local
 
 
 def test_the_median_output_is_the_belief_median_with_its_local_heading(
-    paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str]
+    paper_floor: Building, drive: SimResult, text_embedder, config_overrides: list[str], fixed_value
 ) -> None:
     """Where no mode is near the belief's median, the output is the median of the weights an estimate may use,
     with the mean heading of the particles around it."""
     # A 5 cm radius (2 m by default) leaves the modes' graph poses outside it on most steps.
-    overrides = [*config_overrides, "localization.variant=smcl+graph", "localization.output_mode_radius_m=0.05"]
+    fixed_value("localization.output_mode_radius_m", 0.05)
+    overrides = [*config_overrides, "localization.variant=smcl+graph"]
     cfg = load_config(None, overrides)
     localizer = Localizer(paper_floor.prior, drive.meta, cfg, SEED, text_embedder=text_embedder)
     radius = cfg.localization.output_mode_radius_m

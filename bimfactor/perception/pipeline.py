@@ -120,8 +120,8 @@ class Perception:
         detections, masks, embeddings, stats, timing_ms = self.fuse(frame, T_odom_cam)
         started = time.perf_counter()
         view = self.graph.view(frame.depth_m, T_odom_cam)
-        since = frame.index if self.graph.cfg.observation_nodes == "detected" else None
-        observations = self.graph.observations(frame.odom_pose, view=view, since_frame=since)
+        # the nodes in view detected in this frame: the paper's "whenever new observations arrive"
+        observations = self.graph.observations(frame.odom_pose, view=view, since_frame=frame.index)
         viewed = time.perf_counter()
         readings = self.reader.read(frame, plate_columns) if self.reader is not None else []
         if readings:

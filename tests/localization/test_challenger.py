@@ -33,11 +33,12 @@ def test_the_challenger_draws_from_its_own_generator(box_prior, box_visibility, 
 
 
 def test_a_belief_in_the_wrong_room_is_handed_to_a_challenger_that_explains_the_frames(
-    box_prior, box_visibility, smcl_cfg
+    box_prior, box_visibility, smcl_cfg, fixed_value
 ):
     # The belief sits at (8, 3) facing west, where the frames (a chair 1 m ahead) are not explained; the challenger,
     # drawn from the observation, finds the chair's place and out-predicts it until the belief moves there.
-    cfg = updated(smcl_cfg, {"challenger.threshold_nats": 5.0, "relocalize.enabled": False, "augmented.enabled": False})
+    fixed_value("smcl.challenger.threshold_nats", 5.0)
+    cfg = updated(smcl_cfg, {"relocalize.enabled": False, "augmented.enabled": False})
     mcl = SemanticMCL(box_prior, box_visibility, cfg, np.random.default_rng(0), num_particles=300)
     mcl.initialize_around(np.array([8.0, 3.0, np.pi]), 0, 0.05, 0.02)
     challenged = []

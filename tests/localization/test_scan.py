@@ -66,7 +66,7 @@ def test_an_endpoint_is_the_median_of_its_nearest_surface_not_its_nearest_noisy_
     assert nearest < 5.0 - 1.5 * sigma
 
 
-def test_a_low_table_seen_from_above_ends_the_scan_at_its_edge(test_config: Config) -> None:
+def test_a_low_table_seen_from_above_ends_the_scan_at_its_edge(test_config: Config, fixed_value) -> None:
     """A thin table top 0.1 m below the camera, from 1.0 to 1.8 m ahead, a wall at 3 m: the top's returns lie behind
     its edge, so the nearest surface is only as deep as the noise there (2 cm), not the 0.3 m of a far wall's."""
     cfg = test_config
@@ -86,8 +86,8 @@ def test_a_low_table_seen_from_above_ends_the_scan_at_its_edge(test_config: Conf
 
     assert len(ahead(cfg)) >= 3
     assert np.all(ahead(cfg) < 1.03)  # on the table's edge
-    fixed = updated(cfg, {"scan.surface_min_m": 0.3})
-    assert np.all(ahead(fixed) > 1.1)  # a fixed 0.3 m surface: the median return lies on the top, inside the table
+    fixed_value("scan.surface_min_m", 0.3)
+    assert np.all(ahead(cfg) > 1.1)  # a fixed 0.3 m surface: the median return lies on the top, inside the table
 
 
 def test_no_return_gives_an_empty_scan(test_config: Config) -> None:
@@ -234,13 +234,6 @@ def _lost_cfg(smcl_cfg: SmclConfig, relocalize: bool = True) -> SmclConfig:
             "scan.enabled": True,
             "augmented.enabled": False,
             "relocalize.enabled": relocalize,
-            "relocalize.fit_ratio": 0.5,
-            "relocalize.frames": 2,
-            "relocalize.cusum_drift": 0.4,
-            "relocalize.cusum_threshold": 1.0,
-            "relocalize.min_fit": 0.35,
-            "relocalize.fit_alpha": 0.1,
-            "relocalize.min_endpoints": 10,
             "motion.sigma_trans_m": 0.0,
             "motion.sigma_rot_deg": 0.0,
         },

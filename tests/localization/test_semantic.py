@@ -177,8 +177,11 @@ def test_footprint_match_expects_a_node_at_the_nearest_point_of_its_object(box_p
     assert footprint.scores(particle, np.array([0]), obs)[0] == pytest.approx(expected, rel=1e-6)
 
 
-def test_softmax_semantic_term_is_the_class_probability_over_the_prior_labels(box_prior, box_visibility, smcl_cfg):
-    cfg = updated(smcl_cfg.semantic, {"similarity": "softmax", "softmax_temperature": 0.5})
+def test_softmax_semantic_term_is_the_class_probability_over_the_prior_labels(
+    box_prior, box_visibility, smcl_cfg, fixed_value
+):
+    fixed_value("smcl.semantic.softmax_temperature", 0.5)
+    cfg = updated(smcl_cfg.semantic, {"similarity": "softmax"})
     scorer = SemanticLikelihood(box_prior, box_visibility, cfg)
     mixed = np.array([[0.8, 0.6, 0.0, 0.0, 0.0]], np.float32)  # 0.8 chair + 0.6 table in the one-hot label space
     obs = Observations(mixed, np.array([1.0]), np.array([0.0]), labels=["chair"])

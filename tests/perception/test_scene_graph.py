@@ -18,8 +18,14 @@ MOUNT = np.eye(4)
 MOUNT[:3, :3] = R_BASE_CAMERA_LEVEL
 MOUNT[:3, 3] = [0.0, 0.0, 0.5]
 DIM = 8
-# Half a voxel of padding: a box of voxel centres grows to the voxels' outer faces, so IoUs are voxel ratios.
-EXACT = ("iou_padding_m=0.025", "prune_every=1000")
+
+
+@pytest.fixture(autouse=True)
+def exact(fixed_value) -> None:
+    """Half a voxel of padding: a box of voxel centres grows to the voxels' outer faces, so IoUs are voxel ratios;
+    no periodic pruning unless a test asks."""
+    fixed_value("perception.iou_padding_m", 0.025)
+    fixed_value("perception.prune_every", 1000)
 
 
 def keys_box(x0: int, x1: int, y0: int = 0, y1: int = 1, z0: int = 0, z1: int = 1) -> np.ndarray:
@@ -40,7 +46,7 @@ def with_cosine(c: float) -> np.ndarray:
 
 
 def graph(config_overrides: list[str], *overrides: str) -> OnlineSceneGraph:
-    return OnlineSceneGraph(perception_config(config_overrides, *EXACT, *overrides), K, MOUNT)
+    return OnlineSceneGraph(perception_config(config_overrides, *overrides), K, MOUNT)
 
 
 def test_two_sightings_of_one_box_merge_and_the_embedding_is_the_running_mean(config_overrides) -> None:
@@ -121,7 +127,7 @@ def test_pruning_removes_exactly_the_tiny_node(config_overrides) -> None:
 
 
 def test_nodes_seen_once_long_ago_are_pruned(config_overrides) -> None:
-    g = graph(config_overrides, "prune_stale_frames=10")
+    g = graph(config_overrides)  # pruned when seen once and not in the last 10 frames
     g.integrate([Instance3D(keys_box(0, 10, 0, 10, 0, 10), unit(1.0), "a")], 0)  # seen once, at frame 0
     g.integrate([Instance3D(keys_box(20, 30, 0, 10, 0, 10), unit(0.0, 1.0), "b")], 0)
     g.integrate([Instance3D(keys_box(20, 30, 0, 10, 0, 10), unit(0.0, 1.0), "b")], 1)  # seen twice
@@ -131,8 +137,10 @@ def test_nodes_seen_once_long_ago_are_pruned(config_overrides) -> None:
     assert sorted(g.nodes) == [1, 2]
 
 
-def test_periodic_pruning_runs_every_prune_every_updates(config_overrides) -> None:
-    g = OnlineSceneGraph(perception_config(config_overrides, "prune_every=3", "prune_stale_frames=1"), K, MOUNT)
+def test_periodic_pruning_runs_every_prune_every_updates(config_overrides, fixed_value) -> None:
+    fixed_value("perception.prune_every", 3)
+    fixed_value("perception.prune_stale_frames", 1)
+    g = OnlineSceneGraph(perception_config(config_overrides), K, MOUNT)
     g.integrate([Instance3D(keys_box(0, 10, 0, 10, 0, 10), unit(1.0), "a")], 0)
     assert g.integrate([], 1).n_pruned == 0
     assert g.integrate([], 2).n_pruned == 1 and not g.nodes
@@ -140,7 +148,7 @@ def test_periodic_pruning_runs_every_prune_every_updates(config_overrides) -> No
 
 def test_edges_connect_exactly_the_close_pairs(config_overrides) -> None:
     """Centroids at x = 0, 1.5, 10 and 11.9 m (edge distance 2 m): two edges."""
-    g = graph(config_overrides, "edge_distance_m=2.0")
+    g = graph(config_overrides)
     for i, x in enumerate((0, 30, 200, 238)):  # voxel index × 0.05 m: 0, 1.5, 10, 11.9
         g.integrate([Instance3D(keys_box(x, x + 1), unit(1.0, i), "x")], i)
     np.testing.assert_allclose([n.centroid_m[0] for n in g.nodes.values()], [0.025, 1.525, 10.025, 11.925])

@@ -252,7 +252,7 @@ def test_a_reading_the_belief_cannot_explain_redraws_particles_before_its_plate(
     assert reset.unexplained == []
 
 
-def test_the_redraw_is_screened_by_the_frame_scan(duplex: Building) -> None:
+def test_the_redraw_is_screened_by_the_frame_scan(duplex: Building, fixed_value) -> None:
     """Redrawn on the arc before the plate (±60° of its normal), the particles kept from four times as many drawn
     (`text_reset.oversample` 4) fit the frame's scan (the plate's wall square ahead at the read range) better than
     those drawn without the screen (1), and still explain the reading."""
@@ -261,7 +261,8 @@ def test_the_redraw_is_screened_by_the_frame_scan(duplex: Building) -> None:
     reading = _reading_only(duplex.prior, plate.text)
     fit = {}
     for oversample in (1, 4):
-        cfg = updated(duplex.cfg.smcl, {"text_reset.oversample": oversample, "augmented.enabled": False})
+        fixed_value("smcl.text_reset.oversample", oversample)
+        cfg = updated(duplex.cfg.smcl, {"augmented.enabled": False})
         filt = SemanticMCL(duplex.prior, visibility_of(duplex.prior, duplex.cfg), cfg, np.random.default_rng(0))
         filt.initialize_around(_facing(twin, 2.0), twin.storey_index, 0.3, np.deg2rad(5))
         filt.update(FrameData(reading))
