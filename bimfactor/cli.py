@@ -123,7 +123,7 @@ ConfigOption = Annotated[
         "-c",
         metavar="PRESET_OR_FILE",
         help="paper, default, fast, or a YAML file: the paper's filter alone, the recommended pipeline (default), "
-        "the fewest milliseconds per keyframe, or your own overrides; merged over bimfactor/configs/default.yaml.",
+        "the fewest milliseconds per keyframe, or your own overrides; merged over the defaults.",
     ),
 ]
 DetectionsOption = Annotated[

@@ -1,9 +1,11 @@
 """The configuration tree: validated pydantic models, one sub-model per stage.
 
-`bimfactor/configs/default.yaml` (shipped inside the package) is the single source of the default values (the
-paper's hyperparameters plus the recommended extensions); the models here say what each field means and check it.
-Presets are YAML files that override part of the default: the named ones (`PRESETS`: `paper`, `fast`) lie beside
-it, and any other file can be given by path; `--set a.b=value` on the command line overrides single fields.
+Each field carries its default (the paper's hyperparameters plus the recommended extensions; the `default` preset),
+what it means, its bounds and, in a comment, why it has that value; values no preset or user needs to change are
+fixed values of their stage (`ClassVar`). Units are SI (metres, seconds, radians) unless the key names another
+(`..._deg`, `..._px`). Presets are YAML files that override part of the default: the named ones (`PRESETS`: `paper`,
+`fast`) ship in bimfactor/configs/, and any other file can be given by path; `--set a.b=value` on the command line
+overrides single fields.
 """
 
 from __future__ import annotations
@@ -23,11 +25,10 @@ from bimfactor.resources import check_particle_memory
 from bimfactor.textfile import read_utf8
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
-"""The package's config folder: default.yaml, the named presets and the data tables (package data in a wheel)."""
-DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
+"""The package's config folder: the named presets and the data tables (package data in a wheel)."""
 PRESETS = ("paper", "default", "fast")
-"""The named presets in CONFIG_DIR: the paper's filter alone, the recommended pipeline (default.yaml itself) and the
-fewest milliseconds per keyframe."""
+"""The named presets: the paper's filter alone (CONFIG_DIR/paper.yaml), the recommended pipeline (the fields'
+defaults themselves) and the fewest milliseconds per keyframe (CONFIG_DIR/fast.yaml)."""
 
 
 class _Strict(BaseModel):
@@ -41,15 +42,20 @@ class IfcReadConfig(_Strict):
     # Threads for ifcopenshell's geometry iterator.
     geometry_threads: ClassVar[int] = 2
     cache_dir: str = Field(
-        description="Folder for the per-file geometry cache (keyed by the IFC's SHA-256); '' disables it."
+        "~/.cache/bimfactor/geometry",
+        description="Folder for the per-file geometry cache (keyed by the IFC's SHA-256); '' disables it.",
     )
 
 
 class GridConfig(_Strict):
-    resolution_m: float = Field(gt=0.0, le=1.0, description="Occupancy grid cell size.")
-    band_min_m: float = Field(description="Lower edge of the obstacle band, above the storey elevation.")
-    band_max_m: float = Field(description="Upper edge of the obstacle band (robot sensing height).")
-    robot_radius_m: float = Field(ge=0.0, description="Robot footprint radius; free space is eroded by it.")
+    resolution_m: float = Field(0.05, gt=0.0, le=1.0, description="Occupancy grid cell size.")
+    # obstacles are what the geometry holds between these heights above the storey; from where the scan starts
+    # (sensor.min_z_m): a window's sill below it filled the recess to the pane
+    band_min_m: float = Field(0.15, description="Lower edge of the obstacle band, above the storey elevation.")
+    # the paper's modeled height (Sec. III.A)
+    band_max_m: float = Field(1.2, description="Upper edge of the obstacle band (robot sensing height).")
+    # Clearpath Jackal: 0.508 x 0.430 m footprint
+    robot_radius_m: float = Field(0.25, ge=0.0, description="Robot footprint radius; free space is eroded by it.")
     # Margin added around the building's footprint.
     padding_m: ClassVar[float] = 1.0
     # IFC classes never rasterised as obstacles (open doors, slabs, spaces, annotations).
@@ -70,7 +76,8 @@ class GridConfig(_Strict):
 
 class RoomsConfig(_Strict):
     source: Literal["floodfill", "ifcspace", "auto"] = Field(
-        description="Where rooms come from: the paper's flood fill, the model's IfcSpace, or IfcSpace when present."
+        "auto",
+        description="Where rooms come from: the paper's flood fill, the model's IfcSpace, or IfcSpace when present.",
     )
     # Free-space components smaller than this are no room.
     min_room_area_m2: ClassVar[float] = 1.0
@@ -94,7 +101,19 @@ class RoomsConfig(_Strict):
 
 
 class ObjectsConfig(_Strict):
-    classes: list[str] = Field(description="IFC classes (and their subclasses) that become object nodes.")
+    classes: list[str] = Field(
+        [
+            "IfcFurnishingElement",
+            "IfcSanitaryTerminal",
+            "IfcFireSuppressionTerminal",
+            "IfcFlowTerminal",
+            "IfcWindow",
+            "IfcDoor",
+            "IfcStair",
+            "IfcTransportElement",
+        ],
+        description="IFC classes (and their subclasses) that become object nodes.",
+    )
     # Objects closer than this are joined by an edge.
     proximity_edge_m: ClassVar[float] = 2.0
     # Label table, relative to bimfactor/configs/.
@@ -106,7 +125,7 @@ class ObjectsConfig(_Strict):
 class ClassifyConfig(_Strict):
     # Room-category pool, relative to bimfactor/configs/.
     room_categories_file: ClassVar[str] = "room_categories.yaml"
-    min_objects: int = Field(ge=0, description="Rooms with fewer labelled objects are typed 'unknown'.")
+    min_objects: int = Field(1, ge=0, description="Rooms with fewer labelled objects are typed 'unknown'.")
     # A room with no labelled objects but doors to at least this many places is a hallway; 0: off. topology: an
     # object-less room joining three or more places is a corridor
     hallway_min_doors: ClassVar[int] = 3
@@ -120,26 +139,32 @@ class VisibilityConfig(_Strict):
 
     # Lattice of the precomputed visible-object table.
     cell_m: ClassVar[float] = 0.25
-    radius_m: float = Field(gt=0.0, description="The visibility sector's radius r (not given in the paper).")
+    # the visibility sector's r: not given in the paper
+    radius_m: float = Field(8.0, gt=0.0, description="The visibility sector's radius r (not given in the paper).")
 
 
 class BimConfig(_Strict):
-    ifc: IfcReadConfig
-    grid: GridConfig
-    rooms: RoomsConfig
-    objects: ObjectsConfig
-    classify: ClassifyConfig
-    visibility: VisibilityConfig
+    ifc: IfcReadConfig = Field(default_factory=IfcReadConfig)
+    grid: GridConfig = Field(default_factory=GridConfig)
+    rooms: RoomsConfig = Field(default_factory=RoomsConfig)
+    objects: ObjectsConfig = Field(default_factory=ObjectsConfig)
+    classify: ClassifyConfig = Field(default_factory=ClassifyConfig)
+    # the prior's table of objects in line of sight from each lattice cell
+    visibility: VisibilityConfig = Field(default_factory=VisibilityConfig)
 
 
 class EmbedConfig(_Strict):
+    # minilm | clip (CLIP's text tower: the vlm backend needs it)
     text_model: Literal["minilm", "clip"] = Field(
-        description="Text embedder: the bundled all-MiniLM-L6-v2, or CLIP's text tower (needs weights)."
+        "minilm", description="Text embedder: the bundled all-MiniLM-L6-v2, or CLIP's text tower (needs weights)."
     )
-    clip_model: str = Field(description="open_clip architecture name, e.g. ViT-L-14.")
+    # open_clip architecture of clip_weights
+    clip_model: str = Field("ViT-L-14", description="open_clip architecture name, e.g. ViT-L-14.")
+    # one CLIP checkpoint for both towers: the prior's text, the vlm backend's crops
     clip_weights: str = Field(
+        "",
         description="Local path of the CLIP checkpoint, read for both towers: the BIM text (prior) and the vlm "
-        "backend's crops; '' when not available."
+        "backend's crops; '' when not available.",
     )
 
 
@@ -211,11 +236,11 @@ class VlmConfig(_Strict):
     the prior is built, with or without this backend (docs/decisions.md)."""
 
     yolo_world_weights: str = Field(
-        description="YOLO-World checkpoint, e.g. yolov8s-worldv2.pt (ultralytics/assets releases); '' when absent."
+        "", description="YOLO-World checkpoint, e.g. yolov8s-worldv2.pt (ultralytics/assets releases); '' when absent."
     )
-    sam_model_type: Literal["vit_h", "vit_l", "vit_b"] = Field(description="Segment Anything backbone.")
+    sam_model_type: Literal["vit_h", "vit_l", "vit_b"] = Field("vit_b", description="Segment Anything backbone.")
     sam_weights: str = Field(
-        description="SAM checkpoint matching `sam_model_type`, e.g. sam_vit_b_01ec64.pth; '' when absent."
+        "", description="SAM checkpoint matching `sam_model_type`, e.g. sam_vit_b_01ec64.pth; '' when absent."
     )
 
 
@@ -223,33 +248,51 @@ class TextReadingConfig(_Strict):
     """Reading door plates (room numbers) in the colour image; beyond the paper, off by default."""
 
     enabled: bool = Field(
-        description="Read text each frame (sim backend: the simulator's door plates; vlm backend: RapidOCR)."
+        True, description="Read text each frame (sim backend: the simulator's door plates; vlm backend: RapidOCR)."
     )
+    # auto: the backend's (sim: the simulator's plates with the error model below; vlm, detections: RapidOCR) |
+    # rapidocr
     reader: Literal["auto", "sim", "rapidocr"] = Field(
+        "auto",
         description="auto: the backend's own (sim: the simulator's plates and error model; vlm, detections: RapidOCR); "
         "rapidocr: "
-        "RapidOCR on the colour frames whatever the backend (on simulated frames it reads the printed plates)."
+        "RapidOCR on the colour frames whatever the backend (on simulated frames it reads the printed plates).",
     )
-    min_score: float = Field(ge=0.0, le=1.0, description="OCR: readings below this confidence are dropped.")
-    sim_min_height_px: int = Field(ge=1, description="Sim: a plate fewer pixels high than this is not legible.")
+    # OCR (RapidOCR) readings below this are dropped
+    min_score: float = Field(0.5, ge=0.0, le=1.0, description="OCR: readings below this confidence are dropped.")
+    # sim: a 15 cm plate is legible to ~2.4 m at 320 px over 90°
+    sim_min_height_px: int = Field(10, ge=1, description="Sim: a plate fewer pixels high than this is not legible.")
+    # the sim reader's errors, fitted to RapidOCR on rendered plates over the views the sim
     sim_read_probability: float = Field(
-        ge=0.0, le=1.0, description="Sim: chance that a legible plate is read when its characters are wide in view."
+        0.92,
+        ge=0.0,
+        le=1.0,
+        description="Sim: chance that a legible plate is read when its characters are wide in view.",
     )
+    # calls legible (tools/calibrate_text_reader.py, docs/perception.md): the read chance by the plate's
     sim_read_char_px: float = Field(
+        4.75,
         ge=0.0,
         description="Sim: the plate's width in the image per character of its text at which half that chance is left "
         "(distance and an oblique view both narrow the characters).",
     )
+    # width per character in the image (320 x 240 and 640 x 480 pooled); then at 320 x 240
     sim_read_char_scale_px: float = Field(
-        gt=0.0, description="Sim: how many pixels per character the read chance takes to rise (a logistic's scale)."
+        0.5,
+        gt=0.0,
+        description="Sim: how many pixels per character the read chance takes to rise (a logistic's scale).",
     )
+    # a character is read as its look-alike ("8" for "B"), as any other, or not at all
     sim_look_alike_rate: float = Field(
-        ge=0.0, le=1.0, description="Sim: chance that each character is read as one it looks like ('8' for 'B')."
+        0.06, ge=0.0, le=1.0, description="Sim: chance that each character is read as one it looks like ('8' for 'B')."
     )
+    # (640 x 480: 0.024, 0.04, 0.009)
     sim_char_error_rate: float = Field(
-        ge=0.0, le=1.0, description="Sim: chance that each character is read as any other letter or digit."
+        0.07, ge=0.0, le=1.0, description="Sim: chance that each character is read as any other letter or digit."
     )
-    sim_drop_rate: float = Field(ge=0.0, le=1.0, description="Sim: chance that each character is not read at all.")
+    sim_drop_rate: float = Field(
+        0.03, ge=0.0, le=1.0, description="Sim: chance that each character is not read at all."
+    )
 
     @model_validator(mode="after")
     def _rates_sum_to_at_most_one(self) -> TextReadingConfig:
@@ -259,36 +302,46 @@ class TextReadingConfig(_Strict):
 
 
 class PerceptionConfig(_Strict):
+    # auto: sim for a simulated sequence, else detections (SEQ_DIR/detections.jsonl), else yolox | sim | detections |
+    # yolox | vlm
     backend: Literal["auto", "sim", "detections", "yolox", "vlm"] = Field(
+        "auto",
         description="auto: from what the sequence holds (sim for a simulated one, else detections when it has a "
         "detections file, else yolox); sim: the simulator's instance buffer with an error model; detections: a "
         "detector's detections file (docs/perception.md); yolox: the shipped YOLOX-Nano (COCO classes); vlm: "
-        "YOLO-World + SAM + CLIP (weights you provide)."
+        "YOLO-World + SAM + CLIP (weights you provide).",
     )
-    device: str = Field(description="torch device of the vlm backend ('cpu', 'cuda', 'cuda:1').")
+    device: str = Field("cpu", description="torch device of the vlm backend ('cpu', 'cuda', 'cuda:1').")
+    # yolox: the shipped detector's eyes | paper: the paper's open-vocabulary ones | clean | harsh
+    # (configs/perception_sim.yaml)
     sim_preset: str = Field(
+        "yolox",
         description="Error preset of the sim backend: a name in `sim_presets_file` (yolox: the shipped detector's "
-        "eyes; paper: the paper's open-vocabulary ones)."
+        "eyes; paper: the paper's open-vocabulary ones).",
     )
     # Table of sim error presets, relative to bimfactor/configs/.
     sim_presets_file: ClassVar[str] = "perception_sim.yaml"
-    vlm: VlmConfig
-    box_threshold: float = Field(ge=0.0, le=1.0, description="Detector box score threshold (paper: 0.25).")
-    text_threshold: float = Field(ge=0.0, le=1.0, description="Detector text score threshold (paper: 0.25).")
-    sim_threshold: float = Field(ge=-1.0, le=1.0, description="δ_sim, cosine similarity to fuse (paper: 0.7).")
-    iou_threshold: float = Field(ge=0.0, le=1.0, description="δ_IoU, 3D overlap to fuse (paper: 0.7).")
+    # local weight files (docs/perception.md: where to get them); CLIP's is embed.clip_weights
+    vlm: VlmConfig = Field(default_factory=VlmConfig)
+    box_threshold: float = Field(0.25, ge=0.0, le=1.0, description="Detector box score threshold (paper: 0.25).")
+    text_threshold: float = Field(0.25, ge=0.0, le=1.0, description="Detector text score threshold (paper: 0.25).")
+    sim_threshold: float = Field(0.7, ge=-1.0, le=1.0, description="δ_sim, cosine similarity to fuse (paper: 0.7).")
+    iou_threshold: float = Field(0.7, ge=0.0, le=1.0, description="δ_IoU, 3D overlap to fuse (paper: 0.7).")
     # Voxel of the instance point sets (downsampling and fusion).
     voxel_size_m: ClassVar[float] = 0.05
-    max_depth_m: float = Field(gt=0.0, description="Depth beyond this is not lifted.")
-    max_points: int = Field(ge=1, description="At most this many masked pixels are lifted per detection.")
+    # beyond ~6 m the depth noise (σ ≥ 6 cm) smears instances
+    max_depth_m: float = Field(6.0, gt=0.0, description="Depth beyond this is not lifted.")
+    # per detection, evenly strided over the mask
+    max_points: int = Field(3000, ge=1, description="At most this many masked pixels are lifted per detection.")
     # DBSCAN neighbourhood radius (on voxel centres).
     dbscan_eps_m: ClassVar[float] = 0.12
     # DBSCAN core-point neighbour count.
     dbscan_min_points: ClassVar[int] = 4
     # Lifted instances with fewer voxels are dropped.
     min_instance_voxels: ClassVar[int] = 8
+    # intersection over the smaller box: a partial view inside a fuller node still fuses
     overlap_measure: Literal["iou", "overlap"] = Field(
-        description="IoU_3 of the boxes, or their overlap coefficient (intersection / smaller volume)."
+        "overlap", description="IoU_3 of the boxes, or their overlap coefficient (intersection / smaller volume)."
     )
     # Boxes are grown by this on every side before the 3D IoU. one voxel: a single-face view is a box, not a sheet
     iou_padding_m: ClassVar[float] = 0.05
@@ -303,7 +356,8 @@ class PerceptionConfig(_Strict):
     prune_stale_frames: ClassVar[int] = 10
     # Nodes whose centroids are closer than this are joined. as bim.objects.proximity_edge_m
     edge_distance_m: ClassVar[float] = 2.0
-    text: TextReadingConfig
+    # beyond the paper: read door plates (room numbers; bim/plates.py) where the prior has them
+    text: TextReadingConfig = Field(default_factory=TextReadingConfig)
 
     @model_validator(mode="after")
     def _text_reader_fits_the_backend(self) -> PerceptionConfig:
@@ -313,9 +367,9 @@ class PerceptionConfig(_Strict):
 
 
 class DepthSigmaConfig(_Strict):
-    sigma0_m: float = Field(ge=0.0, description="Axial depth noise σ(z) = sigma0 + k·(z − z0)², constant term.")
-    k_per_m: float = Field(ge=0.0, description="Quadratic growth k of the axial noise.")
-    z0_m: float = Field(ge=0.0, description="Depth of least noise z0.")
+    sigma0_m: float = Field(0.0012, ge=0.0, description="Axial depth noise σ(z) = sigma0 + k·(z − z0)², constant term.")
+    k_per_m: float = Field(0.0019, ge=0.0, description="Quadratic growth k of the axial noise.")
+    z0_m: float = Field(0.4, ge=0.0, description="Depth of least noise z0.")
 
     def sigma_m(self, depth_m: np.ndarray) -> np.ndarray:
         """Axial depth noise σ(z) = sigma0 + k·(z − z0)², same shape as `depth_m`."""
@@ -326,18 +380,25 @@ class SensorConfig(_Strict):
     """The RGB-D camera's depth: the simulator renders with this noise, and the estimator models it and uses the same
     band of depth."""
 
-    depth_noise: DepthSigmaConfig = Field(description="Axial depth noise σ(z) of the camera.")
-    min_z_m: float = Field(
-        description="Depth points below this height above the floor are floor, not obstacles (scan and ICP alike)."
+    # axial σ(z) = 0.0012 + 0.0019·(z − 0.4)² m, a RealSense-like camera
+    depth_noise: DepthSigmaConfig = Field(
+        default_factory=DepthSigmaConfig, description="Axial depth noise σ(z) of the camera."
     )
-    max_range_m: float = Field(gt=0.0, description="Depth returns beyond this horizontal range are not used.")
+    # depth below this height is floor (scan and ICP); up to bim.grid.band_min_m
+    min_z_m: float = Field(
+        0.15,
+        description="Depth points below this height above the floor are floor, not obstacles (scan and ICP alike).",
+    )
+    # beyond ~6 m the depth noise exceeds 6 cm
+    max_range_m: float = Field(6.0, gt=0.0, description="Depth returns beyond this horizontal range are not used.")
 
 
 class ScanConfig(_Strict):
     """The depth frame's horizontal 2-D scan (`localization.measurements.scan.scan_endpoints`), for the filter's
     scan term and the pose graphs' scan factor."""
 
-    beam_deg: float = Field(gt=0.0, description="One endpoint (the nearest surface) per bearing bin this wide.")
+    # one endpoint (the nearest surface) per 2° of bearing: 45 over the 90° view
+    beam_deg: float = Field(2.0, gt=0.0, description="One endpoint (the nearest surface) per bearing bin this wide.")
     # A bin's returns within surface_sigmas σ(r) of its nearest one (r), at least surface_min_m and at most this, are
     # its surface; the endpoint is their median. its median return, not the nearest (biased short by ~3σ of the depth
     # noise) ...
@@ -353,7 +414,9 @@ class ScanConfig(_Strict):
 class OdometryConfig(_Strict):
     """The robot's odometry noise: the simulator draws it, the pose graphs weigh by it."""
 
+    # α1..α4 (Thrun, Table 5.6): yaw σ ≈ 4.6° per 0.5 m
     alpha: list[FiniteFloat] = Field(
+        [0.05, 0.01, 0.05, 0.01],
         min_length=4,
         max_length=4,
         description="α1..α4 of the odometry motion model (Thrun et al., Table 5.6): rot←rot, rot←trans, "
@@ -362,34 +425,46 @@ class OdometryConfig(_Strict):
 
 
 class StartConfig(_Strict):
+    # [x_m, y_m, yaw_deg]: a Gaussian about a pose guess (AMCL); null: uniform (paper)
     pose: Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)] | None = Field(
+        None,
         description="x, y (m, the BIM's world frame), yaw (°) of a pose guess: M particles start from a Gaussian "
-        "about it (AMCL's initial pose); null: uniform over all navigable space (global localization, the paper)."
+        "about it (AMCL's initial pose); null: uniform over all navigable space (global localization, the paper).",
     )
-    storey: int = Field(ge=0, description="The storey index of `pose`.")
+    storey: int = Field(0, ge=0, description="The storey index of `pose`.")
+    # [storey, ...]: a start without a pose guess covers only these (the robot knows its floor)
     storeys: Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=1)] | None = Field(
+        None,
         description="Without a pose guess: the storeys the uniform start covers (a robot that knows its floor, as "
         "an elevator tells it); null: every storey. A relocalization still spreads over the whole building.",
     )
-    sigma_xy_m: float = Field(gt=0.0, description="Standard deviation of the start about `pose` in x and y.")
-    sigma_yaw_deg: float = Field(gt=0.0, description="Standard deviation of the start about `pose` in yaw.")
+    # AMCL's default initial covariance: 0.25 m² in x and y, (π/12)² in yaw
+    sigma_xy_m: float = Field(0.5, gt=0.0, description="Standard deviation of the start about `pose` in x and y.")
+    sigma_yaw_deg: float = Field(15.0, gt=0.0, description="Standard deviation of the start about `pose` in yaw.")
 
 
 class MotionConfig(_Strict):
-    sigma_trans_m: float = Field(ge=0.0, description="σ_trans, motion noise per step (paper: 0.2 m).")
-    sigma_rot_deg: float = Field(ge=0.0, description="σ_rot, motion noise per step (paper: 10°).")
+    sigma_trans_m: float = Field(0.2, ge=0.0, description="σ_trans, motion noise per step (paper: 0.2 m).")
+    sigma_rot_deg: float = Field(10.0, ge=0.0, description="σ_rot, motion noise per step (paper: 10°).")
+    # particles that leave navigable space keep this share of their weight
     off_map_weight: float = Field(
-        ge=0.0, le=1.0, description="Weight factor for a particle outside navigable space after a prediction (1: none)."
+        0.1,
+        ge=0.0,
+        le=1.0,
+        description="Weight factor for a particle outside navigable space after a prediction (1: none).",
     )
 
 
 class ResamplerConfig(_Strict):
+    # kld: KLD-sampling (Fox 2003, AMCL), M … max_particles as the belief needs | systematic (paper)
     kind: Literal["systematic", "kld"] = Field(
+        "kld",
         description="systematic: low-variance resampling of M particles (the paper); kld: KLD-sampling (Fox 2003, "
-        "as in AMCL), start with `max_particles` and resample as many as the occupied pose bins need, M at least."
+        "as in AMCL), start with `max_particles` and resample as many as the occupied pose bins need, M at least.",
     )
-    max_particles: int = Field(ge=1, description="kld: the initial and largest particle count.")
-    epsilon: float = Field(gt=0.0, lt=1.0, description="kld: bound ε on the KL divergence.")
+    # the initial spread: 1000 leave places of 86 x 86 m unsampled (docs/filter.md)
+    max_particles: int = Field(5000, ge=1, description="kld: the initial and largest particle count.")
+    epsilon: float = Field(0.05, gt=0.0, lt=1.0, description="kld: bound ε on the KL divergence.")
     # kld: z_(1−δ), the standard normal quantile (2.33: δ = 0.01). δ = 0.01
     z: ClassVar[float] = 2.33
     # kld: bin size in x and y. AMCL's bins
@@ -401,26 +476,37 @@ class ResamplerConfig(_Strict):
 class SemanticTermConfig(_Strict):
     """The paper's measurement model (Sec. II.C, Eqs. 1-4)."""
 
-    fov_deg: float = Field(gt=0.0, le=360.0, description="The visibility sector's field of view (paper: 90°).")
+    # the visibility sector (paper); its radius r is bim.visibility.radius_m
+    fov_deg: float = Field(90.0, gt=0.0, le=360.0, description="The visibility sector's field of view (paper: 90°).")
+    # in view when any of the object's footprint is; its expected bearing clipped to the FOV
     fov_extent: bool = Field(
-        description="An object is in view when any of its footprint is (false: its centre, the literal reading)."
+        True, description="An object is in view when any of its footprint is (false: its centre, the literal reading)."
     )
+    # a node is expected at the nearest point of its object's footprint, not its centre
     footprint_match: bool = Field(
+        True,
         description="A node is expected at the point of its object's footprint nearest to it, the seen part's "
-        "centroid lying anywhere on a large object (false: at the object's centre, the literal reading)."
+        "centroid lying anywhere on a large object (false: at the object's centre, the literal reading).",
     )
-    sigma_d_m: float = Field(gt=0.0, description="σ_d, distance similarity scale (paper: 1.2).")
-    kappa_alpha: float = Field(ge=0.0, description="κ_α, bearing similarity concentration (paper: 5).")
+    sigma_d_m: float = Field(1.2, gt=0.0, description="σ_d, distance similarity scale (paper: 1.2).")
+    kappa_alpha: float = Field(5.0, ge=0.0, description="κ_α, bearing similarity concentration (paper: 5).")
+    # softmax: p(label | embedding) over the prior's labels | cosine: the paper's φ_sem
     similarity: Literal["cosine", "softmax"] = Field(
-        description="φ_sem: the paper's cosine, or the softmax class probability over the prior's labels."
+        "softmax", description="φ_sem: the paper's cosine, or the softmax class probability over the prior's labels."
     )
     # τ of the softmax φ_sem (CLIP: 0.01). CLIP's logit scale 100
     softmax_temperature: ClassVar[float] = 0.01
+    # φ_sem below this scores 0 (cosine: 0.08, between matched 0.116 and unmatched 0.039)
     threshold: float = Field(
-        ge=0.0, le=1.0, description="Pairs whose φ_sem is below this score 0 (depends on `similarity`)."
+        0.1, ge=0.0, le=1.0, description="Pairs whose φ_sem is below this score 0 (depends on `similarity`)."
     )
-    temperature: float = Field(gt=0.0, description="T in P(z|x) = exp(K^(1−γ) · score / T); the paper gives no value.")
+    # not in the paper; with the sum 0.15-0.2 best (docs/filter.md); with the paper's mean 0.1
+    temperature: float = Field(
+        0.2, gt=0.0, description="T in P(z|x) = exp(K^(1−γ) · score / T); the paper gives no value."
+    )
+    # γ: Σφ over K observations divided by K^γ (1: the paper's mean; 0: the sum)
     count_exponent: float = Field(
+        0.0,
         ge=0.0,
         le=1.0,
         description="γ: the matched φ summed over K observations is divided by K^γ (1: the paper's mean; 0: the sum).",
@@ -429,10 +515,12 @@ class SemanticTermConfig(_Strict):
 
 class ScanTermConfig(_Strict):
     enabled: bool = Field(
-        description="Also weigh particles by the depth scan against the BIM's likelihood field (beyond the paper)."
+        True,
+        description="Also weigh particles by the depth scan against the BIM's likelihood field (beyond the paper).",
     )
-    sigma_m: float = Field(gt=0.0, description="σ of an endpoint's distance to the nearest obstacle.")
-    temperature: float = Field(gt=0.0, description="T_scan in P(z_scan|x) = exp(score / T_scan).")
+    sigma_m: float = Field(0.2, gt=0.0, description="σ of an endpoint's distance to the nearest obstacle.")
+    # 0.1 too sharp (wrong rooms of the same shape win), 0.3 best (docs/filter.md)
+    temperature: float = Field(0.3, gt=0.0, description="T_scan in P(z_scan|x) = exp(score / T_scan).")
 
 
 class TextTermConfig(_Strict):
@@ -451,10 +539,14 @@ class TextTermConfig(_Strict):
 
 
 class AugmentedConfig(_Strict):
-    enabled: bool = Field(description="Augmented MCL random-particle injection (Thrun, Table 8.3), beyond the paper.")
+    enabled: bool = Field(
+        True, description="Augmented MCL random-particle injection (Thrun, Table 8.3), beyond the paper."
+    )
+    # uniform: over free space | observations: poses that explain one observation
     injection: Literal["uniform", "observations"] = Field(
+        "observations",
         description="Where the random particles come from: free space, or poses that explain one of the step's "
-        "observations (sensor resetting)."
+        "observations (sensor resetting).",
     )
     # Long-term likelihood average rate. Thrun's 0.001 / 0.1 suit high-rate filters; these suit one update per
     # keyframe
@@ -465,8 +557,9 @@ class AugmentedConfig(_Strict):
 
 class TextResetConfig(_Strict):
     enabled: bool = Field(
+        True,
         description="Redraw particles in front of the plates a door-plate reading names when the belief does not "
-        "explain it (sensor resetting), beyond the paper."
+        "explain it (sensor resetting), beyond the paper.",
     )
     # The share of the particles redrawn. this share of the particles ...
     share: ClassVar[float] = 0.2
@@ -480,8 +573,9 @@ class TextResetConfig(_Strict):
 
 class RelocalizeConfig(_Strict):
     enabled: bool = Field(
+        True,
         description="Beyond the paper: when the belief stops explaining the depth scans (a kidnapped robot), spread "
-        "the particles over the whole building again, as at the start."
+        "the particles over the whole building again, as at the start.",
     )
     # Lost: a sudden drop, the belief's scan fit below this share of its average ... lost: the belief's predicted scan
     # fit under half its running average ...
@@ -503,12 +597,15 @@ class RelocalizeConfig(_Strict):
 
 
 class ChallengerConfig(_Strict):
+    # the current observations (the look-alike room)
     enabled: bool = Field(
+        True,
         description="Beyond the paper: while the belief is converged, a second small filter drawn from the current "
         "observations runs beside it; when it predicts the following frames better by `threshold_nats` (Page's "
-        "CUSUM of the log predictive-likelihood ratio) at a place the belief is not, the belief takes its particles."
+        "CUSUM of the log predictive-likelihood ratio) at a place the belief is not, the belief takes its particles.",
     )
-    particles: int = Field(ge=1, description="The challenger's particles.")
+    # 250-1000 recover alike
+    particles: int = Field(500, ge=1, description="The challenger's particles.")
     # Drawn from this many times as many poses, those the frame's scan favours (1: no screen). drawn from 4× as many
     # poses, those the frame's scan favours
     oversample: ClassVar[int] = 4
@@ -526,29 +623,40 @@ class ChallengerConfig(_Strict):
 
 
 class ConvergedConfig(_Strict):
-    pos_std_m: float = Field(gt=0.0, description="Converged when the position std is below this ...")
-    yaw_std_deg: float = Field(gt=0.0, description="... and the yaw std below this ...")
+    pos_std_m: float = Field(0.5, gt=0.0, description="Converged when the position std is below this ...")
+    yaw_std_deg: float = Field(15.0, gt=0.0, description="... and the yaw std below this ...")
     storey_share: float = Field(
-        gt=0.0, le=1.0, description="... and the estimated storey holds at least this share of the weight."
+        0.9, gt=0.0, le=1.0, description="... and the estimated storey holds at least this share of the weight."
     )
 
 
 class SmclConfig(_Strict):
     """The semantic particle filter (paper Sec. II.C) and its components, one sub-config each."""
 
-    num_particles: int = Field(ge=1, description="M (paper: 1000); with the kld resampler the fewest particles.")
-    ess_threshold: float = Field(gt=0.0, le=1.0, description="δ_ess, resample when ESS < δ_ess·M (paper: 0.5).")
-    start: StartConfig
-    motion: MotionConfig
-    resampler: ResamplerConfig
-    semantic: SemanticTermConfig
-    scan: ScanTermConfig
+    # M (paper); with the kld resampler the fewest
+    num_particles: int = Field(1000, ge=1, description="M (paper: 1000); with the kld resampler the fewest particles.")
+    # δ_ess (paper)
+    ess_threshold: float = Field(0.5, gt=0.0, le=1.0, description="δ_ess, resample when ESS < δ_ess·M (paper: 0.5).")
+    # the initial belief
+    start: StartConfig = Field(default_factory=StartConfig)
+    # the prediction step (paper: σ_trans 0.2 m, σ_rot 10° per keyframe)
+    motion: MotionConfig = Field(default_factory=MotionConfig)
+    resampler: ResamplerConfig = Field(default_factory=ResamplerConfig)
+    # the paper's measurement model, Eqs. 1-4
+    semantic: SemanticTermConfig = Field(default_factory=SemanticTermConfig)
+    # beyond the paper: the depth scan against the BIM's likelihood field (clearance layer)
+    scan: ScanTermConfig = Field(default_factory=ScanTermConfig)
     text: ClassVar[TextTermConfig] = TextTermConfig()
-    augmented: AugmentedConfig
-    text_reset: TextResetConfig
-    relocalize: RelocalizeConfig
-    challenger: ChallengerConfig
-    converged: ConvergedConfig
+    # augmented MCL (Thrun, Table 8.3), beyond the paper
+    augmented: AugmentedConfig = Field(default_factory=AugmentedConfig)
+    # a reading the belief does not explain redraws particles before the plates it names
+    text_reset: TextResetConfig = Field(default_factory=TextResetConfig)
+    # beyond the paper: re-spread over the building when the belief stops explaining the scans
+    relocalize: RelocalizeConfig = Field(default_factory=RelocalizeConfig)
+    # beyond the paper: a converged belief must keep out-predicting a small filter drawn from
+    challenger: ChallengerConfig = Field(default_factory=ChallengerConfig)
+    # the estimate is reported converged when
+    converged: ConvergedConfig = Field(default_factory=ConvergedConfig)
 
     @model_validator(mode="after")
     def _particle_bounds(self) -> SmclConfig:
@@ -560,19 +668,20 @@ class SmclConfig(_Strict):
 
 
 class CameraSimConfig(_Strict):
-    width: int = Field(ge=8, description="Image width in pixels.")
-    height: int = Field(ge=8, description="Image height in pixels.")
-    hfov_deg: float = Field(gt=0.0, lt=180.0, description="Horizontal field of view.")
-    min_range_m: float = Field(ge=0.0, description="Depth below this is no return.")
-    max_range_m: float = Field(gt=0.0, description="Depth beyond this is no return.")
-    mount_height_m: float = Field(description="Camera centre above the floor.")
-    mount_forward_m: float = Field(description="Camera centre ahead of the base origin.")
-    mount_pitch_deg: float = Field(description="Camera pitch; positive looks down.")
+    width: int = Field(320, ge=8, description="Image width in pixels.")
+    height: int = Field(240, ge=8, description="Image height in pixels.")
+    # the paper's FOV
+    hfov_deg: float = Field(90.0, gt=0.0, lt=180.0, description="Horizontal field of view.")
+    min_range_m: float = Field(0.3, ge=0.0, description="Depth below this is no return.")
+    max_range_m: float = Field(8.0, gt=0.0, description="Depth beyond this is no return.")
+    mount_height_m: float = Field(0.5, description="Camera centre above the floor.")
+    mount_forward_m: float = Field(0.15, description="Camera centre ahead of the base origin.")
+    mount_pitch_deg: float = Field(0.0, description="Camera pitch; positive looks down.")
 
 
 class DepthDropoutConfig(_Strict):
-    grazing_dropout_deg: float = Field(gt=0.0, le=90.0, description="Incidence angle beyond which returns drop.")
-    dropout_prob: float = Field(ge=0.0, le=1.0, description="Random per-pixel dropout probability.")
+    grazing_dropout_deg: float = Field(80.0, gt=0.0, le=90.0, description="Incidence angle beyond which returns drop.")
+    dropout_prob: float = Field(0.005, ge=0.0, le=1.0, description="Random per-pixel dropout probability.")
 
 
 class RobotConfig(_Strict):
@@ -589,9 +698,11 @@ class TrajectorySimConfig(_Strict):
     min_start_goal_m: ClassVar[float] = 8.0
     # Obstacle inflation for path planning.
     inflation_m: ClassVar[float] = 0.35
+    # a robot relocalizing looks at things: start and goals with objects in view
     route: Literal["viewpoints", "rooms"] = Field(
+        "viewpoints",
         description="viewpoints: start and goals where objects are in view, facing them on arrival; "
-        "rooms: any roomy place of another room."
+        "rooms: any roomy place of another room.",
     )
     # A viewpoint sees objects (not doors) within this distance.
     view_radius_m: ClassVar[float] = 4.0
@@ -600,17 +711,18 @@ class TrajectorySimConfig(_Strict):
 
 
 class AsBuiltConfig(_Strict):
-    moved_fraction: float = Field(ge=0.0, le=1.0, description="Share of BIM objects moved in the simulated world.")
+    # benchmarks' as-built setting); every door stands open, which the IFC draws closed
+    moved_fraction: float = Field(0.1, ge=0.0, le=1.0, description="Share of BIM objects moved in the simulated world.")
     # Largest displacement of a moved object.
     moved_max_m: ClassVar[float] = 1.0
-    removed_fraction: float = Field(ge=0.0, le=1.0, description="Share of BIM objects missing in the world.")
-    clutter_count: int = Field(ge=0, description="Objects in the world that the BIM does not contain.")
+    removed_fraction: float = Field(0.1, ge=0.0, le=1.0, description="Share of BIM objects missing in the world.")
+    clutter_count: int = Field(5, ge=0, description="Objects in the world that the BIM does not contain.")
 
 
 class DoorPlateSimConfig(_Strict):
     """Door plates in the simulated world (`bim.plates`): a room number beside each door into a numbered room."""
 
-    enabled: bool = Field(description="Hang the plates (off: the world is the IFC model's elements alone).")
+    enabled: bool = Field(True, description="Hang the plates (off: the world is the IFC model's elements alone).")
     # Plate width and height.
     size_m: ClassVar[tuple[float, float]] = (0.3, 0.15)
     # Plate centre above the storey's floor.
@@ -620,40 +732,54 @@ class DoorPlateSimConfig(_Strict):
 
 
 class SimConfig(_Strict):
-    camera: CameraSimConfig
-    depth_dropout: DepthDropoutConfig
-    rgb_noise_std: float = Field(ge=0.0, description="Gaussian RGB noise, in 8-bit levels.")
+    # a RealSense-like RGB-D camera on a Clearpath Jackal
+    camera: CameraSimConfig = Field(default_factory=CameraSimConfig)
+    # the depth noise itself is sensor.depth_noise
+    depth_dropout: DepthDropoutConfig = Field(default_factory=DepthDropoutConfig)
+    rgb_noise_std: float = Field(3.0, ge=0.0, description="Gaussian RGB noise, in 8-bit levels.")
     robot: ClassVar[RobotConfig] = RobotConfig()
-    trajectory: TrajectorySimConfig
-    as_built: AsBuiltConfig
-    door_plates: DoorPlateSimConfig
+    # keyframes at localization.keyframe_distance_m / keyframe_angle_deg
+    trajectory: TrajectorySimConfig = Field(default_factory=TrajectorySimConfig)
+    # the world is not the BIM: a tenth of the objects moved, a tenth gone, some clutter (the
+    as_built: AsBuiltConfig = Field(default_factory=AsBuiltConfig)
+    # room numbers beside the doors into numbered rooms (bim/plates.py), as buildings have them
+    door_plates: DoorPlateSimConfig = Field(default_factory=DoorPlateSimConfig)
 
 
 class RosbagConfig(_Strict):
-    rgb_topic: str = Field(description="sensor_msgs/Image colour topic; '' finds it by message type and encoding.")
-    depth_topic: str = Field(description="sensor_msgs/Image depth topic (16UC1 mm or 32FC1 m); '' finds it.")
-    camera_info_topic: str = Field(description="sensor_msgs/CameraInfo of the colour camera; '' finds it.")
+    rgb_topic: str = Field("", description="sensor_msgs/Image colour topic; '' finds it by message type and encoding.")
+    depth_topic: str = Field("", description="sensor_msgs/Image depth topic (16UC1 mm or 32FC1 m); '' finds it.")
+    camera_info_topic: str = Field("", description="sensor_msgs/CameraInfo of the colour camera; '' finds it.")
     depth_camera_info_topic: str = Field(
-        description="CameraInfo of the depth camera, read only when depth is not registered to colour; '' finds it."
+        "", description="CameraInfo of the depth camera, read only when depth is not registered to colour; '' finds it."
     )
     odom_topic: str = Field(
-        description="nav_msgs/Odometry topic; '' finds it, or without one reads odom_frame → base_frame from /tf."
+        "", description="nav_msgs/Odometry topic; '' finds it, or without one reads odom_frame → base_frame from /tf."
     )
+    # the camera mount is the tf chain base_frame → the colour image's frame_id
     base_frame: str = Field(
-        min_length=1, description="The robot's base frame in tf (on the floor): the mount and odometry refer to it."
+        "base_link",
+        min_length=1,
+        description="The robot's base frame in tf (on the floor): the mount and odometry refer to it.",
     )
-    odom_frame: str = Field(min_length=1, description="tf odometry frame, read when the bag has no Odometry topic.")
+    odom_frame: str = Field(
+        "odom", min_length=1, description="tf odometry frame, read when the bag has no Odometry topic."
+    )
+    # a detector's vision_msgs/Detection2DArray; "": found by type when there is one
     detections_topic: str = Field(
-        description="vision_msgs/Detection2DArray topic of a detector's output (docs/perception.md); '' finds it."
+        "", description="vision_msgs/Detection2DArray topic of a detector's output (docs/perception.md); '' finds it."
     )
-    max_sync_dt_s: float = Field(gt=0.0, description="Largest time offset between a colour image and its depth image.")
+    max_sync_dt_s: float = Field(
+        0.05, gt=0.0, description="Largest time offset between a colour image and its depth image."
+    )
     max_odom_gap_s: float = Field(
-        gt=0.0, description="Longest gap between odometry samples that a colour frame is interpolated across."
+        0.5, gt=0.0, description="Longest gap between odometry samples that a colour frame is interpolated across."
     )
 
 
 class IoConfig(_Strict):
-    rosbag: RosbagConfig
+    # topics "" are found by message type (bimfactor convert rosbag prints what it used)
+    rosbag: RosbagConfig = Field(default_factory=RosbagConfig)
     # Largest time offset when pairing TUM RGB-D rgb, depth and ground truth. the TUM benchmark's associate.py default
     tum_max_sync_dt_s: ClassVar[float] = 0.02
 
@@ -682,39 +808,50 @@ class RegistrationConfig(_Strict):
     # Scan points above this height above the floor are dropped (ceiling). drop the ceiling: walls only (from
     # sensor.min_z_m)
     scan_max_z_m: ClassVar[float] = 2.2
-    submap_keyframes: int = Field(ge=1, description="Keyframes stitched into the local submap (1: the scan alone).")
+    submap_keyframes: int = Field(1, ge=1, description="Keyframes stitched into the local submap (1: the scan alone).")
     # Registrars thin the scan to at most this many points (strided). evenly strided; fitness and information use the
     # whole scan
     max_scan_points: ClassVar[int] = 1000
+    # Open3D coarse to fine + planar polish: 63/63/46 % success on 3 buildings (planar 42/52/40 %)
     method: Literal["point_to_plane", "planar", "point_to_point", "robust", "gicp", "small_gicp", "kiss_icp"] = Field(
+        "point_to_plane",
         description="The fine registrar (bimfactor.registration.icp.REGISTRARS); small_gicp and kiss_icp need "
-        "pip install 'bimfactor[registrars]'."
+        "pip install 'bimfactor[registrars]'.",
     )
-    max_correspondence_m: float = Field(gt=0.0, description="Largest point-to-surface distance of a correspondence.")
-    final_correspondence_m: float = Field(gt=0.0, description="The planar registrar shrinks the distance to this.")
-    max_iterations: int = Field(ge=1, description="ICP iterations per scale.")
+    max_correspondence_m: float = Field(
+        0.6, gt=0.0, description="Largest point-to-surface distance of a correspondence."
+    )
+    final_correspondence_m: float = Field(
+        0.15, gt=0.0, description="The planar registrar shrinks the distance to this."
+    )
+    max_iterations: int = Field(30, ge=1, description="ICP iterations per scale.")
     # point_to_plane's coarse-to-fine scan voxel schedule. then the planar polish at final_correspondence_m (a third
     # Open3D scale added nothing)
     multiscale_voxels_m: ClassVar[tuple[float, ...]] = (0.4, 0.2)
     # Max correspondence distance per scale (same length as the voxel schedule).
     multiscale_correspondence_m: ClassVar[tuple[float, ...]] = (1.0, 0.5)
-    robust_kernel: Literal["tukey", "huber"] = Field(description="Robust loss of the 'robust' registrar.")
+    robust_kernel: Literal["tukey", "huber"] = Field("tukey", description="Robust loss of the 'robust' registrar.")
     # Scale of the robust loss.
     robust_k_m: ClassVar[float] = 0.3
     # σ of a point-to-plane residual; information = JᵀJ / σ².
     noise_sigma_m: ClassVar[float] = 0.02
     # The surface is cropped to the scan's reach plus this margin.
     crop_margin_m: ClassVar[float] = 1.0
-    min_fitness: float = Field(ge=0.0, le=1.0, description="Gate: least share of scan points with a correspondence.")
-    max_rmse_m: float = Field(gt=0.0, description="Gate: largest inlier RMSE.")
-    max_correction_m: float = Field(gt=0.0, description="Gate: largest translation away from the initial pose.")
-    max_correction_deg: float = Field(gt=0.0, description="Gate: largest rotation away from the initial pose.")
+    # furniture and clutter may hold up to 10 % of the scan
+    min_fitness: float = Field(
+        0.9, ge=0.0, le=1.0, description="Gate: least share of scan points with a correspondence."
+    )
+    # depth σ at 6 m is 6 cm; correct fits measured up to 0.056 m
+    max_rmse_m: float = Field(0.06, gt=0.0, description="Gate: largest inlier RMSE.")
+    max_correction_m: float = Field(1.0, gt=0.0, description="Gate: largest translation away from the initial pose.")
+    max_correction_deg: float = Field(15.0, gt=0.0, description="Gate: largest rotation away from the initial pose.")
     # Gate: least λmin/λmax of the translational information (corridor check). a corridor or a single wall: ≈ 0
     min_degeneracy_ratio: ClassVar[float] = 0.08
     # Gate, given the coarse pose's covariance: largest χ² of the correction under it. χ² with 3 DoF at 99 %
     consistency_chi2: ClassVar[float] = 11.34
+    # wrong fits in symmetric places: another probe finds a better or equal fit
     ambiguity_probes: bool = Field(
-        description="Gate: re-register from probe starts around the result; reject if another fit is as good."
+        True, description="Gate: re-register from probe starts around the result; reject if another fit is as good."
     )
     # Probe starts this far along both translational axes ...
     ambiguity_probe_m: ClassVar[float] = 0.6
@@ -736,18 +873,18 @@ class RegistrationConfig(_Strict):
     factor_min_sigma_m: ClassVar[float] = 0.01
     # Fine factor: σ floor added to yaw. ... and 0.1° RMS (JᵀJ/σ² says 0.02°)
     factor_min_sigma_deg: ClassVar[float] = 0.2
-    success_trans_m: float = Field(gt=0.0, description="Comparison: a registration succeeds below this error ...")
-    success_rot_deg: float = Field(gt=0.0, description="... and below this rotation error.")
-    compare_keyframes: int = Field(ge=1, description="Comparison: keyframes per building.")
-    compare_perturbations: int = Field(ge=1, description="Comparison: perturbed starts per keyframe.")
-    compare_max_trans_m: float = Field(ge=0.0, description="Comparison: initial translation errors 0 .. this.")
-    compare_max_rot_deg: float = Field(ge=0.0, description="Comparison: initial rotation errors 0 .. this.")
+    success_trans_m: float = Field(0.05, gt=0.0, description="Comparison: a registration succeeds below this error ...")
+    success_rot_deg: float = Field(1.0, gt=0.0, description="... and below this rotation error.")
+    compare_keyframes: int = Field(10, ge=1, description="Comparison: keyframes per building.")
+    compare_perturbations: int = Field(12, ge=1, description="Comparison: perturbed starts per keyframe.")
+    compare_max_trans_m: float = Field(2.0, ge=0.0, description="Comparison: initial translation errors 0 .. this.")
+    compare_max_rot_deg: float = Field(30.0, ge=0.0, description="Comparison: initial rotation errors 0 .. this.")
 
 
 class BackendConfig(_Strict):
     """Multi-hypothesis back end: particle-filter modes, one GTSAM pose graph per mode."""
 
-    max_modes: int = Field(ge=1, description="K, the strongest particle clusters kept as modes each step.")
+    max_modes: int = Field(5, ge=1, description="K, the strongest particle clusters kept as modes each step.")
     # Mean-shift window radius in x, y (also the seed grid cell).
     cluster_radius_m: ClassVar[float] = 1.0
     # Mean-shift window half-width in yaw (wrapped).
@@ -773,16 +910,21 @@ class BackendConfig(_Strict):
     prior_min_sigma_m: ClassVar[float] = 0.3
     # Floor on the yaw σ of a new mode's pose prior.
     prior_min_sigma_deg: ClassVar[float] = 10.0
-    odom_sigma_trans_m: float = Field(gt=0.0, description="Odometry factor: a floor on the translation σ ...")
-    odom_sigma_rot_deg: float = Field(gt=0.0, description="... and on the yaw σ.")
+    odom_sigma_trans_m: float = Field(0.01, gt=0.0, description="Odometry factor: a floor on the translation σ ...")
+    odom_sigma_rot_deg: float = Field(0.5, gt=0.0, description="... and on the yaw σ.")
     # M-estimator on the odometry factors: a wheel slip is an outlier of the motion model. σ is the model's at the
     # measured step: a turn the wheels measured short is 10σ off and
     odom_robust_kernel: ClassVar[Literal["huber", "cauchy", "none"]] = "cauchy"
     # Its width in σ units. more; heavy tails let the landmark and scan factors overrule it (docs/pose-graphs.md)
     odom_robust_k: ClassVar[float] = 2.385
-    range_sigma_m: float = Field(gt=0.0, description="σ of an observed object's range.")
-    bearing_sigma_deg: float = Field(gt=0.0, description="σ of an observed object's bearing.")
-    landmark_sigma_m: float = Field(gt=0.0, description="σ tying a BIM landmark to its BIM position (as-built drift).")
+    # sim perception at the true pose: range RMS 0.34 m (nodes sit 0.2 m short of BIM centres), p90 0.6 m
+    range_sigma_m: float = Field(0.5, gt=0.0, description="σ of an observed object's range.")
+    # ... bearing RMS 7°, p90 11°; bench paper: 95 % coverage 33 → 48 % at the same error
+    bearing_sigma_deg: float = Field(10.0, gt=0.0, description="σ of an observed object's bearing.")
+    # as-built objects deviate from the BIM; a perceived node is a partial view of its object
+    landmark_sigma_m: float = Field(
+        0.3, gt=0.0, description="σ tying a BIM landmark to its BIM position (as-built drift)."
+    )
     # M-estimator on the landmark factors.
     robust_kernel: ClassVar[Literal["huber", "cauchy", "none"]] = "cauchy"
     # Kernel width in σ units (Huber 1.345, Cauchy 2.385: 95 % efficiency).
@@ -804,7 +946,7 @@ class BackendConfig(_Strict):
     # Levenberg–Marquardt iterations of the offline batch refine.
     lm_max_iterations: ClassVar[int] = 100
     refine_rounds: int = Field(
-        ge=0, description="Offline refine: rounds of re-association at the refined poses (0: the forward matches)."
+        1, ge=0, description="Offline refine: rounds of re-association at the refined poses (0: the forward matches)."
     )
     # Offline refine: modes pruned in the forward pass after this many keyframes are refined too (tracked to the end
     # by odometry and scan matching) and compete by their fit to the whole sequence. a pruned mode that lived this
@@ -835,19 +977,25 @@ class BackendConfig(_Strict):
     refine_split_min_keyframe_log_ratio: ClassVar[float] = 1.0
     # ... and each part must hold this many keyframes. ... each part this long
     refine_split_min_keyframes: ClassVar[int] = 5
+    # beyond the paper: the keyframe's 2-D scan against the likelihood field, per mode
     scan_factor: bool = Field(
+        True,
         description="Each mode's graph also gets a pose factor from correlative matching of the keyframe's 2-D scan "
-        "against the likelihood field (registration.correlative; beyond the paper)."
+        "against the likelihood field (registration.correlative; beyond the paper).",
     )
     # Scan matching: search ± this in x and y around the mode ... the mode's prediction: its last pose moved by
     # odometry (σ ≈ 0.11 m, 4° per 0.5 m)
     scan_window_m: ClassVar[float] = 0.5
     # ... and ± this in yaw.
     scan_window_deg: ClassVar[float] = 18.0
-    scan_recentre: int = Field(ge=0, description="An optimum on the window's edge: search again about it this often.")
+    # an optimum on the window's edge is searched again about it, twice at most (online graphs; a match beyond the
+    # window restarts the mode's graph there); 0: off (docs/pose-graphs.md)
+    scan_recentre: int = Field(
+        2, ge=0, description="An optimum on the window's edge: search again about it this often."
+    )
     # Scan matching: the coarse search's step in x and y ...
     scan_step_m: ClassVar[float] = 0.1
-    scan_step_deg: float = Field(gt=0.0, description="... and in yaw.")
+    scan_step_deg: float = Field(2.0, gt=0.0, description="... and in yaw.")
     # Scan matching: the fine search's step in x and y ...
     scan_fine_step_m: ClassVar[float] = 0.025
     # ... and in yaw (over one coarse cell around its best).
@@ -856,7 +1004,7 @@ class BackendConfig(_Strict):
     scan_sigma_m: ClassVar[float] = 0.1
     # Scan matching: the coarse search's σ (a smoother field, so its steps cannot miss a peak).
     scan_coarse_sigma_m: ClassVar[float] = 0.2
-    scan_candidates: int = Field(ge=1, description="Scan matching: the best coarse poses the fine search refines.")
+    scan_candidates: int = Field(2, ge=1, description="Scan matching: the best coarse poses the fine search refines.")
     # Scan matching: an endpoint whose ray is inside a wall this far before it scores as an outlier (seen through a
     # wall). a return from behind a wall: its ray crossed the wall
     scan_clear_before_m: ClassVar[float] = 0.15
@@ -886,21 +1034,28 @@ BenchVariant = Literal[LocalizerVariant, "refine"]
 
 
 class LocalizationConfig(_Strict):
+    # every stage: smcl (the filter) → smcl+graph (its modes seed the pose graphs of backend:) → full (+ Open3D ICP)
     variant: LocalizerVariant = Field(
+        "full",
         description="smcl: the paper's filter; smcl+graph: its modes each seed a pose graph (backend), a mode's "
         "graph pose is the output (`output`); full: smcl+graph with the fine stage (registration) "
-        "registering each keyframe's scan from the best mode's pose and feeding accepted fits into its graph."
+        "registering each keyframe's scan from the best mode's pose and feeding accepted fits into its graph.",
     )
+    # a step every 0.5 m or 15 deg: the motion noise (smcl.motion) is per step, so the
     keyframe_distance_m: float = Field(
+        0.5,
         gt=0.0,
         description="A localizer step (keyframe) every this much travel ... (the motion noise is per step; the "
         "simulator records and `convert` keeps frames at this spacing)",
     )
-    keyframe_angle_deg: float = Field(gt=0.0, description="... or this much rotation.")
+    # simulator records and `convert` keeps frames at this spacing (T = 50 steps, as the paper)
+    keyframe_angle_deg: float = Field(15.0, gt=0.0, description="... or this much rotation.")
+    # graph variants: the mode at the particles' geometric median | best_mode: the most probable mode
     output: Literal["best_mode", "belief_median"] = Field(
+        "belief_median",
         description="Graph variants' output: the most probable mode's pose, or the mode at the particles' "
         "geometric median (the position minimising the expected position error), the median itself when no mode "
-        "is within `output_mode_radius_m` of it."
+        "is within `output_mode_radius_m` of it.",
     )
     # belief_median: a mode this near the median reports its graph pose.
     output_mode_radius_m: ClassVar[float] = 2.0
@@ -911,37 +1066,52 @@ class LocalizationConfig(_Strict):
 
 
 class EvaluationConfig(_Strict):
-    num_trajectories: int = Field(ge=1, description="Trajectories per building (paper: 6).")
-    trajectory_length: int = Field(ge=1, description="T, steps per trajectory (paper: 50).")
-    repeats: int = Field(ge=1, description="Runs per trajectory with different seeds (paper: 3).")
-    variants: list[BenchVariant] = Field(min_length=1, description="What `bench paper` scores, one table each.")
+    num_trajectories: int = Field(6, ge=1, description="Trajectories per building (paper: 6).")
+    trajectory_length: int = Field(50, ge=1, description="T, steps per trajectory (paper: 50).")
+    repeats: int = Field(3, ge=1, description="Runs per trajectory with different seeds (paper: 3).")
+    variants: list[BenchVariant] = Field(
+        ["smcl", "smcl+graph", "refine"], min_length=1, description="What `bench paper` scores, one table each."
+    )
+    # global: T steps from the filter's own converged flag (the only reading of Table I its statistics allow; the
+    # first T steps are scored too, as from_start) | start: from the uniform cloud
     score_from: Literal["start", "filter_converged"] = Field(
+        "filter_converged",
         description="global: where a run's T scored steps begin: at the first step whose filter estimate reports "
         "itself converged (filter_converged, the paper's Table I as its own statistics allow it to have been taken; no "
         "ground truth decides; the trajectory is simulated `warmup_max_steps` longer, a run not converged by then is "
         "scored from there, and the first T steps are scored too, as `from_start`), or at its first frame (start: "
-        "from the uniform cloud). guess and kidnap always score from their own start."
+        "from the uniform cloud). guess and kidnap always score from their own start.",
     )
-    warmup_max_steps: int = Field(ge=0, description="filter_converged: the most unscored steps before the T scored.")
+    # filter_converged: a run not converged after this many steps is scored from there
+    warmup_max_steps: int = Field(
+        30, ge=0, description="filter_converged: the most unscored steps before the T scored."
+    )
+    # global: from the uniform belief (the paper) | guess: from a pose guess (AMCL's initial pose) | kidnap | active:
+    # the localizer's suggestions after the first one, beside the passive route
     scenario: Literal["global", "guess", "kidnap", "active"] = Field(
+        "global",
         description="How a run starts: global (the paper: from the uniform belief over the building), guess (from a "
         "pose guess `guess_offset_m` / `guess_offset_deg` off the first frame's truth, AMCL's initial pose), or "
         "kidnap (from the uniform belief; after `kidnap_at` keyframes the robot is carried, unseen by odometry, to "
         "keyframe `kidnap_resume_at` of the route three further on, and the T steps from there are scored), or "
         "active (from the uniform belief, the route until the localizer first suggests where to look, then its "
-        "suggestions (`active`), T keyframes in all; the passive route from the same start runs beside it)."
+        "suggestions (`active`), T keyframes in all; the passive route from the same start runs beside it).",
     )
+    # global, kidnap: the start covers only the storey the robot starts on (it knows its floor)
     known_storey: bool = Field(
+        False,
         description="global and kidnap: the robot knows the storey it starts on (the uniform start covers the first "
-        "frame's true storey only, `smcl.start.storeys`); false: every storey (the paper's single floor has one)."
+        "frame's true storey only, `smcl.start.storeys`); false: every storey (the paper's single floor has one).",
     )
     # guess: the guess's distance from the true first position. guess: this far from the first frame's true position,
     # in a seeded direction ...
     guess_offset_m: ClassVar[float] = 1.0
     # guess: its heading error (seeded sign). ... and turned this much, of seeded sign
     guess_offset_deg: ClassVar[float] = 20.0
-    kidnap_at: int = Field(ge=1, description="kidnap: keyframes driven before the robot is carried off.")
-    kidnap_resume_at: int = Field(ge=0, description="kidnap: the keyframe of the other route it is put down at.")
+    # kidnap: after 25 keyframes of route k the robot is carried, unseen by odometry, ...
+    kidnap_at: int = Field(25, ge=1, description="kidnap: keyframes driven before the robot is carried off.")
+    # ... to keyframe 10 of route k + 3 (mod the routes); the T steps from there are scored
+    kidnap_resume_at: int = Field(10, ge=0, description="kidnap: the keyframe of the other route it is put down at.")
 
     @property
     def scores_from_convergence(self) -> bool:
@@ -958,34 +1128,45 @@ class ActiveConfig(_Strict):
     """Where to look next (`bimfactor.active`): the viewpoint whose predicted observations best tell the belief's
     modes apart, less the way there."""
 
-    horizon_m: float = Field(gt=0.0, description="Candidate viewpoints lie within this path length of the robot.")
-    candidates: int = Field(ge=8, description="At most this many candidate viewpoints (positions × 8 headings).")
+    # candidate viewpoints within this path length ...
+    horizon_m: float = Field(8.0, gt=0.0, description="Candidate viewpoints lie within this path length of the robot.")
+    # ... at most this many (positions x 8 headings)
+    candidates: int = Field(200, ge=8, description="At most this many candidate viewpoints (positions × 8 headings).")
+    # each keyframe on the way (0.5 m driven or 15 deg turned) must earn this many nats
     cost_per_keyframe: float = Field(
+        0.02,
         ge=0.0,
         description="The travel cost: nats of expected information each keyframe on the way (driven or turned) must "
         "earn.",
     )
+    # one mode with this share of the probability: nothing to suggest
     settled_share: float = Field(
-        gt=0.5, le=1.0, description="Nothing to suggest once one mode holds this share of the modes' probability."
+        0.95, gt=0.5, le=1.0, description="Nothing to suggest once one mode holds this share of the modes' probability."
     )
 
 
 class Config(_Strict):
-    seed: int = Field(ge=0, description="Seed of every random generator in a run (numpy takes no negative seed).")
-    bim: BimConfig
-    embed: EmbedConfig
-    perception: PerceptionConfig
-    sensor: SensorConfig
-    scan: ScanConfig
-    odometry: OdometryConfig
-    smcl: SmclConfig
-    localization: LocalizationConfig
-    backend: BackendConfig
-    sim: SimConfig
-    io: IoConfig
-    registration: RegistrationConfig
-    evaluation: EvaluationConfig
-    active: ActiveConfig
+    seed: int = Field(0, ge=0, description="Seed of every random generator in a run (numpy takes no negative seed).")
+    bim: BimConfig = Field(default_factory=BimConfig)
+    embed: EmbedConfig = Field(default_factory=EmbedConfig)
+    perception: PerceptionConfig = Field(default_factory=PerceptionConfig)
+    # the RGB-D camera's depth: the simulator renders with this noise; the estimator models it
+    sensor: SensorConfig = Field(default_factory=SensorConfig)
+    # the depth frame's 2-D scan, for the filter's scan term and the pose graphs' scan factor
+    scan: ScanConfig = Field(default_factory=ScanConfig)
+    # the robot's wheel odometry: the simulator draws this noise, the pose graphs weigh by it
+    odometry: OdometryConfig = Field(default_factory=OdometryConfig)
+    # the semantic particle filter (docs/filter.md); each block is one component
+    smcl: SmclConfig = Field(default_factory=SmclConfig)
+    localization: LocalizationConfig = Field(default_factory=LocalizationConfig)
+    # beyond the paper: one GTSAM pose graph per particle-filter mode
+    backend: BackendConfig = Field(default_factory=BackendConfig)
+    sim: SimConfig = Field(default_factory=SimConfig)
+    io: IoConfig = Field(default_factory=IoConfig)
+    registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
+    evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
+    # where to look next (docs/active.md): the view that best tells the belief's modes apart
+    active: ActiveConfig = Field(default_factory=ActiveConfig)
 
     @model_validator(mode="after")
     def _scan_within_the_band(self) -> Config:
@@ -1100,7 +1281,7 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         kind = _yaml_kind(data)
         raise ConfigError(
-            f"{path}: top level must be a mapping of config keys (as in bimfactor/configs/default.yaml), not a {kind}"
+            f"{path}: top level must be a mapping of config keys (as `bimfactor config --all` prints), not a {kind}"
         )
     return data
 
@@ -1183,16 +1364,16 @@ def _first_error(exc: ValidationError) -> str:
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
-    """Load `bimfactor/configs/default.yaml`, then a preset or user file on top, then `key=value` overrides.
+    """The fields' defaults, then a preset or user file on top, then `key=value` overrides.
 
     A preset can be named by file path or by its name in `bimfactor/configs/` (`PRESETS`: "paper", "default",
     "fast"). A configuration whose particle sets cannot fit in the memory available now is refused
     (`resources.check_particle_memory`).
     """
-    data = _read_yaml(DEFAULT_CONFIG)
+    data = Config().model_dump()
     if path is not None and not str(path).strip():
         raise ConfigError(f"the config is named by an empty text: give a preset ({', '.join(PRESETS)}) or a YAML file")
-    if path is not None:
+    if path is not None and str(path) != "default":
         candidate = Path(path)
         if not candidate.exists() and not candidate.suffix:
             if str(path) not in PRESETS:  # the folder's data tables (vocabulary, room categories) are no presets

@@ -39,7 +39,7 @@ def default(config_overrides: list[str]) -> Config:
 
 
 def test_the_wheel_ships_the_config_folder(tmp_path: Path) -> None:
-    """A non-editable install reads its configs from the package: default.yaml, the presets and the data tables are
+    """A non-editable install reads its configs from the package: the presets and the data tables are
     in the wheel (built offline from a copy of the sources, so the checkout gets no build/ folder)."""
     source = tmp_path / "src"
     source.mkdir()
@@ -56,7 +56,7 @@ def test_the_wheel_ships_the_config_folder(tmp_path: Path) -> None:
     assert built.returncode == 0, built.stdout + built.stderr
     (wheel,) = (tmp_path / "dist").glob("bimfactor-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
-    expected = {"default.yaml", *(f"{p}.yaml" for p in PRESETS), *DATA_TABLES}
+    expected = {*(f"{p}.yaml" for p in PRESETS if p != "default"), *DATA_TABLES}
     expected |= {path.name for path in CONFIG_DIR.glob("*.yaml")}  # whatever else the folder holds ships too
     missing = sorted(f"bimfactor/configs/{n}" for n in expected if f"bimfactor/configs/{n}" not in names)
     assert not missing, f"not in {wheel.name}: {missing}"
@@ -65,15 +65,16 @@ def test_the_wheel_ships_the_config_folder(tmp_path: Path) -> None:
 def test_the_config_folder_is_inside_the_package() -> None:
     assert CONFIG_DIR == REPO / "bimfactor" / "configs"
     assert not (REPO / "configs").exists()
-    for name in ("default.yaml", *DATA_TABLES, *(f"{p}.yaml" for p in PRESETS)):
+    for name in (*DATA_TABLES, *(f"{p}.yaml" for p in PRESETS if p != "default")):
         assert (CONFIG_DIR / name).is_file(), name
 
 
 # ------------------------------------------------------------------------------------------------ the presets
 
 
-def test_default_is_default_yaml(default: Config, config_overrides: list[str]) -> None:
+def test_the_default_preset_is_the_fields_defaults(default: Config, config_overrides: list[str]) -> None:
     assert load_config("default", config_overrides) == default
+    assert Config().smcl == default.smcl and Config().backend == default.backend  # a Python user's SmclConfig()
 
 
 def test_every_preset_key_says_why() -> None:

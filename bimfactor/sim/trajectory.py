@@ -427,7 +427,7 @@ def make_trajectory(
 def standard_trajectories(prior: BimPrior, n: int = 6, seed: int = 0, cfg: Config | None = None) -> list[SimTrajectory]:
     """The n benchmark trajectories of a prior for a seed, with distinct starts (different rooms where possible).
 
-    `cfg` defaults to the default configuration (bimfactor/configs/default.yaml).
+    `cfg` defaults to the default configuration.
     """
     sim = TrajectorySimulator(prior, cfg if cfg is not None else load_config())
     return [sim.trajectory(k, seed) for k in range(n)]

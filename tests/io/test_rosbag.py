@@ -39,7 +39,7 @@ ALL = (RGB, DEPTH, INFO, ODOM, "/tf_static")
 
 @pytest.fixture(scope="module")
 def config(test_config: Config) -> RosbagConfig:
-    """io.rosbag of bimfactor/configs/default.yaml: every topic found by type."""
+    """io.rosbag by default: every topic found by type."""
     return test_config.io.rosbag
 
 

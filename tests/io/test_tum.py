@@ -16,7 +16,7 @@ from bimfactor.io.tum_rgbd import TUM_ROS_DEFAULT, read_tum_rgbd, tum_default_in
 from bimfactor.types import CameraIntrinsics, se2_to_matrix, wrap_angle
 
 W, H = 32, 24
-MAX_DT = 0.02  # bimfactor/configs/default.yaml io.tum_max_sync_dt_s
+MAX_DT = 0.02  # io.tum_max_sync_dt_s
 
 
 def test_trajectory_round_trip(tmp_path: Path) -> None:

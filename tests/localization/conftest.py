@@ -13,7 +13,7 @@ from tests.localization.handmade import make_prior
 
 @pytest.fixture(scope="session")
 def smcl_cfg(test_config: Config) -> SmclConfig:
-    """The S-MCL settings from bimfactor/configs/default.yaml (the paper's, plus the scan term and augmented MCL)."""
+    """The S-MCL settings by default (the paper's, plus the scan term and augmented MCL)."""
     return test_config.smcl
 
 
