@@ -940,13 +940,7 @@ def convert(
     with _cli_errors(debug):
         frame_override = [] if base_frame is None else [f"io.rosbag.base_frame={json.dumps(base_frame)}"]
         cfg = _start(config, [*(overrides or []), *frame_override], verbose)
-        from bimfactor.evaluation.recording import recording_checks
-        from bimfactor.io.atomic import check_output_dir, output_dir
-        from bimfactor.io.preview import write_preview
-        from bimfactor.io.rosbag import conversion_report, read_rosbag
-        from bimfactor.io.sequence import read_sequence, write_sequence_files
-        from bimfactor.io.tum_rgbd import read_tum_rgbd
-        from bimfactor.odometry import keyframe_indices
+        from bimfactor.workflows import convert_recording
 
         if kind not in ("tum", "rosbag", "sequence"):
             raise InputError(f"unknown recording kind '{kind}' (expected tum, rosbag or sequence)")
@@ -958,94 +952,24 @@ def convert(
             raise InputError(f"--odometry {odometry_source}: expected auto, rgbd or none")
         if kind != "tum" and intrinsics_text is not None:
             raise InputError(f"--intrinsics applies to tum folders, not to {kind} (a bag's come from CameraInfo)")
-        mount = None if camera_mount is None else _camera_mount(camera_mount)
-        if not source.exists():
-            raise InputError(f"no such file or folder: {source}")
-        check_output_dir(output, "sequence", inputs=[source], replace=overwrite)
-        if detections is not None:
-            from bimfactor.perception.detections import check_detections_file
-
-            check_detections_file(detections)  # before the recording is read (and warned about)
-        report: list[str] = []
-        if kind == "tum":
-            intrinsics = None if intrinsics_text is None else _tum_intrinsics(intrinsics_text, source)
-            sequence = read_tum_rgbd(
-                source, max_sync_dt_s=cfg.io.tum_max_sync_dt_s, intrinsics=intrinsics, T_base_camera=mount
-            )
-        elif kind == "rosbag":
-            sequence = read_rosbag(
-                source,
-                cfg.io.rosbag,
-                T_base_camera=mount,
-                mount_source="--camera-mount",
-                needs_odometry=odometry_source == "none",
-            )
-            report = conversion_report(sequence.meta.extras)
-        else:
-            sequence = read_sequence(source)
-        found_detections = _recording_detections(sequence, source if kind == "sequence" else None, detections)
-        if odometry_source == "rgbd" or (odometry_source == "auto" and sequence.odometry() is None):
-            sequence, line = _with_rgbd_odometry(sequence)
-            report.append(line)
-        recorded, odometry = len(sequence), sequence.odometry()
-        if not all_frames and odometry is not None:
-            steps = cfg.localization
-            sequence = sequence.subset(
-                keyframe_indices(odometry, steps.keyframe_distance_m, math.radians(steps.keyframe_angle_deg))
-            )
-            kept = (
-                f"{len(sequence)} keyframes of {recorded} frames (every {steps.keyframe_distance_m:g} m or "
-                f"{steps.keyframe_angle_deg:g}° of odometry)"
-            )
-        else:
-            kept = f"{recorded} frames" + ("" if odometry is not None else " (no odometry: every frame kept)")
-        with output_dir(output, "sequence", inputs=[source], replace=overwrite) as folder:
-            write_sequence_files(folder, sequence.meta, sequence, label=str(output))
-            if found_detections is not None:
-                report.append(_store_detections(folder, sequence, *found_detections))
-            written = read_sequence(folder)
-            write_preview(written, folder / "preview.png")
-            report.append(recording_checks(written, folder / "checks.png")[0])
+        done = convert_recording(
+            kind,
+            source,
+            output,
+            cfg,
+            overwrite=overwrite,
+            all_frames=all_frames,
+            camera_mount=None if camera_mount is None else _camera_mount(camera_mount),
+            odometry=odometry_source,
+            intrinsics=None if intrinsics_text is None else _tum_intrinsics(intrinsics_text, source),
+            detections=detections,
+        )
         typer.echo(
-            f"wrote {output}: {kept} from {kind} {source}; preview {output / 'preview.png'}, mount and odometry "
+            f"wrote {output}: {done.kept} from {kind} {source}; preview {output / 'preview.png'}, mount and odometry "
             f"{output / 'checks.png'}"
         )
-        for line in report:
+        for line in done.report:
             typer.echo(f"  {line}")
-
-
-def _recording_detections(sequence: Any, source_sequence: Path | None, file: Path | None) -> tuple[Any, str] | None:
-    """The detections a converted sequence keeps, checked against every recorded frame before anything is written:
-    `--detections FILE`, else a bag's Detection2DArray topic, else a source sequence's detections.jsonl; with where
-    they came from. None: no detections."""
-    from bimfactor.perception.detections import DETECTIONS_FILE, read_detections
-
-    if file is not None:  # convert checked it before reading the recording; read_detections checks it again
-        path, origin = file, str(file)
-    elif getattr(sequence, "detections", None) is not None:
-        topic = sequence.meta.extras["topics"]["detections"]
-        return [line for line in sequence.detections if line["detections"]], f"the bag's {topic}"
-    elif source_sequence is not None and (source_sequence / DETECTIONS_FILE).is_file():
-        path, origin = source_sequence / DETECTIONS_FILE, str(source_sequence / DETECTIONS_FILE)
-    else:
-        return None
-    table = read_detections(path, sequence.timestamps(), sequence.indices(), sequence.meta.intrinsics)
-    return (path, table), origin
-
-
-def _store_detections(folder: Path, sequence: Any, found: Any, origin: str) -> str:
-    """Write the kept frames' detections into the sequence folder; the report's line."""
-    from bimfactor.perception.detections import DETECTIONS_FILE, attach_detections
-
-    if isinstance(found, list):  # a bag's lines, named by their frames' stamps
-        kept = {float(t) for t in sequence.timestamps()}
-        lines = [line for line in found if line["timestamp"] in kept]
-        text = "".join(json.dumps(line) + "\n" for line in lines)
-        (folder / DETECTIONS_FILE).write_text(text, encoding="utf-8")
-        table = attach_detections(folder, folder / DETECTIONS_FILE)
-    else:
-        table = attach_detections(folder, found[0], unknown_frames="drop")
-    return f"detections: {table.summary()} from {origin}"
 
 
 def _tum_intrinsics(text: str, folder: Path) -> Any:
@@ -1062,40 +986,6 @@ def _tum_intrinsics(text: str, folder: Path) -> Any:
     default = tum_default_intrinsics(folder.name)
     width, height = tum_image_size(folder) or (default.width, default.height)
     return CameraIntrinsics(width, height, *values)
-
-
-def _with_rgbd_odometry(sequence: Any) -> tuple[Any, str]:
-    """The sequence with odometry from its own colour and depth frames (`io.rgbd_odometry`), and the report's line."""
-    import numpy as np
-
-    from bimfactor.io.rgbd_odometry import FRAME_INTERVAL_S, MEASURED_ALPHA, odometry_frames, rgbd_odometry
-
-    recorded = len(sequence)
-    sequence = sequence.subset(odometry_frames(sequence.timestamps()))
-    if len(sequence) < 2:
-        raise InputError("RGB-D odometry needs two frames or more")
-    result = rgbd_odometry(sequence)
-    travelled = float(np.sum(np.hypot(*np.diff(result.odom_poses[:, :2], axis=0).T)))
-    fell_back = int(result.fell_back.sum())
-    extras = {
-        "odometry": {
-            "from": "rgbd (ORB + PnP, refined by point-to-plane ICP on the depth; docs/rgbd-odometry.md)",
-            "pairs": len(result.pairs),
-            "pairs_without_pnp": fell_back,
-            "fitness_median": float(np.median(result.fitness)) if len(result.pairs) else None,
-            "frames_used": len(sequence),
-            "frames_recorded": recorded,
-            "measured_alpha": list(MEASURED_ALPHA),
-        }
-    }
-    alpha = ",".join(f"{a:g}" for a in MEASURED_ALPHA)
-    used = "" if len(sequence) == recorded else f" (of {recorded}: one every {FRAME_INTERVAL_S:g} s)"
-    line = (
-        f"odometry: RGB-D odometry over {len(sequence)} frames{used}, {travelled:.1f} m travelled; {fell_back} of "
-        f"{len(result.pairs)} pairs without a feature match (depth alone); its measured noise is "
-        f"--set odometry.alpha=[{alpha}] (docs/rgbd-odometry.md)"
-    )
-    return sequence.with_odometry(result.odom_poses, extras), line
 
 
 def _camera_mount(text: str) -> Any:

@@ -1347,7 +1347,25 @@ def _unknown_key(dotted: str) -> str:
     elsewhere = KEYS_ELSEWHERE.get(dotted)
     if elsewhere:
         return f"unknown config key '{dotted}': the key is '{elsewhere}' (shared with the text encoder)"
+    if _is_fixed(dotted):
+        return (
+            f"unknown config key '{dotted}': a fixed value of its stage now, not a key "
+            "(docs/config-reference.md, 'Fixed values')"
+        )
     return f"unknown config key '{dotted}'"
+
+
+def _is_fixed(dotted: str) -> bool:
+    """Whether `dotted` names a ClassVar of the config tree (`backend.scan_window_m`)."""
+    *blocks, name = dotted.split(".")
+    model: Any = Config
+    for block in blocks:
+        field = model.model_fields.get(block) if isinstance(model, type) else None
+        inner = getattr(model, block, None) if field is None else field.annotation
+        model = type(inner) if isinstance(inner, BaseModel) else inner
+        if not (isinstance(model, type) and issubclass(model, BaseModel)):
+            return False
+    return name in model.__class_vars__
 
 
 def _first_error(exc: ValidationError) -> str:

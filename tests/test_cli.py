@@ -150,6 +150,16 @@ def test_a_moved_config_key_names_its_new_place(tmp_path: Path) -> None:
     assert not (tmp_path / "x.ifc").exists()
 
 
+def test_a_fixed_value_is_named_as_one(tmp_path: Path) -> None:
+    for dotted in ("backend.scan_window_m", "smcl.text.edit_cost"):
+        result = invoke("synth", "-o", tmp_path / "x.ifc", "--set", f"{dotted}=1")
+        assert_one_line_error(result, contains=f"'{dotted}': a fixed value of its stage now, not a key")
+    assert_one_line_error(
+        invoke("synth", "-o", tmp_path / "x.ifc", "--set", "backend.nothing=1"), contains="'backend.nothing'"
+    )
+    assert not (tmp_path / "x.ifc").exists()
+
+
 def test_unknown_preset_name() -> None:
     assert_one_line_error(invoke("demo", "-c", "no-such-preset"), contains="config file not found")
 

@@ -23,6 +23,8 @@ below it:
     refine       refine.py, the offline refinement of a localized run: above pipeline, whose runs it refines,
                  below evaluation, whose reports and benchmarks read its refined runs
     evaluation   metrics, reports, plots, benchmarks
+    workflows    workflows.py, the commands' workflows as library functions (convert_recording): above evaluation,
+                 whose checks and reports they write, below the demo and the CLI that call them
     demo         demo.py, the end-to-end demo: above evaluation, whose report, metrics and plots it writes, below
                  the CLI that runs it
     cli          cli.py (the one CLI) and __main__
@@ -61,6 +63,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("pipeline",),
     ("refine",),
     ("evaluation",),
+    ("workflows",),
     ("demo",),
     ("cli", "__main__"),
 )

@@ -131,3 +131,17 @@ def test_a_simulated_camera_only_recording_converts_with_little_drift_and_locali
     error = np.hypot(*(xy - truth[:, :2]).T)
     print(f"localized: median error over the second half {np.median(error[len(error) // 2 :]):.3f} m")
     assert np.median(error[len(error) // 2 :]) < 1.0
+
+
+def test_convert_recording_is_the_command_as_a_function(slambook: Path, tmp_path: Path, test_config) -> None:
+    from bimfactor.errors import InputError
+    from bimfactor.types import CameraIntrinsics
+    from bimfactor.workflows import convert_recording
+
+    K = CameraIntrinsics(640, 480, 518.0, 519.0, 325.5, 253.5)
+    done = convert_recording("tum", slambook, tmp_path / "dining", test_config, intrinsics=K, odometry="none")
+    assert done.kept == "5 frames (no odometry: every frame kept)"
+    assert (done.output / "preview.png").is_file() and read_sequence(done.output).meta.intrinsics == K
+    with pytest.raises(InputError, match="intrinsics apply to tum folders, not to sequence"):
+        convert_recording("sequence", done.output, tmp_path / "again", test_config, intrinsics=K)
+    assert not (tmp_path / "again").exists()
