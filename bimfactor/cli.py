@@ -1231,7 +1231,6 @@ def localize(
             cfg,
             cfg.seed if seed is None else seed,
             snapshot_steps=snapshot_steps,
-            prior_dir=prior_dir,
             detections=table,
             suggest=suggest,
         )
@@ -1392,7 +1391,6 @@ def refine(
             sequence,
             cfg,
             cfg.seed if seed is None else seed,
-            prior_dir=prior_dir,
             matcher=matcher,
             detections=table,
         )

@@ -787,22 +787,8 @@ class IoConfig(_Strict):
 class RegistrationConfig(_Strict):
     """Fine registration of depth scans against the BIM's structural surfaces (bimfactor.registration)."""
 
-    # IFC classes (and subclasses) sampled into the surface model. IfcDoor is left out: doors stand open (in the
-    # simulator always), and a closed leaf drags scans off doorways.
-    surface_classes: ClassVar[tuple[str, ...]] = (
-        "IfcWall",
-        "IfcColumn",
-        "IfcCurtainWall",
-        "IfcWindow",
-        "IfcPlate",
-        "IfcMember",
-    )
-    # Also sample IfcSlab (floors, ceilings); they constrain no planar DoF.
-    include_slabs: ClassVar[bool] = False
     # Surface sample points per square metre of mesh. one point per 10 x 10 cm
     surface_density_per_m2: ClassVar[float] = 100.0
-    # Band height of the top storey (others: next elevation).
-    top_storey_height_m: ClassVar[float] = 3.0
     # Voxel size of the downsampled scan (the default scale).
     scan_voxel_m: ClassVar[float] = 0.1
     # Scan points above this height above the floor are dropped (ceiling). drop the ceiling: walls only (from

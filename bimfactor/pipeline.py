@@ -368,8 +368,8 @@ def visibility_of(prior: BimPrior, cfg: Config) -> VisibilityTable:
 class Localizer:
     """Global localization of one sequence against one prior, in the configured variant.
 
-    The full variant reads the IFC file the prior was built from (its surface models, built once per building);
-    `prior_dir` helps find a relative `source_file`. Graph variants use `matcher` for the scan factors, or build
+    The full variant samples its surface models from the prior's wall meshes (once per building and seed). Graph
+    variants use `matcher` for the scan factors, or build
     their own (`scan_matcher`). `twins` are the building's twin motions (`bim.symmetry.twin_motions`, found here
     when not given): each step reports the belief's weight at the output pose's twin. `detections` (a checked
     detections file) feeds the detections perception backend.
@@ -382,7 +382,6 @@ class Localizer:
         cfg: Config,
         seed: int,
         text_embedder: TextEmbedder | None = None,
-        prior_dir: str | Path | None = None,
         matcher: CorrelativeMatcher | None = None,
         twins: dict[int, Motion] | None = None,
         detections: DetectionsTable | None = None,
@@ -423,7 +422,7 @@ class Localizer:
             else None
         )
         self.matcher = (matcher or scan_matcher(prior, cfg)) if self.backend else None
-        self.fine = self._fine_stage(prior, cfg, prior_dir) if self.variant in FINE_VARIANTS else None
+        self.fine = self._fine_stage(prior, cfg) if self.variant in FINE_VARIANTS else None
         # The variant is its chain of stages after the filter, each `(keyframe, step) -> None`.
         graph = (self._graph_step,) if self.backend is not None else ()
         fine = (self._fine_step,) if self.fine is not None else ()
@@ -450,11 +449,11 @@ class Localizer:
         self._seen: deque[np.ndarray] = deque(maxlen=SEEN_VIEWS)  # odometry poses of the views the belief weighed
 
     @staticmethod
-    def _fine_stage(prior: BimPrior, cfg: Config, prior_dir: str | Path | None) -> FineRegistration:
-        """The fine stage, whose surface models come from the prior's IFC file; a missing or changed file says how
-        to run without it."""
+    def _fine_stage(prior: BimPrior, cfg: Config) -> FineRegistration:
+        """The fine stage, whose surface models come from the prior's wall meshes; a prior without them says how to
+        run without it."""
         try:
-            return FineRegistration.for_prior(prior, cfg, prior_dir)
+            return FineRegistration.for_prior(prior, cfg)
         except InputError as exc:
             raise InputError(
                 f"{exc} (the full variant registers scans against its walls; --variant smcl+graph runs without it)"
@@ -794,7 +793,6 @@ def localize_sequence(
     snapshot_steps: Iterable[int] = (),
     text_embedder: TextEmbedder | None = None,
     show_progress: bool = True,
-    prior_dir: str | Path | None = None,
     matcher: CorrelativeMatcher | None = None,
     twins: dict[int, Motion] | None = None,
     detections: DetectionsTable | None = None,
@@ -803,17 +801,17 @@ def localize_sequence(
     """Localize every frame of a sequence; ground truth, when the frames have it, is carried along; with `suggest`,
     the run ends with where to look next (`Localizer.suggest`).
 
-    `prior_dir`, the prior's folder, helps the full variant find a relative IFC `source_file`; `matcher` is the
-    graph variants' scan matcher (`scan_matcher`; built when not given); `twins` the building's twin motions
-    (`bim.symmetry.twin_motions`; found when not given); `detections` a detector's detections of the frames
-    (`perception.detections.read_detections`) for the detections backend. The frames are checked against the prior first
+    `matcher` is the graph variants' scan matcher (`scan_matcher`; built when not given); `twins` the building's
+    twin motions (`bim.symmetry.twin_motions`; found when not given); `detections` a detector's detections of the
+    frames (`perception.detections.read_detections`) for the detections backend. The frames are checked against the
+    prior first
     (`check_sequence_against_prior`: InputError); implausible frames are skipped (`LocalizationRun.skipped`), and a
     sequence whose every frame is skipped is an InputError.
     """
     if not isinstance(frames, SequenceFolder):  # a sequence folder answers without loading its images
         frames = list(frames)
     check_sequence_against_prior(frames, prior)
-    localizer = Localizer(prior, meta, cfg, seed, text_embedder, prior_dir, matcher, twins, detections)
+    localizer = Localizer(prior, meta, cfg, seed, text_embedder, matcher, twins, detections)
     frames = list(frames)
     snapshot_steps = set(snapshot_steps)
     rows: list[LocalizerStep] = []

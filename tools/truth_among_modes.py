@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         twins, matcher = twin_motions(prior), scan_matcher(prior, cfg)
         for route, sim in enumerate(sims):
             seed = run_seed(cfg.seed, route, 0)
-            localizer = Localizer(prior, sim.meta, cfg, seed, prior_dir=args.prior_dir, matcher=matcher, twins=twins)
+            localizer = Localizer(prior, sim.meta, cfg, seed, matcher=matcher, twins=twins)
             for frame in sim.frames:
                 localizer.step(frame)
                 suggestion = localizer.suggest()

@@ -32,6 +32,7 @@ from bimfactor.bim import rooms as room_ops
 from bimfactor.bim.classify import RoomClassification, load_room_category_pool, type_rooms
 from bimfactor.bim.grid import GridSpec, StoreyGrid, build_storey_grid, grid_spec_for, rasterise_polygons
 from bimfactor.bim.ifc import FIXED_OBJECT_CLASSES, IfcElement, IfcModel, Storey, file_sha256, load_ifc
+from bimfactor.bim.surfaces import WallMeshes, wall_meshes
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.bim.vocabulary import Vocabulary, label_elements
 from bimfactor.config import Config, config_file
@@ -45,7 +46,7 @@ from bimfactor.textfile import read_utf8
 log = logging.getLogger(__name__)
 
 PRIOR_FORMAT = "bimfactor-prior"
-PRIOR_VERSION = 3  # 3: storeys say whether they are floors (`floor_levels`)
+PRIOR_VERSION = 4  # 3: storeys say whether they are floors (`floor_levels`); 4: the wall meshes (`bim.surfaces`)
 _LAYERS = ("structure", "furniture", "clearance_m", "room_labels", "navigable")
 
 
@@ -164,6 +165,8 @@ class BimPrior:
     room_matches: list[RoomMatch] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
     visibility: VisibilityTable | None = None
+    walls: WallMeshes | None = None
+    """The structural elements' meshes the fine registrar samples (`bim.surfaces`); None: a prior built without."""
 
     # -------------------------------------------------------------------------------- queries
 
@@ -250,6 +253,8 @@ class BimPrior:
         arrays = {"object_embeddings": self.object_embeddings.astype(np.float32)}
         if self.visibility is not None:
             arrays.update(self.visibility.to_arrays())
+        if self.walls is not None:
+            arrays.update(self.walls.to_arrays())
         for layers in self.storeys:
             for name in _LAYERS:
                 arrays[f"storey{layers.storey.index}_{name}"] = getattr(layers, name)
@@ -315,7 +320,7 @@ class BimPrior:
         for i, edge in enumerate(fields["object_edges"]):
             if any(not 0 <= o < n_objects for o in edge):
                 fail(f"object_edges[{i}]", f"names an object that does not exist (the prior has {n_objects})")
-        storeys, embeddings, visibility = _read_prior_arrays(array_file, grid, storey_list, n_objects)
+        storeys, embeddings, visibility, walls = _read_prior_arrays(array_file, grid, storey_list, n_objects)
         return cls(
             source_file=fields["source_file"],
             source_sha256=fields["source_sha256"],
@@ -332,6 +337,7 @@ class BimPrior:
             room_matches=fields["room_matches"],
             timings_s=fields.get("timings_s", {}),
             visibility=visibility,
+            walls=walls,
         )
 
 
@@ -427,6 +433,8 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     )
     prior.visibility = VisibilityTable.build(prior, cfg.bim.visibility)
     lap("visibility")
+    prior.walls = wall_meshes(model)
+    lap("walls")
     return prior
 
 
@@ -691,8 +699,9 @@ _KIND_NAMES = {"b": "bool", "f": "float", "iu": "integer"}
 
 def _read_prior_arrays(
     array_file: Path, grid: GridSpec, storeys: list[Storey], n_objects: int
-) -> tuple[list[StoreyLayers], np.ndarray, VisibilityTable | None]:
-    """The grid layers, object embeddings and visibility table; FormatError for a corrupt or incomplete archive.
+) -> tuple[list[StoreyLayers], np.ndarray, VisibilityTable | None, WallMeshes | None]:
+    """The grid layers, object embeddings, visibility table and wall meshes; FormatError for a corrupt or incomplete
+    archive.
 
     Loaded with allow_pickle=False: a prior never holds Python objects, and a pickle is never executed.
     """
@@ -734,11 +743,12 @@ def _read_prior_arrays(
                     f"{array_file}: {len(embeddings)} object embeddings for {n_objects} objects in prior.json"
                 )
             visibility = VisibilityTable.from_arrays(arrays) if "visibility_meta" in arrays.files else None
+            walls = WallMeshes.from_arrays(arrays) if "walls_bands" in arrays.files else None
     except FormatError:
         raise
     except Exception as exc:  # zipfile.BadZipFile, zlib.error, EOFError, ValueError, KeyError, OSError, ...
         raise FormatError(f"{array_file}: corrupt or truncated ({_array_failure(exc)})") from exc
-    return layers, embeddings, visibility
+    return layers, embeddings, visibility, walls
 
 
 def _array_failure(exc: Exception) -> str:

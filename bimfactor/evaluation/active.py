@@ -133,9 +133,7 @@ def active_route(
     name = f"active-{Path(prior.source_file).stem}-t{trajectory}-s{cfg.seed}"
     meta = sim_sequence_meta(name, prior, world, camera, {"trajectory_index": trajectory, "seed": cfg.seed})
     matcher = scan_matcher(prior, cfg) if cfg.localization.variant in GRAPH_VARIANTS else None
-    localizer = Localizer(
-        prior, meta, cfg, run_seed(cfg.seed, trajectory, repeat), prior_dir=prior_dir, matcher=matcher, twins=twins
-    )
+    localizer = Localizer(prior, meta, cfg, run_seed(cfg.seed, trajectory, repeat), matcher=matcher, twins=twins)
     steer = _Steer(
         localizer,
         camera,
@@ -165,7 +163,7 @@ def active_runs(
     seed = run_seed(cfg.seed, trajectory, repeat)
     passive = {
         v: localize_sequence(
-            prior, sim.meta, sim.frames, online_config(cfg, v), seed, show_progress=False, prior_dir=prior_dir,
+            prior, sim.meta, sim.frames, online_config(cfg, v), seed, show_progress=False,
             matcher=matcher, twins=twins,
         )
         for v in online

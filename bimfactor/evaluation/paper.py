@@ -273,7 +273,6 @@ def _run_one_pinned(
             online_config(cfg, online),
             seed=run_seed(cfg.seed, trajectory, repeat),
             show_progress=False,
-            prior_dir=prior_dir,
             matcher=matcher,
             twins=twins,
         )

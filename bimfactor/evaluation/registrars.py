@@ -23,6 +23,7 @@ import numpy as np
 
 from bimfactor.bim.ifc import IfcModel
 from bimfactor.bim.prior import BimPrior
+from bimfactor.bim.surfaces import wall_meshes
 from bimfactor.config import Config, RegistrationConfig, SensorConfig
 from bimfactor.errors import InputError
 from bimfactor.progress import progress
@@ -172,7 +173,7 @@ def compare_registrars(
     `initial_errors` (P, 2) are (translation m, rotation rad) levels; rotations are re-paired per keyframe.
     """
     rc = cfg.registration
-    surfaces = surfaces if surfaces is not None else build_surface_models(model, rc, seed)
+    surfaces = surfaces if surfaces is not None else build_surface_models(wall_meshes(model), rc, seed)
     building = Path(prior.source_file).stem
     rng = np.random.default_rng([seed, 0xC0DE])
     records = []
@@ -331,7 +332,7 @@ def benchmark_registration(
 
     rc = cfg.registration
     t0 = time.perf_counter()
-    surfaces = build_surface_models(model, rc, cfg.seed)
+    surfaces = build_surface_models(wall_meshes(model), rc, cfg.seed)
     surface_s = time.perf_counter() - t0
     keyframes = select_keyframes(prior, model, cfg, surfaces, n_keyframes, cfg.seed)
     registrar = make_registrar(rc, method)
@@ -403,7 +404,7 @@ def run_comparison(
 
     rc = cfg.registration
     prior, model = load_world_inputs(prior_dir, cfg)
-    surfaces = build_surface_models(model, rc, cfg.seed)
+    surfaces = build_surface_models(wall_meshes(model), rc, cfg.seed)
     if sequence_dir is None:
         keyframes = select_keyframes(prior, model, cfg, surfaces, rc.compare_keyframes, cfg.seed)
     else:

@@ -38,8 +38,9 @@ from pathlib import Path
 import numpy as np
 
 from bimfactor.backend.factors import covariance_world_to_body
-from bimfactor.bim.prior import BimPrior, source_model
+from bimfactor.bim.prior import BimPrior
 from bimfactor.config import Config, RegistrationConfig, SensorConfig
+from bimfactor.errors import InputError
 from bimfactor.localization.measurements.scan import DepthPoints
 from bimfactor.registration.gate import GateDecision, gate_with_probes
 from bimfactor.registration.icp import Registrar, RegistrationResult, make_registrar
@@ -98,27 +99,16 @@ def factor_information(information_world: np.ndarray, yaw: float, cfg: Registrat
     return covariance_world_to_body(info, yaw)
 
 
-def surface_models_for(prior: BimPrior, cfg: Config, prior_dir: str | Path | None = None) -> list[SurfaceModel]:
-    """The storeys' surface models of `prior`'s building (list index = storey index), built once and cached.
-
-    The prior stores no meshes: the IFC file it was built from is read again (`source_model`, checked by
-    SHA-256; `prior_dir` helps find a relative `source_file`). The cache key is the file's hash, the IFC
-    reading and surface sampling settings and the seed.
-    """
-    rc = cfg.registration
-    key = (
-        prior.source_sha256,
-        cfg.bim.ifc.model_dump_json(),
-        tuple(rc.surface_classes),
-        rc.include_slabs,
-        rc.surface_density_per_m2,
-        rc.top_storey_height_m,
-        cfg.seed,
-    )
+def surface_models_for(prior: BimPrior, cfg: Config) -> list[SurfaceModel]:
+    """The storeys' surface models of `prior`'s building (list index = storey index), sampled from the prior's wall
+    meshes once per building and seed, and cached."""
+    if prior.walls is None:
+        raise InputError("the prior holds no wall meshes; rebuild it with `bimfactor prior`")
+    key = (prior.source_sha256, cfg.registration.surface_density_per_m2, cfg.seed)
     if key not in _surface_cache:
         t0 = time.perf_counter()
-        surfaces = build_surface_models(source_model(prior, cfg, prior_dir), rc, cfg.seed)
-        log.info("surface models of %s built in %.1f s", Path(prior.source_file).name, time.perf_counter() - t0)
+        surfaces = build_surface_models(prior.walls, cfg.registration, cfg.seed)
+        log.info("surface models of %s sampled in %.2f s", Path(prior.source_file).name, time.perf_counter() - t0)
         while len(_surface_cache) >= _SURFACE_CACHE_SIZE:
             _surface_cache.pop(next(iter(_surface_cache)))
         _surface_cache[key] = surfaces
@@ -143,10 +133,10 @@ class FineRegistration:
         self._scans: dict[tuple[int, float], np.ndarray] = {}
 
     @classmethod
-    def for_prior(cls, prior: BimPrior, cfg: Config, prior_dir: str | Path | None = None) -> FineRegistration:
+    def for_prior(cls, prior: BimPrior, cfg: Config) -> FineRegistration:
         """The fine stage of `prior`'s building with `cfg.registration` and `cfg.sensor` (surface models from the
         cache)."""
-        return cls(surface_models_for(prior, cfg, prior_dir), cfg.registration, cfg.sensor)
+        return cls(surface_models_for(prior, cfg), cfg.registration, cfg.sensor)
 
     def scan(
         self,

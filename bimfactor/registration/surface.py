@@ -1,9 +1,8 @@
 """The BIM surface model: points with normals sampled from each storey's structural surfaces.
 
-Fine registration aligns depth scans with what the BIM says is solid and fixed (walls, columns, doors,
-windows, plates, members); furniture is left out because the as-built building moves it. One
-`SurfaceModel` per storey holds world-frame points and unit normals, an Open3D point cloud and KD-tree
-built on demand, and round-trips through plain arrays so the prior can store it.
+Fine registration aligns depth scans with what the BIM says is solid and fixed: the prior's wall meshes
+(`bim.surfaces`), sampled when a run starts. One `SurfaceModel` per storey holds world-frame points and unit
+normals, and an Open3D point cloud and KD-tree built on demand.
 """
 
 from __future__ import annotations
@@ -13,13 +12,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bimfactor.bim.ifc import IfcElement, IfcModel
+from bimfactor.bim.surfaces import WallMeshes
 from bimfactor.config import RegistrationConfig
 from bimfactor.errors import InputError
 
 log = logging.getLogger(__name__)
 
-SLAB_CLASS = "IfcSlab"
 # Elements touching a storey band only at its boundary (the slab below, the walls of the storey underneath)
 # are not part of it.
 _BAND_EPS_M = 0.02
@@ -177,28 +175,6 @@ class SurfaceModel:
             self._thinned[share] = self.subset(np.sort(rng.permutation(len(self.points))[: int(share * len(self))]))
         return self._thinned[share]
 
-    def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
-        """Plain arrays for `np.savez` (keys prefixed with `prefix`)."""
-        return {
-            f"{prefix}points": self.points.astype(np.float32),
-            f"{prefix}normals": self.normals.astype(np.float32),
-            f"{prefix}element_index": self.element_index.astype(np.int32),
-            f"{prefix}meta": np.array([self.storey_index, self.elevation_m, self.height_m], dtype=np.float64),
-        }
-
-    @classmethod
-    def from_arrays(cls, arrays, prefix: str = "") -> SurfaceModel:
-        """Inverse of `to_arrays` (accepts a dict or an `np.load` archive)."""
-        meta = np.asarray(arrays[f"{prefix}meta"], dtype=np.float64)
-        return cls(
-            storey_index=int(meta[0]),
-            elevation_m=float(meta[1]),
-            height_m=float(meta[2]),
-            points=np.asarray(arrays[f"{prefix}points"], dtype=np.float64),
-            normals=np.asarray(arrays[f"{prefix}normals"], dtype=np.float64),
-            element_index=np.asarray(arrays[f"{prefix}element_index"], dtype=np.int32),
-        )
-
 
 def to_point_cloud(points: np.ndarray, normals: np.ndarray | None = None, planar_covariance: bool = True):
     """(N, 3) points (+ (N, 3) normals) → Open3D PointCloud; normals also give GICP's plane covariances."""
@@ -245,74 +221,31 @@ def sample_mesh(
     return points, normals
 
 
-def outward_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(V, 3) vertices and (F, 3) faces rewound consistently so that each closed body's normals point outward.
-
-    IFC meshes mix windings (measured on duplex.ifc: a party wall with half its faces inward) and mirrored
-    placements flip whole elements; back-face culling needs outward normals. trimesh merges duplicate
-    vertices, makes the winding consistent across shared edges and flips bodies of negative volume.
-    """
-    import trimesh
-
-    mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64), process=True)
-    trimesh.repair.fix_normals(mesh, multibody=True)
-    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
-
-
-def storey_bands(model: IfcModel, top_storey_height_m: float) -> list[tuple[float, float]]:
-    """(z_lo, z_hi) world heights of each storey: its elevation up to the next storey's (top: a fixed height)."""
-    elevations = [s.elevation_m for s in model.storeys]
-    return [
-        (z, elevations[i + 1] if i + 1 < len(elevations) else z + top_storey_height_m) for i, z in enumerate(elevations)
-    ]
-
-
-def _surface_elements(model: IfcModel, cfg: RegistrationConfig) -> list[tuple[int, IfcElement]]:
-    classes = [*cfg.surface_classes, *([SLAB_CLASS] if cfg.include_slabs else [])]
-    return [(i, e) for i, e in enumerate(model.elements) if e.mesh is not None and any(e.is_a(c) for c in classes)]
-
-
-def build_surface_models(model: IfcModel, cfg: RegistrationConfig, seed: int = 0) -> list[SurfaceModel]:
-    """One `SurfaceModel` per storey of `model` (list index = storey index), deterministic for a seed.
+def build_surface_models(walls: WallMeshes, cfg: RegistrationConfig, seed: int = 0) -> list[SurfaceModel]:
+    """One `SurfaceModel` per storey of the prior's wall meshes (list index = storey index), deterministic for a seed.
 
     An element belongs to every storey band its z-range crosses; its samples are clipped to the band.
-    Normals point out of each element (see `outward_mesh`).
+    Normals point out of each element (`bim.surfaces.outward_mesh`).
     """
-    if not model.storeys:
-        raise InputError(f"{model.source_path}: the model has no storeys; cannot build a surface model")
-    elements = _surface_elements(model, cfg)
+    if not len(walls.bands):
+        raise InputError("the model has no storeys; cannot build a surface model")
     surfaces = []
-    for index, (z_lo, z_hi) in enumerate(storey_bands(model, cfg.top_storey_height_m)):
+    for index, (z_lo, z_hi) in enumerate(walls.bands):
         rng = np.random.default_rng([seed, index])
         pts, nrm, owner = [], [], []
-        for element_index, element in elements:
-            lo, hi = element.mesh.bounds[:, 2]
+        for e, (lo, hi) in enumerate(walls.z_range):
             if hi <= z_lo + _BAND_EPS_M or lo >= z_hi - _BAND_EPS_M:
                 continue
-            vertices, faces = outward_mesh(element.mesh.vertices, element.mesh.faces)
-            p, n = sample_mesh(vertices, faces, cfg.surface_density_per_m2, rng)
+            p, n = sample_mesh(*walls.mesh(e), cfg.surface_density_per_m2, rng)
             inside = (p[:, 2] >= z_lo) & (p[:, 2] <= z_hi)
             pts.append(p[inside])
             nrm.append(n[inside])
-            owner.append(np.full(int(inside.sum()), element_index, dtype=np.int32))
+            owner.append(np.full(int(inside.sum()), walls.element_index[e], dtype=np.int32))
         if pts:
             points, normals, element_index = np.concatenate(pts), np.concatenate(nrm), np.concatenate(owner)
         else:
             points, normals, element_index = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=np.int32)
-        storey = model.storeys[index]
-        surfaces.append(SurfaceModel(storey.index, storey.elevation_m, z_hi - z_lo, points, normals, element_index))
+        elevation = float(walls.elevations[index])
+        surfaces.append(SurfaceModel(index, elevation, float(z_hi - z_lo), points, normals, element_index))
         log.info("surface model of storey %d: %d points from %d elements", index, len(points), len(pts))
     return surfaces
-
-
-def surface_models_to_arrays(surfaces: list[SurfaceModel]) -> dict[str, np.ndarray]:
-    """All storeys' arrays in one dict (keys `s{index}_...`), for one `np.savez` beside the prior."""
-    out: dict[str, np.ndarray] = {"num_storeys": np.array(len(surfaces))}
-    for i, surface in enumerate(surfaces):
-        out.update(surface.to_arrays(prefix=f"s{i}_"))
-    return out
-
-
-def surface_models_from_arrays(arrays) -> list[SurfaceModel]:
-    """Inverse of `surface_models_to_arrays`."""
-    return [SurfaceModel.from_arrays(arrays, prefix=f"s{i}_") for i in range(int(arrays["num_storeys"]))]

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from bimfactor.registration.surface import SurfaceModel, outward_mesh, sample_mesh
+from bimfactor.bim.surfaces import outward_mesh
+from bimfactor.registration.surface import SurfaceModel, sample_mesh
 from bimfactor.types import se2_inverse, se2_to_matrix
 
 # The 12 triangles of a unit cube [0, 1]^3, wound outward.

@@ -146,3 +146,19 @@ def test_surface_models_are_built_once_per_prior(paper_floor: Building) -> None:
         update={"registration": paper_floor.cfg.registration.model_copy(update={"surface_density_per_m2": 150.0})}
     )
     assert surface_models_for(paper_floor.prior, denser) is not first.surfaces
+
+
+def test_the_fine_stage_needs_the_prior_alone_not_its_ifc(paper_floor: Building, tmp_path) -> None:
+    """The prior stores its wall meshes: a saved and reloaded prior whose IFC file is gone gives the same samples."""
+    import dataclasses
+
+    from bimfactor.bim.prior import BimPrior
+
+    paper_floor.prior.save(tmp_path / "prior")
+    moved = dataclasses.replace(BimPrior.load(tmp_path / "prior"), source_file=str(tmp_path / "gone.ifc"))
+    moved = dataclasses.replace(moved, source_sha256="f" * 64)  # another building for the cache
+    reloaded = FineRegistration.for_prior(moved, paper_floor.cfg).surfaces
+    built = FineRegistration.for_prior(paper_floor.prior, paper_floor.cfg).surfaces
+    assert len(reloaded) == len(built) and sum(map(len, built)) > 1000
+    for a, b in zip(reloaded, built, strict=True):
+        np.testing.assert_array_equal(a.points, b.points)

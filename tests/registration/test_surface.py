@@ -1,19 +1,13 @@
-"""Surface sampling: density, normals, storey bands, determinism, and the array round trip."""
+"""Surface sampling: density, normals, storey bands, determinism, and the prior's wall meshes round trip."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from bimfactor.bim.ifc import IfcElement, IfcModel, Mesh, Storey
+from bimfactor.bim.surfaces import SURFACE_CLASSES, WallMeshes, outward_mesh, wall_meshes
 from bimfactor.config import Config
-from bimfactor.registration.surface import (
-    SurfaceModel,
-    build_surface_models,
-    outward_mesh,
-    sample_mesh,
-    surface_models_from_arrays,
-    surface_models_to_arrays,
-)
+from bimfactor.registration.surface import SurfaceModel, build_surface_models, sample_mesh
 
 from .synthetic import box_mesh
 
@@ -62,7 +56,7 @@ def _two_storey_model() -> IfcModel:
 
 def test_surface_per_storey_bands_and_classes(test_config: Config) -> None:
     model = _two_storey_model()
-    surfaces = build_surface_models(model, test_config.registration, seed=0)
+    surfaces = build_surface_models(wall_meshes(model), test_config.registration, seed=0)
     assert [s.storey_index for s in surfaces] == [0, 1]
     owners = [{model.elements[i].guid for i in np.unique(s.element_index)} for s in surfaces]
     # Storey 0: its wall and the column (which crosses both bands); never the sofa nor the slab (off by default).
@@ -71,22 +65,19 @@ def test_surface_per_storey_bands_and_classes(test_config: Config) -> None:
     for surface, (lo, hi) in zip(surfaces, [(0.0, 3.0), (3.0, 6.0)], strict=True):
         assert surface.points[:, 2].min() >= lo and surface.points[:, 2].max() <= hi
         assert surface.elevation_m == lo and surface.height_m == hi - lo
-    with_slabs = build_surface_models(model, test_config.registration.model_copy(update={"include_slabs": True}))
+    with_slabs = build_surface_models(wall_meshes(model, (*SURFACE_CLASSES, "IfcSlab")), test_config.registration)
     assert "slab" in {model.elements[i].guid for i in np.unique(with_slabs[0].element_index)}
 
 
-def test_surface_is_deterministic_and_round_trips(test_config: Config) -> None:
-    model = _two_storey_model()
-    a = build_surface_models(model, test_config.registration, seed=3)
-    b = build_surface_models(model, test_config.registration, seed=3)
-    np.testing.assert_array_equal(a[0].points, b[0].points)
-    back = surface_models_from_arrays(surface_models_to_arrays(a))
-    assert len(back) == 2
-    np.testing.assert_allclose(back[1].points, a[1].points, atol=1e-5)  # stored as float32
-    np.testing.assert_allclose(back[1].normals, a[1].normals, atol=1e-6)
-    assert back[1].elevation_m == 3.0 and back[1].storey_index == 1
-    single = SurfaceModel.from_arrays(a[0].to_arrays())
-    assert len(single) == len(a[0])
+def test_surface_is_deterministic_and_the_wall_meshes_round_trip(test_config: Config) -> None:
+    walls = wall_meshes(_two_storey_model())
+    a = build_surface_models(walls, test_config.registration, seed=3)
+    b = build_surface_models(WallMeshes.from_arrays(walls.to_arrays()), test_config.registration, seed=3)
+    for x, y in zip(a, b, strict=True):  # as the prior stores them: the same samples to the bit
+        np.testing.assert_array_equal(x.points, y.points)
+        np.testing.assert_array_equal(x.normals, y.normals)
+    assert b[1].elevation_m == 3.0 and b[1].storey_index == 1
+    single = a[0]
     cloud = single.cloud
     assert cloud.has_normals() and cloud.has_covariances() and len(cloud.points) == len(single)
     assert single.kdtree.search_knn_vector_3d(single.points[0], 1)[1][0] == 0
