@@ -4,7 +4,7 @@
     .venv/bin/python tools/render_config.py            # rewrite both from bimfactor/config.py and the presets
     .venv/bin/python tools/render_config.py --check    # exit 1 when either is out of date
 
-Each key's row gives its value in the `default` preset (bimfactor/configs/default.yaml), its value in the `paper` and
+Each key's row gives its value in the `default` preset (the fields' defaults), its value in the `paper` and
 `fast` presets where they differ, and its description from the pydantic model. docs/configuration.md gets the table of
 `config.ESSENTIAL_KEYS` between `<!-- config:begin -->` and `<!-- config:end -->`; docs/config-reference.md is written
 whole, one table per top-level section. Output depends on the code and the presets alone: rendering twice changes
