@@ -1737,6 +1737,14 @@ def bench_buildings(
         ),
     ] = None,
     workers: Annotated[int | None, typer.Option("--workers", min=1, help="Parallel runs (default: CPUs).")] = None,
+    rerun: Annotated[
+        Path | None,
+        typer.Option(
+            "--rerun",
+            metavar="DIR",
+            help="Also write a Rerun recording of each run's forward pass into DIR (viz extra; bimfactor view DIR).",
+        ),
+    ] = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -1747,7 +1755,8 @@ def bench_buildings(
     results are the same). Writes OUT/results.json (per building IFC file name, per variant: Table I's keys and
     success_rate, wrong_convergence_rate, distance_to_convergence_m, top3_rate), OUT/report.md (a table per
     building and the worst building and route), OUT/buildings.png, OUT/config.yaml and each prior under
-    OUT/priors/. Longer routes: --set evaluation.trajectory_length=150.
+    OUT/priors/; with --rerun DIR, DIR/<building>-t<route>-r<repeat>-<variant>.rrd for every forward pass (not in the
+    active scenario). Longer routes: --set evaluation.trajectory_length=150.
 
     \b
     Examples:
@@ -1756,6 +1765,7 @@ def bench_buildings(
       bimfactor bench buildings paper-floor ../shared/data/ifc/AC11-Institute-Var-2-IFC.ifc -o runs/bench-two
       bimfactor bench buildings --set evaluation.trajectory_length=150 -o runs/bench-buildings-150
       bimfactor bench buildings --address head:6379 -o /shared/runs/bench-buildings
+      bimfactor bench buildings paper-floor --set evaluation.num_trajectories=1 --rerun runs/bench-rrd
     """
     with _cli_errors(debug):
         cfg = _protocol_config(config, overrides, variants, scenario, verbose)
@@ -1776,6 +1786,7 @@ def bench_buildings(
 
         check_protocol(cfg)
         check_runner(runner, address)
+        _check_recording_dir(rerun, cfg)
         # "paper-floor" (not a file of that name) is the preset, as in the default set
         given = [PAPER_FLOOR if str(b) == PAPER_FLOOR and not b.exists() else b for b in buildings or []]
         chosen: list[str | Path] = given or default_buildings()
@@ -1792,10 +1803,25 @@ def bench_buildings(
         with session as where, _bench_dir(output, *[b for b in chosen if isinstance(b, Path)]):
             if where:
                 typer.echo(f"  {where['nodes']} node(s), {where['cpus']} CPUs")
-            report = run_buildings_bench(chosen, cfg, output, runner, workers, address)
+            report = run_buildings_bench(chosen, cfg, output, runner, workers, address, rerun)
         typer.echo(format_buildings_report(report), nl=False)
         typer.echo(f"results: {output / 'results.json'}, report: {output / 'report.md'}")
         typer.echo(f"figure: {output / 'buildings.png'}")
+        if rerun is not None:
+            typer.echo(f"Rerun recordings: {rerun}/ (bimfactor view {rerun})")
+
+
+def _check_recording_dir(folder: Path | None, cfg: Config) -> None:
+    """Before any run: InputError unless `folder` (None: no recordings) can hold a benchmark's Rerun recordings."""
+    if folder is None:
+        return
+    from bimfactor.evaluation.viewer import require_rerun
+
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"--rerun {folder}: a benchmark writes one recording per run into a folder, not a file")
+    if cfg.evaluation.scenario == "active":
+        raise InputError("--rerun records the forward passes of the protocol's runs; the active scenario has none")
+    require_rerun()
 
 
 @bench_app.command("graph", short_help="Online scene graph quality (precision, recall, segmentation) and speed.")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -17,23 +16,13 @@ from bimfactor.perception.base import TextReading
 from bimfactor.pipeline import Keyframe, localize_sequence
 from bimfactor.types import Observations
 from tests.cli import assert_one_line_error, invoke
+from tests.evaluation.recordings import STATIC, logged
 
 pytest.importorskip("rerun", reason="the viz extra (rerun-sdk) is not installed")
 from rerun.chunk import RrdReader
 
 N_FRAMES = 4
-STATIC = "static"
 BIM = ("world/bim/walls", "world/bim/doors", "world/bim/objects", "world/bim/rooms")
-
-
-def logged(path: Path) -> dict[str, set]:
-    """Entity path (without the leading /) → the keyframes it was logged at, or {"static"} for static data."""
-    found: dict[str, set] = defaultdict(set)
-    for chunk in RrdReader(path).stream():
-        batch = chunk.to_record_batch()
-        steps = batch.column(TIMELINE).to_pylist() if TIMELINE in batch.schema.names else [STATIC]
-        found[chunk.entity_path.lstrip("/")].update(steps)
-    return found
 
 
 class Watching:
