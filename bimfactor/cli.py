@@ -645,7 +645,7 @@ def demo(
         from bimfactor.demo import STEPS, run_demo
         from bimfactor.evaluation.viewer import check_recording
 
-        check_recording(rerun)
+        check_recording(rerun, output)
 
         def report(index: int, step_name: str, seconds: float, message: str) -> None:
             typer.echo(f"[{index + 1}/{len(STEPS)}] {step_name}: {message} ({seconds:.1f} s)")
@@ -1398,7 +1398,7 @@ def localize(
 
         inputs = [prior_dir, sequence_dir, *([detections] if detections is not None else [])]
         ensure_run_destination(output, inputs)
-        check_recording(rerun)
+        check_recording(rerun, output)
         _check_vlm(cfg, detections)
         sequence = read_sequence(sequence_dir)
         prior = BimPrior.load(prior_dir)
@@ -1559,7 +1559,7 @@ def refine(
                 f"refine needs a pose-graph forward pass ({', '.join(GRAPH_VARIANTS)}), not {cfg.localization.variant}"
             )
         ensure_run_destination(output, [prior_dir, sequence_dir, *([detections] if detections is not None else [])])
-        check_recording(rerun)
+        check_recording(rerun, output)
         _check_vlm(cfg, detections)
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
@@ -1786,7 +1786,7 @@ def bench_buildings(
 
         check_protocol(cfg)
         check_runner(runner, address)
-        _check_recording_dir(rerun, cfg)
+        _check_recording_dir(rerun, cfg, output)
         # "paper-floor" (not a file of that name) is the preset, as in the default set
         given = [PAPER_FLOOR if str(b) == PAPER_FLOOR and not b.exists() else b for b in buildings or []]
         chosen: list[str | Path] = given or default_buildings()
@@ -1811,14 +1811,15 @@ def bench_buildings(
             typer.echo(f"Rerun recordings: {rerun}/ (bimfactor view {rerun})")
 
 
-def _check_recording_dir(folder: Path | None, cfg: Config) -> None:
+def _check_recording_dir(folder: Path | None, cfg: Config, output: Path) -> None:
     """Before any run: InputError unless `folder` (None: no recordings) can hold a benchmark's Rerun recordings."""
     if folder is None:
         return
-    from bimfactor.evaluation.viewer import require_rerun
+    from bimfactor.evaluation.viewer import check_outside, require_rerun
 
     if folder.exists() and not folder.is_dir():
         raise InputError(f"--rerun {folder}: a benchmark writes one recording per run into a folder, not a file")
+    check_outside(folder, output)
     if cfg.evaluation.scenario == "active":
         raise InputError("--rerun records the forward passes of the protocol's runs; the active scenario has none")
     require_rerun()

@@ -219,14 +219,22 @@ def record(path: str | Path, prior: BimPrior, name: str) -> Iterator[RunRecorder
             rec.disconnect()
 
 
-def check_recording(path: str | Path | None) -> None:
-    """Before any work: an InputError unless `path` (None: no recording asked for) names a .rrd file and rerun-sdk is
-    installed."""
+def check_recording(path: str | Path | None, output: str | Path) -> None:
+    """Before any work: an InputError unless `path` (None: no recording asked for) names a .rrd file outside the
+    command's `output` folder, and rerun-sdk is installed."""
     if path is None:
         return
     if Path(path).suffix != ".rrd" or Path(path).is_dir():
         raise InputError(f"--rerun {path}: name a Rerun recording file, ending in .rrd")
+    check_outside(path, output)
     require_rerun()
+
+
+def check_outside(path: str | Path, output: str | Path) -> None:
+    """An InputError when a recording's `path` lies inside the `output` folder: bimfactor writes that folder whole (or
+    keeps only its own files there), so a recording inside would be lost or block the next run."""
+    if Path(path).resolve().is_relative_to(Path(output).resolve()):
+        raise InputError(f"--rerun {path} lies inside {output}, which bimfactor writes whole: put it beside it")
 
 
 @contextmanager

@@ -140,6 +140,7 @@ def test_bench_buildings_refuses_bad_input_before_any_prior(tmp_path: Path) -> N
         ([str(broken), "--address", "garbage"], "--address 'garbage': expected ray://HOST:PORT, HOST:PORT or auto"),
         ([str(broken), "--runner", "processes", "--address", "head:6379"], "it applies to --runner ray"),
         ([str(broken), "--rerun", str(broken)], "a folder, not a file"),
+        ([str(broken), "--rerun", str(tmp_path / "out" / "rrd")], "lies inside"),
         ([str(broken), "--rerun", str(tmp_path / "rrd"), "--scenario", "active"], "the active scenario has none"),
     ):
         result = runner.invoke(app, ["bench", "buildings", *args, "-o", str(tmp_path / "out")])

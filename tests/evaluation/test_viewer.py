@@ -139,3 +139,11 @@ def test_rerun_without_the_extra_is_one_line_naming_it_before_any_work(
     assert "rerun-sdk" in line
     assert not out.exists() and not (tmp_path / "demo.rrd").exists()
     assert_one_line_error(invoke("demo", "-o", out, "--rerun", tmp_path / "demo.txt"), contains=".rrd")
+
+
+def test_a_recording_inside_the_output_folder_is_refused_before_any_work(tmp_path: Path) -> None:
+    """The demo's folder (and a run folder) is written whole or holds only bimfactor's files: a recording there would
+    be lost or block the next run."""
+    out = tmp_path / "demo"
+    assert_one_line_error(invoke("demo", "-o", out, "--rerun", out / "demo.rrd"), contains="lies inside")
+    assert not out.exists()
