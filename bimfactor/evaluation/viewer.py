@@ -123,6 +123,7 @@ class RunRecorder:
     estimates: list[np.ndarray] = field(default_factory=list)
     truths: list[np.ndarray] = field(default_factory=list)
     landmarks: np.ndarray | None = None
+    shown: set[str] = field(default_factory=set)  # the entities of `_log_or_clear` that show something now
 
     def on_step(self, localizer: Localizer, key: Keyframe, out: LocalizerStep) -> None:
         if self.storey is None:
@@ -143,9 +144,10 @@ class RunRecorder:
         colours = (255 * colormaps["viridis"](shade)[:, :3]).astype(np.uint8)
         self.rec.log("world/particles", rr.Points3D(_xyz(localizer.filter.particles[on_storey, :2]), colors=colours))
         modes = out.graph.modes if out.graph is not None else []
-        labels = [f"mode {m.mode_id}: p {m.probability:.2f}" for m in modes]
-        self.rec.log("world/modes", _arrows(rr, np.asarray([m.pose for m in modes]), MODE_RGB, labels))
-        ellipses = [_xyz(ellipse_outline(m.pose, m.covariance), 0.01) for m in modes]
+        drawn = [m for m in modes if m.storey == self.storey]
+        labels = [f"mode {m.mode_id}: p {m.probability:.2f}" for m in drawn]
+        self.rec.log("world/modes", _arrows(rr, np.asarray([m.pose for m in drawn]), MODE_RGB, labels))
+        ellipses = [_xyz(ellipse_outline(m.pose, m.covariance), 0.01) for m in drawn]
         self.rec.log("world/modes/ellipses", rr.LineStrips3D(ellipses, colors=_rgb8(MODE_RGB), labels=labels))
         self.rec.log("plots/ess", rr.Scalars(float(out.filtered.ess)))
         self.rec.log("plots/n_modes", rr.Scalars(float(len(modes))))
@@ -181,13 +183,17 @@ class RunRecorder:
                 self.landmarks = Landmarks.from_prior(self.prior).xy
             lines = [_xyz(np.stack([nodes[k], self.landmarks[j]]), 0.5) for k, j in best.matches]
             self.rec.log("world/scene_graph/matches", rr.LineStrips3D(lines, colors=_rgb8(MODE_RGB)))
+        scan = None
         if key.scan is not None:
-            self.rec.log("world/scan", rr.Points3D(_xyz(place(out.pose, key.scan), 0.05), radii=0.03))
+            scan = rr.Points3D(_xyz(place(out.pose, key.scan), 0.05), radii=0.03)
+        self._log_or_clear("world/scan", scan)
+        icp = None
         if out.fine is not None and out.fine.registration is not None and key.points is not None:
             base = key.points.base[:: max(1, len(key.points.base) // MAX_ICP_POINTS)]
             registered = np.column_stack([place(out.fine.pose, base[:, :2]), base[:, 2]])
             accepted = to_rgb("tab:blue" if out.fine.accepted else "tab:gray")
-            self.rec.log("world/icp", rr.Points3D(registered, colors=_rgb8(accepted), radii=0.02))
+            icp = rr.Points3D(registered, colors=_rgb8(accepted), radii=0.02)
+        self._log_or_clear("world/icp", icp)
 
     def _camera(self, key: Keyframe) -> None:
         """The colour image with the detections' boxes and labels, and the text read."""
@@ -196,10 +202,21 @@ class RunRecorder:
         boxes = np.asarray([d.box_xyxy for d in key.detections], np.float64).reshape(-1, 4)
         labels = [f"{d.label} {d.box_score:.2f}" for d in key.detections]
         self.rec.log("camera/detections", rr.Boxes2D(array=boxes, array_format=rr.Box2DFormat.XYXY, labels=labels))
+        plates = None
         if key.readings:
-            plates = np.asarray([r.box_xyxy for r in key.readings], np.float64).reshape(-1, 4)
-            texts = [r.text for r in key.readings]
-            self.rec.log("camera/plates", rr.Boxes2D(array=plates, array_format=rr.Box2DFormat.XYXY, labels=texts))
+            xyxy = np.asarray([r.box_xyxy for r in key.readings], np.float64).reshape(-1, 4)
+            plates = rr.Boxes2D(array=xyxy, array_format=rr.Box2DFormat.XYXY, labels=[r.text for r in key.readings])
+        self._log_or_clear("camera/plates", plates)
+
+    def _log_or_clear(self, entity: str, data: Any | None) -> None:
+        """Log what a keyframe has for an entity that not every keyframe has (None: nothing); at the first keyframe
+        without after one with, clear it, so the viewer does not go on showing an older keyframe's."""
+        if data is not None:
+            self.rec.log(entity, data)
+            self.shown.add(entity)
+        elif entity in self.shown:
+            self.rec.log(entity, self.rr.Clear(recursive=False))
+            self.shown.discard(entity)
 
 
 @contextmanager

@@ -82,20 +82,24 @@ def test_a_sequence_without_ground_truth_has_no_truth_in_its_recording(
     assert found["world/estimate"] == found["world/particles"] == found["plots/ess"] == {0, 1, 2}
 
 
-def test_text_read_on_a_keyframe_is_recorded_as_plates(paper_floor, drive, tmp_path: Path) -> None:
-    """The paper floor has no numbered rooms, so its runs read no text: a keyframe with a reading shows it."""
-    frame = drive.frames[0]
+def test_text_read_on_a_keyframe_is_recorded_as_plates_and_cleared_after(paper_floor, drive, tmp_path: Path) -> None:
+    """The paper floor has no numbered rooms, so its runs read no text: a keyframe with a reading shows it, and the
+    next keyframe, which reads none, clears it (else the viewer would go on showing it)."""
     reading = TextReading("B-101", np.array([10.0, 20.0, 60.0, 40.0]), 0.9)
-    key = Keyframe(frame, None, None, None, None, Observations(np.zeros((0, 4)), np.zeros(0), np.zeros(0)), 0.0, {})
-    key.readings = [reading]
+    no_nodes = Observations(np.zeros((0, 4)), np.zeros(0), np.zeros(0))
+    keys = [Keyframe(frame, None, None, None, None, no_nodes, 0.0, {}) for frame in drive.frames[:2]]
+    keys[0].readings = [reading]
     path = tmp_path / "plates.rrd"
     with record(path, paper_floor.prior, "plates") as recorder:
-        recorder.rec.set_time(TIMELINE, sequence=7)
-        recorder._camera(key)
+        for step, key in ((7, keys[0]), (8, keys[1])):
+            recorder.rec.set_time(TIMELINE, sequence=step)
+            recorder._camera(key)
     found = logged(path)
-    assert found["camera/plates"] == found["camera/image"] == {7}
-    chunk = next(c for c in RrdReader(path).stream() if c.entity_path == "/camera/plates")
-    assert chunk.to_record_batch().column("Boxes2D:labels").to_pylist() == [["B-101"]]
+    assert found["camera/plates"] == {7} and found["camera/image"] == {7, 8}
+    batches = [c.to_record_batch() for c in RrdReader(path).stream() if c.entity_path == "/camera/plates"]
+    labels = [b.column("Boxes2D:labels").to_pylist() for b in batches if "Boxes2D:labels" in b.schema.names]
+    cleared = [b.column(TIMELINE).to_pylist() for b in batches if "Clear:is_recursive" in b.schema.names]
+    assert labels == [[["B-101"]]] and cleared == [[8]]
 
 
 def test_localize_and_refine_write_the_recording_they_are_asked_for(
