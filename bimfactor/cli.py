@@ -187,6 +187,14 @@ ForceOption = Annotated[
     ),
 ]
 SeedOption = Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")]
+RerunOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--rerun",
+        metavar="FILE.rrd",
+        help="Also write a Rerun recording of every keyframe (the viz extra; open it with bimfactor view FILE.rrd).",
+    ),
+]
 InitialPoseOption = Annotated[
     str | None,
     typer.Option(
@@ -614,6 +622,7 @@ def _counts(counts: dict[str, int]) -> str:
 @app.command(short_help="Run the demo: paper-floor building → prior → simulated drive → localization.")
 def demo(
     output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = DEFAULT_DEMO_OUT,
+    rerun: RerunOption = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -622,25 +631,63 @@ def demo(
     """Run the end-to-end demo on the procedural "paper-floor" building.
 
     Steps: synth (OUT/paper-floor.ifc, seed from the config), prior (OUT/prior/ with floor plans), simulate
-    (OUT/sequence/, trajectory 0) and localize (OUT/localize/ with metrics and figures).
-    OUT/config.yaml holds the resolved config.
+    (OUT/sequence/, trajectory 0) and localize (OUT/localize/ with metrics and figures; with --rerun FILE.rrd also a
+    Rerun recording of it). OUT/config.yaml holds the resolved config.
 
     \b
     Examples:
       bimfactor demo
       bimfactor demo -o runs/demo-seed3 --set seed=3
+      bimfactor demo --rerun runs/demo.rrd
     """
     with _cli_errors(debug):
         cfg = _start(config, overrides, verbose)
         from bimfactor.demo import STEPS, run_demo
+        from bimfactor.evaluation.viewer import check_recording
+
+        check_recording(rerun, output)
 
         def report(index: int, step_name: str, seconds: float, message: str) -> None:
             typer.echo(f"[{index + 1}/{len(STEPS)}] {step_name}: {message} ({seconds:.1f} s)")
 
-        result = run_demo(cfg, output, on_step=report)
+        result = run_demo(cfg, output, on_step=report, rerun=rerun)
         typer.echo(f"outputs in {output}/ (resolved config: {output / 'config.yaml'})")
         for figure in result.figures:
             typer.echo(f"  figure: {figure}")
+        if rerun is not None:
+            typer.echo(f"  Rerun recording: {rerun} (bimfactor view {rerun})")
+
+
+@app.command(short_help="Open Rerun recordings (--rerun) in the viewer, or print the command that opens them.")
+def view(
+    target: Annotated[
+        Path, typer.Argument(metavar="RUN_DIR_OR_RRD", help="A .rrd file, or a folder holding .rrd files.")
+    ],
+    debug: DebugOption = False,
+) -> None:
+    """Open the Rerun recordings that --rerun wrote (localize, refine, demo; bench buildings: a folder of them) in
+    the native viewer, where a display exists; elsewhere print the commands that open them: `rerun FILE.rrd` on a
+    machine with a display, `rerun --web-viewer FILE.rrd` here (it serves the viewer to a browser at the address it
+    prints, http://localhost:9090).
+
+    \b
+    Examples:
+      bimfactor view runs/demo.rrd
+      bimfactor view runs/bench-rrd
+    """
+    with _cli_errors(debug):
+        import shlex
+
+        from bimfactor.evaluation.viewer import has_display, open_viewer, recordings_in, viewer_commands
+
+        files = recordings_in(target)
+        if has_display():
+            typer.echo("opened: " + shlex.join(open_viewer(files)))
+            return
+        native, web = viewer_commands(files)
+        typer.echo(f"no display here; open {'it' if len(files) == 1 else 'them'} with one of:")
+        typer.echo(f"  {shlex.join(native)}    (on a machine with a display)")
+        typer.echo(f"  {shlex.join(web)}    (here: then browse to http://localhost:9090)")
 
 
 # ------------------------------------------------------------------------------------------ bench
@@ -1131,6 +1178,28 @@ def _perception_source(
     return cfg, table, f"perception: detections from {path}: {table.summary()}"
 
 
+def _localize_recorded(
+    prior: BimPrior,
+    sequence: Any,
+    cfg: Config,
+    seed: int | None,
+    table: Any,
+    rerun: Path | None,
+    **options: Any,
+) -> Any:
+    """`localize_sequence` over a sequence folder with the command's seed (None: the config's) and detections,
+    recorded into the Rerun recording `rerun` when one is asked for."""
+    from bimfactor.evaluation.viewer import maybe_record
+    from bimfactor.pipeline import localize_sequence
+
+    seed = cfg.seed if seed is None else seed
+    with maybe_record(rerun, prior, sequence.meta.name) as recorder:
+        return localize_sequence(
+            prior, sequence.meta, sequence, cfg, seed, detections=table, observer=recorder,
+            **options,
+        )  # fmt: skip
+
+
 def _metrics_line(metrics: Any) -> str:
     """One line of a run's TrajectoryMetrics."""
     return (
@@ -1165,6 +1234,7 @@ def localize(
             help="End with where to look next (active localization): RUN_DIR/suggestion.json and suggestion.png.",
         ),
     ] = False,
+    rerun: RerunOption = None,
     force: ForceOption = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
@@ -1197,6 +1267,7 @@ def localize(
       bimfactor localize runs/prior/ac11 runs/ac11-k2 -o runs/loc-ac11-k2 --storey 2
       bimfactor localize runs/prior/office runs/office-bag -o runs/loc-bag --detections yolo-world.jsonl
       bimfactor localize runs/prior/duplex runs/duplex-k0 -o runs/loc-duplex-next --suggest
+      bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0 --rerun runs/loc0.rrd
     """
     with _cli_errors(debug):
         cfg = _start(
@@ -1210,11 +1281,13 @@ def localize(
         )
         from bimfactor.bim.prior import BimPrior
         from bimfactor.evaluation.report import ensure_run_destination, run_metrics, twin_summary, write_run
+        from bimfactor.evaluation.viewer import check_recording
         from bimfactor.io.sequence import read_sequence
-        from bimfactor.pipeline import localize_sequence, skipped_frames_note
+        from bimfactor.pipeline import skipped_frames_note
 
         inputs = [prior_dir, sequence_dir, *([detections] if detections is not None else [])]
         ensure_run_destination(output, inputs)
+        check_recording(rerun, output)
         _check_vlm(cfg, detections)
         sequence = read_sequence(sequence_dir)
         prior = BimPrior.load(prior_dir)
@@ -1224,15 +1297,8 @@ def localize(
         _warn_dense_steps(sequence, sequence_dir, cfg)
         n = len(sequence)
         snapshot_steps = sorted({0, n // 10, n // 4, n // 2, n - 1})
-        run = localize_sequence(
-            prior,
-            sequence.meta,
-            sequence,
-            cfg,
-            cfg.seed if seed is None else seed,
-            snapshot_steps=snapshot_steps,
-            detections=table,
-            suggest=suggest,
+        run = _localize_recorded(
+            prior, sequence, cfg, seed, table, rerun, snapshot_steps=snapshot_steps, suggest=suggest
         )
         figures = write_run(
             run,
@@ -1243,6 +1309,8 @@ def localize(
             inputs=inputs,
         )
         typer.echo(f"wrote {output}: {n} steps ({run.variant}); figures " + ", ".join(f.name for f in figures))
+        if rerun is not None:
+            typer.echo(f"Rerun recording: {rerun} (bimfactor view {rerun})")
         relocalized = [str(i) for i, spread in enumerate(run.relocalized) if spread]
         if relocalized:
             typer.echo(
@@ -1335,6 +1403,7 @@ def refine(
     initial_pose: InitialPoseOption = None,
     storey: StoreyOption = None,
     detections: DetectionsOption = None,
+    rerun: RerunOption = None,
     force: ForceOption = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
@@ -1355,6 +1424,7 @@ def refine(
       bimfactor refine runs/demo/prior runs/demo/sequence -o runs/refine0
       bimfactor refine runs/demo/prior runs/demo/sequence -o runs/refine0-full --variant full
       bimfactor refine runs/prior/duplex runs/duplex-k0 -o runs/refine-duplex --set backend.max_modes=3
+      bimfactor refine runs/demo/prior runs/demo/sequence -o runs/refine0 --rerun runs/refine0.rrd
     """
     with _cli_errors(debug):
         cfg = _start(
@@ -1368,8 +1438,9 @@ def refine(
         )
         from bimfactor.bim.prior import BimPrior
         from bimfactor.evaluation.report import ensure_run_destination, run_metrics, track_metrics, write_refined
+        from bimfactor.evaluation.viewer import check_recording
         from bimfactor.io.sequence import read_sequence
-        from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, scan_matcher, skipped_frames_note
+        from bimfactor.pipeline import GRAPH_VARIANTS, scan_matcher, skipped_frames_note
         from bimfactor.refine import refine_run
 
         if cfg.localization.variant not in GRAPH_VARIANTS:
@@ -1377,6 +1448,7 @@ def refine(
                 f"refine needs a pose-graph forward pass ({', '.join(GRAPH_VARIANTS)}), not {cfg.localization.variant}"
             )
         ensure_run_destination(output, [prior_dir, sequence_dir, *([detections] if detections is not None else [])])
+        check_recording(rerun, output)
         _check_vlm(cfg, detections)
         prior = BimPrior.load(prior_dir)
         sequence = read_sequence(sequence_dir)
@@ -1385,15 +1457,7 @@ def refine(
         typer.echo(perception_line)
         _warn_dense_steps(sequence, sequence_dir, cfg)
         matcher = scan_matcher(prior, cfg)
-        run = localize_sequence(
-            prior,
-            sequence.meta,
-            sequence,
-            cfg,
-            cfg.seed if seed is None else seed,
-            matcher=matcher,
-            detections=table,
-        )
+        run = _localize_recorded(prior, sequence, cfg, seed, table, rerun, matcher=matcher)
         skipped = skipped_frames_note(run)
         if skipped is not None:
             typer.echo(f"warning: {skipped} (forward pass)", err=True)
@@ -1403,6 +1467,8 @@ def refine(
         typer.echo(
             f"wrote {output}: {len(sequence)} steps, {len(refined.modes)} modes refined in {refined.refine_ms:.0f} ms"
         )
+        if rerun is not None:
+            typer.echo(f"Rerun recording of the forward pass: {rerun} (bimfactor view {rerun})")
         if len(refined.segments) > 1:
             stretches = ", ".join(f"{steps.start}–{steps.stop - 1}" for steps in refined.segments)
             why = ["the filter relocalized"] if "relocalized" in refined.begins else []
@@ -1560,6 +1626,14 @@ def bench_buildings(
         ),
     ] = None,
     workers: Annotated[int | None, typer.Option("--workers", min=1, help="Parallel runs (default: CPUs).")] = None,
+    rerun: Annotated[
+        Path | None,
+        typer.Option(
+            "--rerun",
+            metavar="DIR",
+            help="Also write a Rerun recording of each run's forward pass into DIR (viz extra; bimfactor view DIR).",
+        ),
+    ] = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -1570,7 +1644,8 @@ def bench_buildings(
     results are the same). Writes OUT/results.json (per building IFC file name, per variant: Table I's keys and
     success_rate, wrong_convergence_rate, distance_to_convergence_m, top3_rate), OUT/report.md (a table per
     building and the worst building and route), OUT/buildings.png, OUT/config.yaml and each prior under
-    OUT/priors/. Longer routes: --set evaluation.trajectory_length=150.
+    OUT/priors/; with --rerun DIR, DIR/<building>-t<route>-r<repeat>-<variant>.rrd for every forward pass (not in the
+    active scenario). Longer routes: --set evaluation.trajectory_length=150.
 
     \b
     Examples:
@@ -1579,6 +1654,7 @@ def bench_buildings(
       bimfactor bench buildings paper-floor ../shared/data/ifc/AC11-Institute-Var-2-IFC.ifc -o runs/bench-two
       bimfactor bench buildings --set evaluation.trajectory_length=150 -o runs/bench-buildings-150
       bimfactor bench buildings --address head:6379 -o /shared/runs/bench-buildings
+      bimfactor bench buildings paper-floor --set evaluation.num_trajectories=1 --rerun runs/bench-rrd
     """
     with _cli_errors(debug):
         cfg = _protocol_config(config, overrides, variants, scenario, verbose)
@@ -1599,6 +1675,7 @@ def bench_buildings(
 
         check_protocol(cfg)
         check_runner(runner, address)
+        _check_recording_dir(rerun, cfg, output)
         # "paper-floor" (not a file of that name) is the preset, as in the default set
         given = [PAPER_FLOOR if str(b) == PAPER_FLOOR and not b.exists() else b for b in buildings or []]
         chosen: list[str | Path] = given or default_buildings()
@@ -1615,10 +1692,26 @@ def bench_buildings(
         with session as where, _bench_dir(output, *[b for b in chosen if isinstance(b, Path)]):
             if where:
                 typer.echo(f"  {where['nodes']} node(s), {where['cpus']} CPUs")
-            report = run_buildings_bench(chosen, cfg, output, runner, workers, address)
+            report = run_buildings_bench(chosen, cfg, output, runner, workers, address, rerun)
         typer.echo(format_buildings_report(report), nl=False)
         typer.echo(f"results: {output / 'results.json'}, report: {output / 'report.md'}")
         typer.echo(f"figure: {output / 'buildings.png'}")
+        if rerun is not None:
+            typer.echo(f"Rerun recordings: {rerun}/ (bimfactor view {rerun})")
+
+
+def _check_recording_dir(folder: Path | None, cfg: Config, output: Path) -> None:
+    """Before any run: InputError unless `folder` (None: no recordings) can hold a benchmark's Rerun recordings."""
+    if folder is None:
+        return
+    from bimfactor.evaluation.viewer import check_outside, require_rerun
+
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"--rerun {folder}: a benchmark writes one recording per run into a folder, not a file")
+    check_outside(folder, output)
+    if cfg.evaluation.scenario == "active":
+        raise InputError("--rerun records the forward passes of the protocol's runs; the active scenario has none")
+    require_rerun()
 
 
 @bench_app.command("graph", short_help="Online scene graph quality (precision, recall, segmentation) and speed.")

@@ -27,10 +27,12 @@ DEMO_PRESET = "paper-floor"
 
 @dataclass
 class DemoContext:
-    """What the steps share: the config, the output folder, and each step's results."""
+    """What the steps share: the config, the output folder, where to write a Rerun recording of the localization
+    (None: none), and each step's results."""
 
     cfg: Config
     out_dir: Path
+    rerun_path: Path | None = None
     ifc_path: Path | None = None
     building: BuildingSpec | None = None
     prior_dir: Path | None = None
@@ -146,6 +148,7 @@ def _localize(ctx: DemoContext) -> str:
     back end never feeds back into it), so S-MCL's line is the `smcl+graph` run's filter track, not a run of its own."""
     from bimfactor.config import updated
     from bimfactor.evaluation.report import run_metrics, track_metrics, write_run
+    from bimfactor.evaluation.viewer import maybe_record
     from bimfactor.io.sequence import read_sequence
     from bimfactor.pipeline import localize_sequence
 
@@ -165,7 +168,10 @@ def _localize(ctx: DemoContext) -> str:
             continue  # the filter is the same in every variant: its line comes from the next run's filter track
         cfg = ctx.cfg if name == variant else updated(ctx.cfg, {"localization.variant": name})
         snapshots = sorted({0, n // 4, n // 2, n - 1}) if name == variant else ()
-        run = localize_sequence(prior, sequence.meta, sequence, cfg, ctx.cfg.seed, snapshot_steps=snapshots)
+        with maybe_record(ctx.rerun_path if name == variant else None, prior, sequence.meta.name) as recorder:
+            run = localize_sequence(
+                prior, sequence.meta, sequence, cfg, ctx.cfg.seed, snapshot_steps=snapshots, observer=recorder
+            )
         if not lines and name != "smcl":  # the first run: its filter track is S-MCL's line
             filtered = track_metrics(run.filter, run.gt_poses, run.gt_rooms)
             assert filtered is not None
@@ -211,15 +217,17 @@ def run_demo(
     cfg: Config,
     out_dir: str | Path,
     on_step: Callable[[int, str, float, str], None] | None = None,
+    rerun: str | Path | None = None,
 ) -> DemoContext:
-    """Run every step in order; `on_step(index, name, seconds, message)` is called after each one.
+    """Run every step in order; `on_step(index, name, seconds, message)` is called after each one. With `rerun`, the
+    configured variant's localization is also written to that Rerun recording (`evaluation.viewer`).
 
     `out_dir` must be new, empty or an earlier demo's folder (`io.atomic.container_dir`); each step's output in it
     is written atomically, and only bimfactor's own outputs are replaced.
     """
     from bimfactor.bim.synth import check_synth_output
 
-    ctx = DemoContext(cfg=cfg, out_dir=Path(out_dir))
+    ctx = DemoContext(cfg=cfg, out_dir=Path(out_dir), rerun_path=None if rerun is None else Path(rerun))
     check_output_dir(ctx.out_dir, "demo")
     check_synth_output(ctx.out_dir / f"{DEMO_PRESET}.ifc")
     for name, kind in (("prior", "prior"), ("sequence", "sequence"), ("localize", "run")):

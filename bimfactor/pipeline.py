@@ -38,7 +38,7 @@ from collections import Counter, deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Self
+from typing import Protocol, Self
 
 import numpy as np
 from scipy.special import expit
@@ -69,6 +69,7 @@ from bimfactor.localization.stats import (
     weighted_geometric_median,
 )
 from bimfactor.odometry import odometry_increment
+from bimfactor.perception.base import Detection, TextReading
 from bimfactor.perception.detections import DetectionsTable
 from bimfactor.perception.ocr import plate_columns
 from bimfactor.perception.pipeline import make_perception
@@ -205,7 +206,8 @@ class Keyframe:
     """One frame as every stage reads it, derived once (`Localizer.keyframe`): the frame (its odometry pose continuous
     with the earlier frames'), the odometry increment since the last trusted frame (None: the first), why the frame
     is skipped (None: it is not), its depth returns in the base frame, the scan endpoints cut from them (None
-    without a scan term or scan factors), and what perception made of it (no node, no text when skipped)."""
+    without a scan term or scan factors), and what perception made of it (no node, no text when skipped): the nodes
+    in view, and the image's detections and text readings behind them."""
 
     frame: Frame
     increment: np.ndarray | None
@@ -215,6 +217,8 @@ class Keyframe:
     observations: Observations
     perception_ms: float
     perception_parts: dict[str, float]
+    detections: list[Detection] = field(default_factory=list)
+    readings: list[TextReading] = field(default_factory=list)
 
     @property
     def seen(self) -> Observations | None:
@@ -363,6 +367,13 @@ def scan_matcher(prior: BimPrior, cfg: Config) -> CorrelativeMatcher | None:
 def visibility_of(prior: BimPrior, cfg: Config) -> VisibilityTable:
     """The prior's stored visible-object table, or one built now for priors saved without it."""
     return prior.visibility or VisibilityTable.build(prior, cfg.bim.visibility)
+
+
+class StepObserver(Protocol):
+    """Watches a localizer's steps (`Localizer.watch`), e.g. to record them: called after each step's last stage with
+    the localizer (its belief now), the keyframe and the step."""
+
+    def on_step(self, localizer: Localizer, key: Keyframe, out: LocalizerStep) -> None: ...
 
 
 class Localizer:
@@ -520,7 +531,10 @@ class Localizer:
         scan = frame_endpoints(points, self.cfg) if points is not None and self._uses_scan else None
         parts[DEPTH_PART] = (time.perf_counter() - lifted) * 1000
         perception_ms = (time.perf_counter() - started) * 1000
-        return Keyframe(frame, increment, None, points, scan, perceived.observations, perception_ms, parts)
+        return Keyframe(
+            frame, increment, None, points, scan, perceived.observations, perception_ms, parts,
+            perceived.detections, perceived.readings,
+        )  # fmt: skip
 
     def _twin_step(self, key: Keyframe, out: LocalizerStep) -> None:
         """The belief's weight at the output pose's twin: nothing observed tells the output pose from it, but what
@@ -539,6 +553,10 @@ class Localizer:
             np.deg2rad(TWIN_YAW_DEG),
         )
         out.twin_share = float(weights[near].sum() / weights.sum())
+
+    def watch(self, observer: StepObserver) -> None:
+        """Show every later step to `observer`, after the variant's stages."""
+        self._stages = (*self._stages, lambda key, out: observer.on_step(self, key, out))
 
     def _remember(self, key: Keyframe, out: LocalizerStep) -> None:
         """A used keyframe's frame joins the submap's recent frames."""
@@ -797,9 +815,10 @@ def localize_sequence(
     twins: dict[int, Motion] | None = None,
     detections: DetectionsTable | None = None,
     suggest: bool = False,
+    observer: StepObserver | None = None,
 ) -> LocalizationRun:
     """Localize every frame of a sequence; ground truth, when the frames have it, is carried along; with `suggest`,
-    the run ends with where to look next (`Localizer.suggest`).
+    the run ends with where to look next (`Localizer.suggest`); `observer` watches every step (`Localizer.watch`).
 
     `matcher` is the graph variants' scan matcher (`scan_matcher`; built when not given); `twins` the building's
     twin motions (`bim.symmetry.twin_motions`; found when not given); `detections` a detector's detections of the
@@ -812,6 +831,8 @@ def localize_sequence(
         frames = list(frames)
     check_sequence_against_prior(frames, prior)
     localizer = Localizer(prior, meta, cfg, seed, text_embedder, matcher, twins, detections)
+    if observer is not None:
+        localizer.watch(observer)
     frames = list(frames)
     snapshot_steps = set(snapshot_steps)
     rows: list[LocalizerStep] = []

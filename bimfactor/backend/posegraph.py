@@ -314,7 +314,8 @@ class ModeGraph:
 
 @dataclass
 class ModeEstimate:
-    """One mode after a step: (3,) pose, (3, 3) world-frame covariance, probability and its two ingredients."""
+    """One mode after a step: (3,) pose, (3, 3) world-frame covariance, probability and its two ingredients, and
+    the step's matches (measurement k, landmark id): `Landmarks.from_prior`'s rows, objects then door plates."""
 
     mode_id: int
     pose: np.ndarray
@@ -323,7 +324,11 @@ class ModeEstimate:
     particle_weight: float
     normalised_residual: float
     storey: int
-    n_matches: int
+    matches: list[tuple[int, int]]
+
+    @property
+    def n_matches(self) -> int:
+        return len(self.matches)
 
 
 @dataclass
@@ -561,7 +566,6 @@ class MultiHypothesisBackend:
 
     def _estimate(self, mode: TrackedMode, cost: float, n_obs: int) -> ModeEstimate:
         graph = self.graphs[mode.id]
-        n_matches = len(graph.associations[graph.last_index])
         nu = cost / (2 * n_obs) if n_obs else 0.0
         return ModeEstimate(
             mode.id,
@@ -571,7 +575,7 @@ class MultiHypothesisBackend:
             mode.weight,
             nu,
             mode.storey,
-            n_matches,
+            list(graph.associations[graph.last_index]),
         )
 
 

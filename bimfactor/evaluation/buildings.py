@@ -106,9 +106,11 @@ def run_buildings_bench(
     runner: str = "ray",
     workers: int | None = None,
     address: str | None = None,
+    rerun_dir: str | Path | None = None,
 ) -> dict:
     """The protocol on every building, its runs on one runner (`evaluation.paper.RUNNERS`); writes OUT/results.json,
-    OUT/report.md, OUT/buildings.png and OUT/config.yaml, and returns the report."""
+    OUT/report.md, OUT/buildings.png and OUT/config.yaml, and returns the report. With `rerun_dir`, every forward
+    pass is also a Rerun recording there (`evaluation.paper.run_recording_path`)."""
     from bimfactor.bim.prior import BimPrior
     from bimfactor.bim.symmetry import twin_motions
     from bimfactor.evaluation.paper import (
@@ -127,7 +129,7 @@ def run_buildings_bench(
     twins = {name: twin_motions(prior) for name, prior in loaded.items()}
     jobs, owners = [], []
     for name, prior_dir in priors.items():
-        for job in paper_jobs(prior_dir, cfg, twins[name]):
+        for job in paper_jobs(prior_dir, cfg, twins[name], rerun_dir):
             jobs.append(job)
             owners.append(name)
     desc = f"bench buildings ({len(priors)} buildings, {', '.join(cfg.evaluation.variants)})"

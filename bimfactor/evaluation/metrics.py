@@ -67,8 +67,13 @@ def inside_ellipse(
     d = np.asarray(ground_truth)[:, :2] - np.asarray(estimates)[:, :2]
     cov = np.asarray(covariances)[:, :2, :2] + 1e-9 * np.eye(2)
     m2 = np.einsum("ti,tij,tj->t", d, np.linalg.inv(cov), d)
-    # χ² with 2 degrees of freedom has the closed-form quantile −2 ln(1 − p) (scipy.stats costs a second to import)
-    return m2 <= -2.0 * np.log1p(-p)
+    return m2 <= chi2_2dof_quantile(p)
+
+
+def chi2_2dof_quantile(p: float) -> float:
+    """The p-quantile of χ² with 2 degrees of freedom, the squared Mahalanobis radius of a p-probability position
+    ellipse: closed-form −2 ln(1 − p) (scipy.stats costs a second to import)."""
+    return float(-2.0 * np.log1p(-p))
 
 
 def ellipse_coverage(

@@ -224,26 +224,29 @@ def run_seed(seed: int, trajectory: int, repeat: int) -> int:
     return seed * 1000 + 17 * trajectory + repeat
 
 
-def _run_one(prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion]) -> list[RunResult]:
+def _run_one(
+    prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion], rerun_dir: str | None = None
+) -> list[RunResult]:
     """Simulate trajectory k (config seed), localize it with seed (config seed, repeat), score every variant (also
     up to the building's `twins`, when it has any); in a worker process, or in this one with one worker. The active
-    scenario closes the loop (`evaluation.active`)."""
+    scenario closes the loop (`evaluation.active`). With `rerun_dir`, each forward pass is also a Rerun recording
+    there (`run_recording_path`)."""
     from threadpoolctl import threadpool_limits
 
     # One BLAS / OpenMP thread, as the CLI runs and as Ray's workers do: a threaded BLAS sums in another order, and a
     # run must not depend on the runner or on what its process loaded before.
     with threadpool_limits(limits=1):
-        return _run_one_pinned(prior_dir, cfg_json, trajectory, repeat, twins)
+        return _run_one_pinned(prior_dir, cfg_json, trajectory, repeat, twins, rerun_dir)
 
 
 def _run_one_on_ray(
-    prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion]
+    prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion], rerun_dir: str | None = None
 ) -> list[RunResult]:
     """`_run_one` in a Ray worker: each result records the node that ran it (Ray's node id, as `ray.nodes()` and
     `ray status` name it)."""
     import ray
 
-    results = _run_one(prior_dir, cfg_json, trajectory, repeat, twins)
+    results = _run_one(prior_dir, cfg_json, trajectory, repeat, twins, rerun_dir)
     node = ray.get_runtime_context().get_node_id()
     for result in results:
         result.node = node
@@ -251,9 +254,10 @@ def _run_one_on_ray(
 
 
 def _run_one_pinned(
-    prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion]
+    prior_dir: str, cfg_json: str, trajectory: int, repeat: int, twins: dict[int, Motion], rerun_dir: str | None
 ) -> list[RunResult]:
     from bimfactor.config import Config
+    from bimfactor.evaluation.viewer import maybe_record
     from bimfactor.pipeline import GRAPH_VARIANTS, localize_sequence, scan_matcher
 
     cfg = Config.model_validate_json(cfg_json)
@@ -266,17 +270,25 @@ def _run_one_pinned(
     matcher = scan_matcher(prior, cfg) if any(v in GRAPH_VARIANTS for v in online_variants) else None
     forward = {}
     for online in online_variants:
-        forward[online] = localize_sequence(
-            prior,
-            meta,
-            frames,
-            online_config(cfg, online),
-            seed=run_seed(cfg.seed, trajectory, repeat),
-            show_progress=False,
-            matcher=matcher,
-            twins=twins,
-        )
+        recording = None if rerun_dir is None else run_recording_path(rerun_dir, prior_dir, trajectory, repeat, online)
+        with maybe_record(recording, prior, f"{Path(prior_dir).name} {meta.name} repeat {repeat} {online}") as recorder:
+            forward[online] = localize_sequence(
+                prior,
+                meta,
+                frames,
+                online_config(cfg, online),
+                seed=run_seed(cfg.seed, trajectory, repeat),
+                show_progress=False,
+                matcher=matcher,
+                twins=twins,
+                observer=recorder,
+            )
     return score_runs(cfg, prior, frames, forward, window, trajectory, repeat, twins, matcher)
+
+
+def run_recording_path(rerun_dir: str | Path, prior_dir: str | Path, trajectory: int, repeat: int, online: str) -> Path:
+    """Where a protocol run's Rerun recording goes: DIR/<prior folder>-t<trajectory>-r<repeat>-<variant>.rrd."""
+    return Path(rerun_dir) / f"{Path(prior_dir).name}-t{trajectory}-r{repeat}-{online.replace('+', '-')}.rrd"
 
 
 def online_config(cfg: Config, online: str) -> Config:
@@ -609,14 +621,20 @@ def check_runner(runner: str, address: str | None = None) -> None:
         raise ConfigError(f"--address {address!r}: expected ray://HOST:PORT, HOST:PORT or auto")
 
 
-Job = tuple[str, str, int, int, dict]
-"""One run of the protocol: `_run_one`'s arguments (prior folder, config as JSON, trajectory, repeat, twins)."""
+Job = tuple[str, str, int, int, dict, str | None]
+"""One run of the protocol: `_run_one`'s arguments (prior folder, config as JSON, trajectory, repeat, twins, the
+folder of its Rerun recordings or None)."""
 
 
-def paper_jobs(prior_dir: str | Path, cfg: Config, twins: dict[int, Motion]) -> list[Job]:
-    """The protocol's runs on one prior: every trajectory × repeat."""
+def paper_jobs(
+    prior_dir: str | Path, cfg: Config, twins: dict[int, Motion], rerun_dir: str | Path | None = None
+) -> list[Job]:
+    """The protocol's runs on one prior: every trajectory × repeat; each recorded into `rerun_dir` when given."""
     ev, cfg_json = cfg.evaluation, cfg.model_dump_json()
-    return [(str(prior_dir), cfg_json, k, r, twins) for k in range(ev.num_trajectories) for r in range(ev.repeats)]
+    rerun = None if rerun_dir is None else str(rerun_dir)
+    return [
+        (str(prior_dir), cfg_json, k, r, twins, rerun) for k in range(ev.num_trajectories) for r in range(ev.repeats)
+    ]
 
 
 RAY_TASK_RETRIES = 3

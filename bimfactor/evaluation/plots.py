@@ -18,7 +18,7 @@ from bimfactor.io.preview import missing_glyphs_quiet
 
 if TYPE_CHECKING:
     from bimfactor.active import Suggestion
-    from bimfactor.bim.prior import BimPrior
+    from bimfactor.bim.prior import BimPrior, Room
 
 
 ROOM_LABEL = "room-label"  # the gid of a floor plan's room names, which `drop_colliding_labels` thins
@@ -72,6 +72,12 @@ def _block_max(codes: np.ndarray, extent: tuple, max_px: int) -> tuple[np.ndarra
     return reduced, (x0, x0 + (x1 - x0) * w / W, y0, y0 + (y1 - y0) * h / H)
 
 
+def room_name(room: Room, sep: str = " ") -> str:
+    """A room's name on a plan: its category, then its IfcSpace name in brackets when that says something else."""
+    named = room.space_name and room.space_name.strip().lower() != room.category.lower()
+    return room.category + (f"{sep}({room.space_name})" if named else "")
+
+
 def draw_floorplan(
     ax: Axes, prior: BimPrior, storey_index: int, label_objects: bool = True, label_rooms: bool = True
 ) -> None:
@@ -93,11 +99,9 @@ def draw_floorplan(
     codes, extent = _block_max(codes, tuple(prior.grid.extent), FLOORPLAN_MAX_PX)
     ax.imshow(palette[codes], origin="lower", extent=extent, interpolation="nearest")
     for room in sorted(rooms, key=lambda r: -r.area_m2) if label_rooms else []:  # the largest kept in a collision
-        named = room.space_name and room.space_name.strip().lower() != room.category.lower()
-        name = room.category + (f"\n({room.space_name})" if named else "")
         ax.text(
             *room.centroid_xy,
-            name,
+            room_name(room, "\n"),
             ha="center",
             va="center",
             fontsize=7,

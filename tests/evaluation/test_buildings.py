@@ -104,6 +104,31 @@ def test_bench_buildings_writes_a_block_per_ifc_file_name(
     assert sorted(p.name for p in (out / "priors").iterdir()) == ["a", "b"]
 
 
+def test_bench_buildings_records_every_forward_pass(
+    paper_floor_prior: Path, cli_config_args: list[str], tmp_path: Path
+) -> None:
+    pytest.importorskip("rerun", reason="the viz extra (rerun-sdk) is not installed")
+    from tests.evaluation.recordings import logged
+
+    out, recordings = tmp_path / "bench", tmp_path / "rrd"
+    result = CliRunner().invoke(
+        app,
+        [
+            "bench", "buildings", str(paper_floor_prior.parent / "paper-floor.ifc"), "-o", str(out),
+            "--runner", "processes", "--workers", "1", "--variant", "smcl", "--rerun", str(recordings),
+            *cli_config_args,
+            "--set", "evaluation.num_trajectories=1", "--set", "evaluation.repeats=2",
+            "--set", "evaluation.trajectory_length=4", "--set", "evaluation.warmup_max_steps=2",
+        ],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    names = sorted(p.name for p in recordings.iterdir())
+    assert names == ["paper-floor-t0-r0-smcl.rrd", "paper-floor-t0-r1-smcl.rrd"], names
+    found = logged(recordings / names[0])
+    assert found["world/estimate"] == found["world/truth"] and len(found["world/estimate"]) >= 4
+    assert (out / "results.json").is_file()
+
+
 def test_bench_buildings_refuses_bad_input_before_any_prior(tmp_path: Path) -> None:
     runner = CliRunner()
     broken = tmp_path / "broken.ifc"
@@ -114,6 +139,9 @@ def test_bench_buildings_refuses_bad_input_before_any_prior(tmp_path: Path) -> N
         ([str(broken), "--runner", "slurm"], "unknown runner"),
         ([str(broken), "--address", "garbage"], "--address 'garbage': expected ray://HOST:PORT, HOST:PORT or auto"),
         ([str(broken), "--runner", "processes", "--address", "head:6379"], "it applies to --runner ray"),
+        ([str(broken), "--rerun", str(broken)], "a folder, not a file"),
+        ([str(broken), "--rerun", str(tmp_path / "out" / "rrd")], "lies inside"),
+        ([str(broken), "--rerun", str(tmp_path / "rrd"), "--scenario", "active"], "the active scenario has none"),
     ):
         result = runner.invoke(app, ["bench", "buildings", *args, "-o", str(tmp_path / "out")])
         assert result.exit_code == 2 and message in result.output, result.output
