@@ -1103,101 +1103,9 @@ def _write_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) -
     return results
 
 
-def _warn_dense_steps(sequence: Any, path: Path, cfg: Any) -> None:
-    """One warning line when a sequence's frames are much closer than the localizer's keyframes."""
-    from bimfactor.odometry import dense_steps_note
-
-    odometry, steps = sequence.odometry(), cfg.localization
-    note = (
-        None
-        if odometry is None
-        else dense_steps_note(odometry, steps.keyframe_distance_m, math.radians(steps.keyframe_angle_deg))
-    )
-    if note is not None:
-        typer.echo(f"warning: {path}: {note}; 'bimfactor convert sequence {path} -o OUT' keeps the keyframes", err=True)
-
-
-def _check_building(meta: Any, prior: BimPrior, force: bool) -> None:
-    """Refuse a sequence recorded in another building than the prior's (a warning with --force)."""
-    from bimfactor.pipeline import building_mismatch
-
-    mismatch = building_mismatch(meta, prior)
-    if mismatch is not None and not force:
-        raise InputError(f"{mismatch}; --force localizes it all the same")
-    if mismatch is not None:
-        typer.echo(f"warning: {mismatch}", err=True)
-
-
-def _check_vlm(cfg: Config, detections: Path | None) -> None:
-    """With perception.backend=vlm its weight files, the CLIP text encoder and its libraries are checked before the
-    prior and the sequence are read (`perception.vlm.check_vlm_ready`): a missing file fails in milliseconds."""
-    if cfg.perception.backend == "vlm" and detections is None:
-        from bimfactor.perception.vlm import check_vlm_ready
-
-        check_vlm_ready(cfg)
-
-
-def _perception_source(
-    cfg: Config, sequence: Any, sequence_dir: Path, detections: Path | None, prior: BimPrior
-) -> tuple[Config, Any, str]:
-    """The perception a run uses (`perception.pipeline.choose_backend`; `--detections FILE` asks for the detections
-    backend): the config with `perception.backend` resolved (what config.yaml records), the checked detections file
-    when that backend reads one, and the line that says which perception it is. Bad input fails here, before any
-    heavy work."""
-    from bimfactor.config import updated
-    from bimfactor.perception.detections import DETECTIONS_FILE, read_detections
-    from bimfactor.perception.pipeline import choose_backend
-
-    if detections is not None:
-        from bimfactor.perception.detections import check_detections_file
-
-        check_detections_file(detections)
-        if cfg.perception.backend not in ("auto", "detections"):
-            raise ConfigError(
-                f"--detections reads a detector's detections, but perception.backend is {cfg.perception.backend}: "
-                "leave it auto or set detections"
-            )
-        cfg = updated(cfg, {"perception.backend": "detections"})
-    path = detections if detections is not None else sequence_dir / DETECTIONS_FILE
-    backend = choose_backend(cfg.perception, sequence.meta, path.is_file())
-    cfg = updated(cfg, {"perception.backend": backend})
-    if backend == "sim":
-        return cfg, None, f"perception: sim (the simulator's instance buffer, error preset {cfg.perception.sim_preset})"
-    if backend == "vlm":
-        return cfg, None, "perception: vlm (YOLO-World + SAM + CLIP on the colour frames)"
-    if backend == "yolox":
-        return cfg, None, "perception: yolox (the shipped YOLOX-Nano on the colour frames, COCO classes as labels)"
-    table = read_detections(
-        path,
-        sequence.timestamps(),
-        sequence.indices(),
-        sequence.meta.intrinsics,
-        embedding_dim=int(prior.object_embeddings.shape[1]),
-        encoder=prior.embedding_model,
-    )
-    return cfg, table, f"perception: detections from {path}: {table.summary()}"
-
-
-def _localize_recorded(
-    prior: BimPrior,
-    sequence: Any,
-    cfg: Config,
-    seed: int | None,
-    table: Any,
-    rerun: Path | None,
-    **options: Any,
-) -> Any:
-    """`localize_sequence` over a sequence folder with the command's seed (None: the config's) and detections,
-    recorded into the Rerun recording `rerun` when one is asked for."""
-    from bimfactor.evaluation.viewer import maybe_record
-    from bimfactor.pipeline import localize_sequence
-
-    seed = cfg.seed if seed is None else seed
-    with maybe_record(rerun, prior, sequence.meta.name) as recorder:
-        return localize_sequence(
-            prior, sequence.meta, sequence, cfg, seed, detections=table, observer=recorder,
-            **options,
-        )  # fmt: skip
+def _say(line: str) -> None:
+    """A workflow's line: warnings to stderr, the rest to stdout."""
+    typer.echo(line, err=line.startswith("warning:"))
 
 
 def _metrics_line(metrics: Any) -> str:
@@ -1279,35 +1187,15 @@ def localize(
             ],
             verbose,
         )
-        from bimfactor.bim.prior import BimPrior
-        from bimfactor.evaluation.report import ensure_run_destination, run_metrics, twin_summary, write_run
-        from bimfactor.evaluation.viewer import check_recording
-        from bimfactor.io.sequence import read_sequence
+        from bimfactor.evaluation.report import run_metrics, twin_summary
         from bimfactor.pipeline import skipped_frames_note
+        from bimfactor.workflows import localize_files
 
-        inputs = [prior_dir, sequence_dir, *([detections] if detections is not None else [])]
-        ensure_run_destination(output, inputs)
-        check_recording(rerun, output)
-        _check_vlm(cfg, detections)
-        sequence = read_sequence(sequence_dir)
-        prior = BimPrior.load(prior_dir)
-        _check_building(sequence.meta, prior, force)
-        cfg, table, perception_line = _perception_source(cfg, sequence, sequence_dir, detections, prior)
-        typer.echo(perception_line)
-        _warn_dense_steps(sequence, sequence_dir, cfg)
-        n = len(sequence)
-        snapshot_steps = sorted({0, n // 10, n // 4, n // 2, n - 1})
-        run = _localize_recorded(
-            prior, sequence, cfg, seed, table, rerun, snapshot_steps=snapshot_steps, suggest=suggest
-        )
-        figures = write_run(
-            run,
-            prior,
-            output,
-            cfg.dump_yaml(),
-            title=f"{sequence.meta.name} against {prior_dir}",
-            inputs=inputs,
-        )
+        run, figures = localize_files(
+            prior_dir, sequence_dir, output, cfg, seed=seed, detections=detections, suggest=suggest, force=force,
+            rerun=rerun, say=_say,
+        )  # fmt: skip
+        n = len(run.timestamps_s)
         typer.echo(f"wrote {output}: {n} steps ({run.variant}); figures " + ", ".join(f.name for f in figures))
         if rerun is not None:
             typer.echo(f"Rerun recording: {rerun} (bimfactor view {rerun})")
@@ -1436,36 +1324,15 @@ def refine(
             ],
             verbose,
         )
-        from bimfactor.bim.prior import BimPrior
-        from bimfactor.evaluation.report import ensure_run_destination, run_metrics, track_metrics, write_refined
-        from bimfactor.evaluation.viewer import check_recording
-        from bimfactor.io.sequence import read_sequence
-        from bimfactor.pipeline import GRAPH_VARIANTS, scan_matcher, skipped_frames_note
-        from bimfactor.refine import refine_run
+        from bimfactor.evaluation.report import run_metrics, track_metrics
+        from bimfactor.workflows import refine_files
 
-        if cfg.localization.variant not in GRAPH_VARIANTS:
-            raise InputError(
-                f"refine needs a pose-graph forward pass ({', '.join(GRAPH_VARIANTS)}), not {cfg.localization.variant}"
-            )
-        ensure_run_destination(output, [prior_dir, sequence_dir, *([detections] if detections is not None else [])])
-        check_recording(rerun, output)
-        _check_vlm(cfg, detections)
-        prior = BimPrior.load(prior_dir)
-        sequence = read_sequence(sequence_dir)
-        _check_building(sequence.meta, prior, force)
-        cfg, table, perception_line = _perception_source(cfg, sequence, sequence_dir, detections, prior)
-        typer.echo(perception_line)
-        _warn_dense_steps(sequence, sequence_dir, cfg)
-        matcher = scan_matcher(prior, cfg)
-        run = _localize_recorded(prior, sequence, cfg, seed, table, rerun, matcher=matcher)
-        skipped = skipped_frames_note(run)
-        if skipped is not None:
-            typer.echo(f"warning: {skipped} (forward pass)", err=True)
-        refined = refine_run(run, prior, cfg, matcher, show_progress=True)
-        title = f"{sequence.meta.name} refined against {prior_dir}"
-        write_refined(refined, prior, output, cfg.dump_yaml(), title=title, inputs=[prior_dir, sequence_dir])
+        run, refined = refine_files(
+            prior_dir, sequence_dir, output, cfg, seed=seed, detections=detections, force=force, rerun=rerun, say=_say
+        )
         typer.echo(
-            f"wrote {output}: {len(sequence)} steps, {len(refined.modes)} modes refined in {refined.refine_ms:.0f} ms"
+            f"wrote {output}: {len(run.timestamps_s)} steps, {len(refined.modes)} modes refined in "
+            f"{refined.refine_ms:.0f} ms"
         )
         if rerun is not None:
             typer.echo(f"Rerun recording of the forward pass: {rerun} (bimfactor view {rerun})")

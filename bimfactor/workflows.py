@@ -1,17 +1,18 @@
-"""The commands' workflows as library functions: what `bimfactor convert` does, callable from Python with typed
-arguments; the CLI parses its options and prints what these return.
+"""The commands' workflows as library functions: what `bimfactor convert`, `localize` and `refine` do, callable
+from Python with typed arguments; the CLI parses its options and prints what these return.
 
     from bimfactor.config import load_config
-    from bimfactor.workflows import convert_recording
+    from bimfactor.workflows import convert_recording, localize_files
 
     done = convert_recording("rosbag", Path("run.mcap"), Path("runs/bag"), load_config())
-    print(done.kept, *done.report, sep="\\n")
+    run, figures = localize_files(Path("runs/prior"), done.output, Path("runs/loc"), load_config())
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -19,10 +20,17 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from bimfactor.config import Config
-from bimfactor.errors import InputError
+from bimfactor.errors import ConfigError, InputError
 
 if TYPE_CHECKING:
+    from bimfactor.bim.prior import BimPrior
+    from bimfactor.perception.detections import DetectionsTable
+    from bimfactor.pipeline import LocalizationRun
+    from bimfactor.refine import RefinedRun
     from bimfactor.types import CameraIntrinsics
+
+Say = Callable[[str], None]
+"""Where a workflow's lines go as it works (which perception it runs, warnings: they start with "warning:")."""
 
 RecordingKind = Literal["tum", "rosbag", "sequence"]
 OdometrySource = Literal["auto", "rgbd", "none"]
@@ -182,3 +190,196 @@ def _with_rgbd_odometry(sequence: Any) -> tuple[Any, str]:
         f"--set odometry.alpha=[{alpha}] (docs/rgbd-odometry.md)"
     )
     return sequence.with_odometry(result.odom_poses, extras), line
+
+
+# ------------------------------------------------------------------------------------------ localize, refine
+
+
+def localize_files(
+    prior_dir: Path,
+    sequence_dir: Path,
+    output: Path,
+    cfg: Config,
+    *,
+    seed: int | None = None,
+    detections: Path | None = None,
+    suggest: bool = False,
+    force: bool = False,
+    rerun: Path | None = None,
+    say: Say = print,
+) -> tuple[LocalizationRun, list[Path]]:
+    """Localize a sequence folder against a prior folder and write the run folder (estimate, steps, metrics,
+    figures; `bimfactor localize`); the run and its figures. `seed` None: the config's; `detections`: a detector's
+    file for the detections backend; `suggest`: end with where to look next; `force`: a sequence of another building
+    too; `rerun`: also write a Rerun recording there. Bad input raises before any heavy work."""
+    from bimfactor.evaluation.report import write_run
+
+    opened = _open_run(prior_dir, sequence_dir, output, cfg, detections, force, rerun, say)
+    n = len(opened.sequence)
+    snapshot_steps = sorted({0, n // 10, n // 4, n // 2, n - 1})
+    run = _localize(opened, seed, rerun, snapshot_steps=snapshot_steps, suggest=suggest)
+    title = f"{opened.sequence.meta.name} against {prior_dir}"
+    return run, write_run(run, opened.prior, output, opened.cfg.dump_yaml(), title=title, inputs=opened.inputs)
+
+
+def refine_files(
+    prior_dir: Path,
+    sequence_dir: Path,
+    output: Path,
+    cfg: Config,
+    *,
+    seed: int | None = None,
+    detections: Path | None = None,
+    force: bool = False,
+    rerun: Path | None = None,
+    say: Say = print,
+) -> tuple[LocalizationRun, RefinedRun]:
+    """Localize with pose graphs, then smooth each surviving mode's whole trajectory, and write the run folder
+    (`bimfactor refine`); the forward pass and the refined run. The arguments are `localize_files`'."""
+    from bimfactor.evaluation.report import write_refined
+    from bimfactor.pipeline import GRAPH_VARIANTS, scan_matcher, skipped_frames_note
+    from bimfactor.refine import refine_run
+
+    if cfg.localization.variant not in GRAPH_VARIANTS:
+        raise InputError(
+            f"refine needs a pose-graph forward pass ({', '.join(GRAPH_VARIANTS)}), not {cfg.localization.variant}"
+        )
+    opened = _open_run(prior_dir, sequence_dir, output, cfg, detections, force, rerun, say)
+    matcher = scan_matcher(opened.prior, opened.cfg)
+    run = _localize(opened, seed, rerun, matcher=matcher)
+    skipped = skipped_frames_note(run)
+    if skipped is not None:
+        say(f"warning: {skipped} (forward pass)")
+    refined = refine_run(run, opened.prior, opened.cfg, matcher, show_progress=True)
+    title = f"{opened.sequence.meta.name} refined against {prior_dir}"
+    write_refined(refined, opened.prior, output, opened.cfg.dump_yaml(), title=title, inputs=opened.inputs[:2])
+    return run, refined
+
+
+@dataclass(frozen=True)
+class _Opened:
+    """A run's inputs, read and checked: the prior, the sequence, the config with its perception resolved, and the
+    detections the detections backend reads."""
+
+    prior: BimPrior
+    sequence: Any
+    cfg: Config
+    detections: DetectionsTable | None
+    inputs: list[Path]
+
+
+def _open_run(
+    prior_dir: Path,
+    sequence_dir: Path,
+    output: Path,
+    cfg: Config,
+    detections: Path | None,
+    force: bool,
+    rerun: Path | None,
+    say: Say,
+) -> _Opened:
+    from bimfactor.bim.prior import BimPrior
+    from bimfactor.evaluation.report import ensure_run_destination
+    from bimfactor.evaluation.viewer import check_recording
+    from bimfactor.io.sequence import read_sequence
+
+    inputs = [prior_dir, sequence_dir, *([detections] if detections is not None else [])]
+    ensure_run_destination(output, inputs)
+    check_recording(rerun, output)
+    _check_vlm(cfg, detections)
+    prior = BimPrior.load(prior_dir)
+    sequence = read_sequence(sequence_dir)
+    _check_building(sequence.meta, prior, force, say)
+    cfg, table, perception_line = _perception_source(cfg, sequence, sequence_dir, detections, prior)
+    say(perception_line)
+    _warn_dense_steps(sequence, sequence_dir, cfg, say)
+    return _Opened(prior, sequence, cfg, table, inputs)
+
+
+def _localize(opened: _Opened, seed: int | None, rerun: Path | None, **options: Any) -> LocalizationRun:
+    """`localize_sequence` over the opened run with the seed (None: the config's), recorded into the Rerun recording
+    `rerun` when one is asked for."""
+    from bimfactor.evaluation.viewer import maybe_record
+    from bimfactor.pipeline import localize_sequence
+
+    cfg, sequence = opened.cfg, opened.sequence
+    with maybe_record(rerun, opened.prior, sequence.meta.name) as recorder:
+        return localize_sequence(
+            opened.prior, sequence.meta, sequence, cfg, cfg.seed if seed is None else seed,
+            detections=opened.detections, observer=recorder, **options,
+        )  # fmt: skip
+
+
+def _warn_dense_steps(sequence: Any, path: Path, cfg: Any, say: Say) -> None:
+    """One warning line when a sequence's frames are much closer than the localizer's keyframes."""
+    from bimfactor.odometry import dense_steps_note
+
+    odometry, steps = sequence.odometry(), cfg.localization
+    note = (
+        None
+        if odometry is None
+        else dense_steps_note(odometry, steps.keyframe_distance_m, math.radians(steps.keyframe_angle_deg))
+    )
+    if note is not None:
+        say(f"warning: {path}: {note}; 'bimfactor convert sequence {path} -o OUT' keeps the keyframes")
+
+
+def _check_building(meta: Any, prior: BimPrior, force: bool, say: Say) -> None:
+    """Refuse a sequence recorded in another building than the prior's (a warning with --force)."""
+    from bimfactor.pipeline import building_mismatch
+
+    mismatch = building_mismatch(meta, prior)
+    if mismatch is not None and not force:
+        raise InputError(f"{mismatch}; --force localizes it all the same")
+    if mismatch is not None:
+        say(f"warning: {mismatch}")
+
+
+def _check_vlm(cfg: Config, detections: Path | None) -> None:
+    """With perception.backend=vlm its weight files, the CLIP text encoder and its libraries are checked before the
+    prior and the sequence are read (`perception.vlm.check_vlm_ready`): a missing file fails in milliseconds."""
+    if cfg.perception.backend == "vlm" and detections is None:
+        from bimfactor.perception.vlm import check_vlm_ready
+
+        check_vlm_ready(cfg)
+
+
+def _perception_source(
+    cfg: Config, sequence: Any, sequence_dir: Path, detections: Path | None, prior: BimPrior
+) -> tuple[Config, Any, str]:
+    """The perception a run uses (`perception.pipeline.choose_backend`; `--detections FILE` asks for the detections
+    backend): the config with `perception.backend` resolved (what config.yaml records), the checked detections file
+    when that backend reads one, and the line that says which perception it is. Bad input fails here, before any
+    heavy work."""
+    from bimfactor.config import updated
+    from bimfactor.perception.detections import DETECTIONS_FILE, read_detections
+    from bimfactor.perception.pipeline import choose_backend
+
+    if detections is not None:
+        from bimfactor.perception.detections import check_detections_file
+
+        check_detections_file(detections)
+        if cfg.perception.backend not in ("auto", "detections"):
+            raise ConfigError(
+                f"--detections reads a detector's detections, but perception.backend is {cfg.perception.backend}: "
+                "leave it auto or set detections"
+            )
+        cfg = updated(cfg, {"perception.backend": "detections"})
+    path = detections if detections is not None else sequence_dir / DETECTIONS_FILE
+    backend = choose_backend(cfg.perception, sequence.meta, path.is_file())
+    cfg = updated(cfg, {"perception.backend": backend})
+    if backend == "sim":
+        return cfg, None, f"perception: sim (the simulator's instance buffer, error preset {cfg.perception.sim_preset})"
+    if backend == "vlm":
+        return cfg, None, "perception: vlm (YOLO-World + SAM + CLIP on the colour frames)"
+    if backend == "yolox":
+        return cfg, None, "perception: yolox (the shipped YOLOX-Nano on the colour frames, COCO classes as labels)"
+    table = read_detections(
+        path,
+        sequence.timestamps(),
+        sequence.indices(),
+        sequence.meta.intrinsics,
+        embedding_dim=int(prior.object_embeddings.shape[1]),
+        encoder=prior.embedding_model,
+    )
+    return cfg, table, f"perception: detections from {path}: {table.summary()}"

@@ -64,7 +64,7 @@ class StubPerception:
     def step(self, frame: Frame, plate_columns: np.ndarray | None = None) -> SimpleNamespace:
         self.frames.append(frame)
         empty = Observations(np.zeros((0, OneHot.dim), np.float32), np.zeros(0), np.zeros(0))
-        return SimpleNamespace(observations=empty, timing_ms={})
+        return SimpleNamespace(observations=empty, timing_ms={}, detections=[], readings=[])
 
 
 @pytest.fixture(scope="module")
