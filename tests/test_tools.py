@@ -205,3 +205,15 @@ def test_the_buildings_page_is_the_committed_buildings_results_rendered() -> Non
     for block in report["buildings"].values():
         average = block[report["variants"][0]]["average"]
         assert {"trans_err_m", "orient_err_deg", "room_acc", "success_rate", "wrong_convergence_rate"} <= set(average)
+
+
+def test_the_paper_reproduction_page_is_the_committed_ablation_rendered() -> None:
+    """docs/paper-reproduction.md is docs/results/paper-ablation.json as `tools/paper_ablation.py render` writes it:
+    one row per step on both seeds, from the paper's filter alone to every component of ours added."""
+    ablation = _load("paper_ablation")
+    assert ablation.main(["render", "--check"]) == 0
+    report = json.loads(ablation.RESULTS.read_text())
+    assert [s["set"] for s in report["steps"]] == [own for _, own in ablation.STEPS]
+    for seed in report["seeds"]:
+        rows = report["rows"][str(seed)]
+        assert len(rows) == len(ablation.STEPS) and all(0.0 <= r["success_rate"] <= 1.0 for r in rows)

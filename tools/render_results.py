@@ -36,7 +36,11 @@ NAME = re.compile(r"^(?P<building>.+?)-seed(?P<seed>\d+)-(?P<preset>[A-Za-z0-9_]
 PRESET_ORDER = {"default": 0, "paper": 1, "fast": 2}
 VARIANT_ORDER = {"smcl": 0, "smcl+graph": 1, "refine": 2, "full": 3}
 IFC_DIR = "../shared/data/ifc"
-OTHER_BENCHMARKS = {"buildings": "tools/render_buildings.py", "speed": "tools/render_speed.py"}  # their renderers
+OTHER_BENCHMARKS = {  # their renderers
+    "buildings": "tools/render_buildings.py",
+    "speed": "tools/render_speed.py",
+    "paper-ablation": "tools/paper_ablation.py",
+}
 
 
 @dataclass(frozen=True)
