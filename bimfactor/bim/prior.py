@@ -614,16 +614,6 @@ def _proximity_edges(objects: list[BimObject], radius_m: float) -> list[tuple[in
     return edges
 
 
-def load_or_build(path: str | Path, cfg: Config) -> BimPrior:
-    """A prior folder is loaded; an IFC file is built from."""
-    path = Path(path)
-    if path.is_dir():
-        return BimPrior.load(path)
-    if path.suffix.lower() == ".ifc":
-        return build_prior(path, cfg)
-    raise InputError(f"{path}: neither a prior folder nor an .ifc file")
-
-
 # ------------------------------------------------------------------------------------------------ reading a prior
 
 

@@ -77,11 +77,6 @@ def write_text_atomic(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
-def write_bytes_atomic(path: str | Path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-
-
 def check_output_file(path: str | Path, *, inputs: Iterable[str | Path] = ()) -> None:
     """Raise InputError unless a file can be written at `path`: not a folder, not an input, in a writable place."""
     path = Path(path)

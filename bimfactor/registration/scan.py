@@ -56,12 +56,3 @@ def stitch_submap(scans_base: list[np.ndarray], poses: np.ndarray, voxel_m: floa
         T = se2_to_matrix(rel)
         parts.append(scan @ T[:3, :3].T + T[:3, 3])
     return voxel_downsample(np.concatenate(parts), voxel_m)
-
-
-def frames_submap(frames: list[Frame], meta: SequenceMeta, cfg: RegistrationConfig, sensor: SensorConfig) -> np.ndarray:
-    """Submap of the last `cfg.submap_keyframes` frames, stitched with their odometry, in the last frame's base."""
-    recent = frames[-cfg.submap_keyframes :]
-    scans = [frame_scan(f, meta, cfg, sensor) for f in recent]
-    if len(scans) == 1:
-        return scans[0]
-    return stitch_submap(scans, np.stack([f.odom_pose for f in recent]), cfg.scan_voxel_m)

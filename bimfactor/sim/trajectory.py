@@ -413,17 +413,6 @@ def _integrate(pose: tuple[float, float, float], v: float, w: float, dt: float) 
     return x + chord * math.cos(heading), y + chord * math.sin(heading), float(wrap_angle(yaw + w * dt))
 
 
-def make_trajectory(
-    prior: BimPrior,
-    cfg: Config,
-    index: int,
-    seed: int,
-    extra_obstacles: dict[int, np.ndarray] | None = None,
-) -> SimTrajectory:
-    """One trajectory (see `TrajectorySimulator.trajectory`); `extra_obstacles` maps storey → (rows, cols) bool."""
-    return TrajectorySimulator(prior, cfg, extra_obstacles).trajectory(index, seed)
-
-
 def standard_trajectories(prior: BimPrior, n: int = 6, seed: int = 0, cfg: Config | None = None) -> list[SimTrajectory]:
     """The n benchmark trajectories of a prior for a seed, with distinct starts (different rooms where possible).
 
