@@ -867,6 +867,49 @@ class RegistrationConfig(_Strict):
     compare_max_rot_deg: float = Field(30.0, ge=0.0, description="Comparison: initial rotation errors 0 .. this.")
 
 
+class ScanFactorConfig(_Strict):
+    """The pose graphs' scan factor (`backend.scan_factor`): correlative matching of the keyframe's 2-D scan against
+    the BIM's likelihood field about each mode's prediction, beyond the paper."""
+
+    enabled: bool = Field(True, description="Each mode's graph also gets a pose factor from its keyframe's scan.")
+    # Search ± this in x and y around the mode's prediction (its last pose moved by odometry: σ ≈ 0.11 m, 4° per
+    # 0.5 m) ...
+    window_m: ClassVar[float] = 0.5
+    # ... and ± this in yaw.
+    window_deg: ClassVar[float] = 18.0
+    # Online graphs: a match beyond the window restarts the mode's graph there (docs/pose-graphs.md).
+    recentre: int = Field(2, ge=0, description="An optimum on the window's edge: search again about it this often.")
+    # The coarse search's step in x and y ...
+    step_m: ClassVar[float] = 0.1
+    step_deg: float = Field(2.0, gt=0.0, description="... and in yaw.")
+    # The fine search's step in x and y ...
+    fine_step_m: ClassVar[float] = 0.025
+    # ... and in yaw (over one coarse cell around its best).
+    fine_step_deg: ClassVar[float] = 0.5
+    # σ of an endpoint's distance to the BIM's faces.
+    sigma_m: ClassVar[float] = 0.1
+    # The coarse search's σ (a smoother field, so its steps cannot miss a peak).
+    coarse_sigma_m: ClassVar[float] = 0.2
+    candidates: int = Field(2, ge=1, description="The best coarse poses the fine search refines.")
+    # An endpoint whose ray is inside a wall this far before it scores as an outlier: its ray crossed the wall.
+    clear_before_m: ClassVar[float] = 0.15
+    # ε in log(f + ε), what an off-BIM endpoint costs.
+    outlier: ClassVar[float] = 0.05
+    # How many of the endpoints count as independent measurements: 95 % ellipsoids hold 96 % of the true poses
+    # (bimfactor bench scanmatch).
+    effective_endpoints: ClassVar[float] = 20.0
+    # Scans with fewer endpoints are not matched, and a match needs this many endpoints on the BIM's faces. A sparse
+    # scan counts each endpoint once (at most `effective_endpoints`), so a 6-endpoint scan is a weak but honest
+    # factor: it holds the heading through blind stretches.
+    min_endpoints: ClassVar[int] = 6
+    min_inliers: ClassVar[int] = 6
+    # Floor on the factor's position σ: the grid's walls sit a few cm off the rendered faces in places; refine adds
+    # it to every marginal ...
+    min_sigma_m: ClassVar[float] = 0.03
+    # ... and on its yaw σ.
+    min_sigma_deg: ClassVar[float] = 0.5
+
+
 class BackendConfig(_Strict):
     """Multi-hypothesis back end: particle-filter modes, one GTSAM pose graph per mode."""
 
@@ -964,52 +1007,8 @@ class BackendConfig(_Strict):
     # ... and each part must hold this many keyframes. ... each part this long
     refine_split_min_keyframes: ClassVar[int] = 5
     # beyond the paper: the keyframe's 2-D scan against the likelihood field, per mode
-    scan_factor: bool = Field(
-        True,
-        description="Each mode's graph also gets a pose factor from correlative matching of the keyframe's 2-D scan "
-        "against the likelihood field (registration.correlative; beyond the paper).",
-    )
-    # Scan matching: search ± this in x and y around the mode ... the mode's prediction: its last pose moved by
-    # odometry (σ ≈ 0.11 m, 4° per 0.5 m)
-    scan_window_m: ClassVar[float] = 0.5
-    # ... and ± this in yaw.
-    scan_window_deg: ClassVar[float] = 18.0
-    # an optimum on the window's edge is searched again about it, twice at most (online graphs; a match beyond the
-    # window restarts the mode's graph there); 0: off (docs/pose-graphs.md)
-    scan_recentre: int = Field(
-        2, ge=0, description="An optimum on the window's edge: search again about it this often."
-    )
-    # Scan matching: the coarse search's step in x and y ...
-    scan_step_m: ClassVar[float] = 0.1
-    scan_step_deg: float = Field(2.0, gt=0.0, description="... and in yaw.")
-    # Scan matching: the fine search's step in x and y ...
-    scan_fine_step_m: ClassVar[float] = 0.025
-    # ... and in yaw (over one coarse cell around its best).
-    scan_fine_step_deg: ClassVar[float] = 0.5
-    # Scan matching: σ of an endpoint's distance to the BIM's faces.
-    scan_sigma_m: ClassVar[float] = 0.1
-    # Scan matching: the coarse search's σ (a smoother field, so its steps cannot miss a peak).
-    scan_coarse_sigma_m: ClassVar[float] = 0.2
-    scan_candidates: int = Field(2, ge=1, description="Scan matching: the best coarse poses the fine search refines.")
-    # Scan matching: an endpoint whose ray is inside a wall this far before it scores as an outlier (seen through a
-    # wall). a return from behind a wall: its ray crossed the wall
-    scan_clear_before_m: ClassVar[float] = 0.15
-    # Scan matching: ε in log(f + ε), what an off-BIM endpoint costs.
-    scan_outlier: ClassVar[float] = 0.05
-    # Scan matching: how many of the endpoints count as independent measurements. 95 % ellipsoids hold 96 % of the
-    # true poses (bimfactor bench scanmatch)
-    scan_effective_endpoints: ClassVar[float] = 20.0
-    # Scan matching: scans with fewer endpoints are not matched. a sparse scan counts each endpoint once (at most
-    # scan_effective_endpoints), so a
-    scan_min_endpoints: ClassVar[int] = 6
-    # Scan matching: least endpoints on the BIM's faces at the match. 6-endpoint scan is a weak but honest factor: it
-    # holds the heading through blind stretches
-    scan_min_inliers: ClassVar[int] = 6
-    # Scan matching: floor on the factor's position σ ... the grid's walls sit a few cm off the rendered faces in
-    # places; refine adds it to every marginal
-    scan_min_sigma_m: ClassVar[float] = 0.03
-    # ... and on its yaw σ.
-    scan_min_sigma_deg: ClassVar[float] = 0.5
+    # beyond the paper: the keyframe's 2-D scan against the likelihood field, per mode
+    scan_factor: ScanFactorConfig = Field(default_factory=ScanFactorConfig)
 
 
 LocalizerVariant = Literal["smcl", "smcl+graph", "full"]
@@ -1316,6 +1315,9 @@ def _apply_override(data: dict[str, Any], assignment: str) -> None:
 MOVED_KEYS = {
     "sim.trajectory.keyframe_distance_m": "localization.keyframe_distance_m",
     "sim.trajectory.keyframe_angle_deg": "localization.keyframe_angle_deg",
+    "backend.scan_recentre": "backend.scan_factor.recentre",
+    "backend.scan_step_deg": "backend.scan_factor.step_deg",
+    "backend.scan_candidates": "backend.scan_factor.candidates",
 }
 """Keys of earlier versions and where they are now: an old config file's error names the new key."""
 
@@ -1342,7 +1344,7 @@ def _unknown_key(dotted: str) -> str:
 
 
 def _is_fixed(dotted: str) -> bool:
-    """Whether `dotted` names a ClassVar of the config tree (`backend.scan_window_m`)."""
+    """Whether `dotted` names a ClassVar of the config tree (`backend.scan_factor.window_m`)."""
     *blocks, name = dotted.split(".")
     model: Any = Config
     for block in blocks:

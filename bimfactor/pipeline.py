@@ -52,6 +52,7 @@ from bimfactor.backend.posegraph import (
     MultiHypothesisBackend,
     semantic_associator,
 )
+from bimfactor.backend.scan_factor import CorrelativeMatcher
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.symmetry import Motion, twin_motions
 from bimfactor.bim.visibility import VisibilityTable
@@ -74,7 +75,6 @@ from bimfactor.perception.detections import DetectionsTable
 from bimfactor.perception.ocr import plate_columns
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
-from bimfactor.registration.correlative import CorrelativeMatcher
 from bimfactor.registration.fine import FineRegistration, FineResult
 from bimfactor.types import Frame, Observations, SequenceMeta, se2_between, se2_compose, se2_inverse
 
@@ -361,7 +361,7 @@ def scan_matcher(prior: BimPrior, cfg: Config) -> CorrelativeMatcher | None:
     """The matcher of the graphs' scan factors (`backend.scan_factor`; None when off). Building it takes about a
     second on the paper floor (distance transforms of the whole grid), so a forward pass and its refinement share
     one."""
-    return CorrelativeMatcher(prior, cfg.backend) if cfg.backend.scan_factor else None
+    return CorrelativeMatcher(prior, cfg.backend.scan_factor) if cfg.backend.scan_factor.enabled else None
 
 
 def visibility_of(prior: BimPrior, cfg: Config) -> VisibilityTable:

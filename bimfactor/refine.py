@@ -23,6 +23,7 @@ import numpy as np
 from bimfactor.backend.factors import Landmarks
 from bimfactor.backend.posegraph import AssociateFn, ModeHistory, PoseFactorFn, semantic_associator
 from bimfactor.backend.refine import RefinedMode, refine_mode, track_from
+from bimfactor.backend.scan_factor import CorrelativeMatcher
 from bimfactor.bim.prior import BimPrior
 from bimfactor.config import BackendConfig, Config
 from bimfactor.localization.measurements import FrameData, MeasurementModel
@@ -31,7 +32,6 @@ from bimfactor.localization.measurements.semantic import SemanticLikelihood
 from bimfactor.localization.measurements.text import PlateLikelihood
 from bimfactor.pipeline import GRAPH_VARIANTS, LocalizationRun, Track, _stretches, visibility_of
 from bimfactor.progress import progress
-from bimfactor.registration.correlative import CorrelativeMatcher
 from bimfactor.types import Observations
 
 log = logging.getLogger(__name__)
@@ -100,7 +100,7 @@ def refine_run(
     its refined trajectory. Last, the stretches' best fits are joined into the estimate; a stretch in which no mode
     was born keeps the forward pass's estimate.
 
-    With `backend.scan_factor` and the run's scans, every keyframe's scan is matched anew from each mode's
+    With `backend.scan_factor.enabled` and the run's scans, every keyframe's scan is matched anew from each mode's
     hindsight trajectory, by `matcher` (the forward pass's, or one built now). After a full forward pass, the fine
     stage's accepted pose factors of each mode enter its batch graph. `show_progress`: a bar per stretch over its
     modes. The run must come from a graph variant (ValueError otherwise). A run in which the filter never formed a
@@ -173,8 +173,8 @@ class _Refiner:
         landmarks = Landmarks.from_prior(prior)
         has_scans = any(scan is not None for scan in run.scans)
         measure_fns: list[PoseFactorFn | None] | None = None
-        if cfg.backend.scan_factor and has_scans:
-            matcher = matcher or CorrelativeMatcher(prior, cfg.backend)
+        if cfg.backend.scan_factor.enabled and has_scans:
+            matcher = matcher or CorrelativeMatcher(prior, cfg.backend.scan_factor)
             measure_fns = [None if scan is None else matcher.factor_fn(scan, recentre=0) for scan in run.scans]
         # The filter's measurement models; the scan term wherever the run has scans, as the matcher had them.
         models: list[MeasurementModel] = [

@@ -151,7 +151,7 @@ def test_a_moved_config_key_names_its_new_place(tmp_path: Path) -> None:
 
 
 def test_a_fixed_value_is_named_as_one(tmp_path: Path) -> None:
-    for dotted in ("backend.scan_window_m", "smcl.text.edit_cost"):
+    for dotted in ("backend.scan_factor.window_m", "smcl.text.edit_cost"):
         result = invoke("synth", "-o", tmp_path / "x.ifc", "--set", f"{dotted}=1")
         assert_one_line_error(result, contains=f"'{dotted}': a fixed value of its stage now, not a key")
     assert_one_line_error(

@@ -124,7 +124,7 @@ def test_fast_cuts_costs_and_keeps_every_stage(fast: Config, default: Config) ->
     assert f.resampler.kind == d.resampler.kind
     for stage in ("scan", "augmented", "text_reset", "relocalize", "challenger"):
         assert getattr(f, stage).enabled == getattr(d, stage).enabled, stage
-    assert fast.backend.scan_factor == default.backend.scan_factor
+    assert fast.backend.scan_factor.enabled == default.backend.scan_factor.enabled
     assert fast.localization.variant == default.localization.variant
     assert fast.bim == default.bim  # the same prior serves both
 

@@ -11,7 +11,7 @@ Per mode k (a `ModeGraph`), keyed by keyframe index i and BIM object id j:
    (`add_pose_factor`).
 Online, ISAM2 takes one update per keyframe (one more only when re-association changes the matches); a mode
 whose update GTSAM finds indeterminate restarts its graph from its particle cluster at that keyframe, and a mode
-whose scan matched beyond the matcher's window about its prediction (`registration.correlative`, searched again
+whose scan matched beyond the matcher's window about its prediction (`backend.scan_factor`, searched again
 about the window's edge) restarts its graph at that match: its history disagrees with the walls, and a graph
 that kept it would hold the old poses against the match through its robust odometry factors.
 
@@ -70,7 +70,7 @@ PoseFactor = tuple[int, np.ndarray, np.ndarray]
 """A pose factor on X(i): keyframe index, (3,) pose, (3, 3) body-frame information."""
 PoseFactorFn = Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray] | None]
 """(3,) predicted pose, storey → a measured (3,) pose with (3, 3) body-frame information, or None (e.g. the current
-keyframe's scan matched against the BIM from that pose; `registration.correlative`)."""
+keyframe's scan matched against the BIM from that pose; `backend.scan_factor`)."""
 
 
 def floored_covariance(covariance: np.ndarray, cfg: BackendConfig) -> np.ndarray:
@@ -529,7 +529,9 @@ class MultiHypothesisBackend:
         """Whether a (3,) pose lies outside the scan matcher's window about a (3,) predicted pose."""
         delta = np.abs(np.asarray(pose, np.float64) - predicted)
         delta[2] = abs(wrap_angle(delta[2]))
-        return bool(delta[:2].max() > self.cfg.scan_window_m or delta[2] > np.deg2rad(self.cfg.scan_window_deg))
+        return bool(
+            delta[:2].max() > self.cfg.scan_factor.window_m or delta[2] > np.deg2rad(self.cfg.scan_factor.window_deg)
+        )
 
     def add_pose_factor(
         self, mode_id: int, i: int, pose: np.ndarray, information: np.ndarray

@@ -14,8 +14,8 @@ For a mode of the forward pass (born at keyframe i0, on one storey; tracked to t
 5. up to `refine_rounds` times: re-associate (and re-match the scans of) every keyframe at the refined poses and
    optimise again while the matches change (hindsight association: the smoothed poses put observations next to the
    right objects).
-6. with scan factors, each keyframe's marginal covariance gains the map's own error, σ = `scan_min_sigma_m` per axis
-   (the BIM's faces as the grid holds them sit a few cm off the real walls): every scan of a wall shares that
+6. with scan factors, each keyframe's marginal covariance gains the map's own error, σ = `scan_factor.min_sigma_m`
+   per axis (the BIM's faces as the grid holds them sit a few cm off the real walls): every scan of a wall shares that
    offset, so smoothing many scans does not average it away, while the batch treats them as independent.
 """
 
@@ -136,7 +136,7 @@ def refine_mode(
         associations, done = again, done + 1
         batch, scanned = optimise(batch.poses, associations)
     if scanned:
-        map_error = np.diag([cfg.scan_min_sigma_m**2, cfg.scan_min_sigma_m**2, 0.0])
+        map_error = np.diag([cfg.scan_factor.min_sigma_m**2, cfg.scan_factor.min_sigma_m**2, 0.0])
         batch = dataclasses.replace(batch, covariances=batch.covariances + map_error)
     log.debug(
         "mode %d refined: error %.1f → %.1f in %d iterations, %d re-association rounds",

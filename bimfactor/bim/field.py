@@ -1,6 +1,6 @@
 """What a scan is matched against, derived from the prior: the likelihood field of every storey (Thrun et al.,
 Probabilistic Robotics, Table 6.3), exp(−d² / 2σ²) of each cell's distance d to the nearest BIM obstacle. The
-filter's scan term (`localization.measurements.scan`), the back end's scan factors (`registration.correlative`)
+filter's scan term (`localization.measurements.scan`), the back end's scan factors (`backend.scan_factor`)
 and the view predictions of the active suggester (`active.views`) all look their endpoints up here."""
 
 from __future__ import annotations

@@ -61,10 +61,10 @@ from bimfactor.progress import progress
 from bimfactor.types import wrap_angle
 
 if TYPE_CHECKING:
+    from bimfactor.backend.scan_factor import CorrelativeMatcher
     from bimfactor.bim.prior import BimPrior
     from bimfactor.bim.symmetry import Motion
     from bimfactor.pipeline import LocalizationRun, Track
-    from bimfactor.registration.correlative import CorrelativeMatcher
     from bimfactor.sim.simulate import SimResult
     from bimfactor.types import Frame, SequenceMeta
 

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from bimfactor.backend.posegraph import MultiHypothesisBackend
+from bimfactor.backend.scan_factor import CorrelativeMatcher
 from bimfactor.backend.synthetic import loop_scenario
 from bimfactor.bim.ifc import IfcModel
 from bimfactor.bim.prior import BimPrior
@@ -33,7 +34,6 @@ from bimfactor.localization.measurements.scan import DepthPoints, frame_endpoint
 from bimfactor.localization.measurements.semantic import polar_coordinates
 from bimfactor.localization.modes import Mode
 from bimfactor.progress import progress
-from bimfactor.registration.correlative import CorrelativeMatcher
 from bimfactor.sim.sensors import RgbdCamera
 from bimfactor.sim.simulate import build_world, simulate_sequence
 from bimfactor.sim.trajectory import TrajectorySimulator
@@ -189,7 +189,7 @@ def benchmark_scan_matching(
     accepted share and the rejection reasons; over the accepted matches the median and p90 position and yaw errors
     and the share whose true pose lies inside the 95 % ellipsoid (χ² with 3 DoF); the median and p90 time of all.
     """
-    matcher = CorrelativeMatcher(prior, cfg.backend)
+    matcher = CorrelativeMatcher(prior, cfg.backend.scan_factor)
     world = build_world(prior, model, cfg, cfg.seed)
     rng = np.random.default_rng([cfg.seed, 0xC5])
     times, errors_m, errors_deg, inside, reasons = [], [], [], [], Counter()

@@ -309,7 +309,8 @@ def test_a_scan_measurement_enters_the_mode_graph_with_its_keyframe_and_is_kept_
 @pytest.mark.parametrize("first_match", [1, 6])
 def test_a_scan_match_beyond_the_window_starts_the_mode_graph_again_at_it(first_match: int):
     """A mode born 1.2 m off the truth: its scans are not matched before keyframe `first_match`, whose match lies
-    beyond the ± `scan_window_m` window about the prediction (the matcher searched again about the window's edge).
+    beyond the ± `scan_factor.window_m` window about the prediction (the matcher searched again about the window's
+    edge).
     The graph disagrees with the walls there, so it starts again at that match; matches inside the window then enter
     it as scan factors. The history before the restart is kept as a refine candidate when it is long enough
     (`refine_retired_min_keyframes`), as a pruned mode's is."""
@@ -317,7 +318,7 @@ def test_a_scan_match_beyond_the_window_starts_the_mode_graph_again_at_it(first_
     backend = MultiHypothesisBackend(sc.landmark_xy, PRECISE, PRECISE_ODOMETRY)
     information = np.diag([1 / 0.01**2, 1 / 0.01**2, 1 / np.deg2rad(0.2) ** 2])
     born_off = np.array([1.2, 0.0, np.deg2rad(5.0)])
-    assert born_off[0] > PRECISE.scan_window_m
+    assert born_off[0] > PRECISE.scan_factor.window_m
     assert 1 < PRECISE.refine_retired_min_keyframes <= 6
     asked = []
     T = first_match + 4

@@ -238,7 +238,7 @@ def test_a_mode_pruned_early_is_tracked_forwards_to_the_end_through_its_scans():
     assert _rms_m(refined.poses[pruned_at:], sc.true_poses[pruned_at:]) < 0.05
     assert _rms_m(refined.poses, sc.true_poses) < 0.05
     # Scans that all see the same walls share the map's error: no keyframe is reported tighter than it.
-    map_variance = PRECISE.scan_min_sigma_m**2
+    map_variance = PRECISE.scan_factor.min_sigma_m**2
     assert np.all(refined.covariances[:, 0, 0] > map_variance) and np.all(refined.covariances[:, 1, 1] > map_variance)
     without_scans = refine_mode(
         mode, sc.increments, sc.observations, _associators(sc), sc.landmark_xy, PRECISE, PRECISE_ODOMETRY

@@ -8,33 +8,33 @@ scored by
     log P(z | x) = (min(N, N_eff) / N) · Σ_n log(f_n(x) + ε),    f_n = exp(−d_n² / 2σ²),
 
 with d_n the distance of endpoint n to the nearest face of a wall or a piece of furniture (`face_distances`),
-ε (`scan_outlier`) bounding what an endpoint on clutter or a moved object can cost, and N_eff
-(`scan_effective_endpoints`) the most endpoints that count as independent (neighbouring returns of one wall share
+ε (`outlier`) bounding what an endpoint on clutter or a moved object can cost, and N_eff
+(`effective_endpoints`) the most endpoints that count as independent (neighbouring returns of one wall share
 its as-built and grid errors); a scan of fewer endpoints counts each once, not as if it were N_eff of them. An
-endpoint whose ray was inside a wall `scan_clear_before_m` before it scores as an outlier: a sensor cannot see the
+endpoint whose ray was inside a wall `clear_before_m` before it scores as an outlier: a sensor cannot see the
 far face of a wall.
 
-1. Coarse: the whole window (± `scan_window_m`, ± `scan_window_deg`) in `scan_step_m` / `scan_step_deg` steps,
-   scored in a smoother field (σ = `scan_coarse_sigma_m`) so that no peak falls between the steps;
-2. fine: around each of the `scan_candidates` best coarse poses, ± one coarse step in `scan_fine_step_m` /
-   `scan_fine_step_deg` steps in the sharp field; the best candidate wins;
+1. Coarse: the whole window (± `window_m`, ± `window_deg`) in `step_m` / `step_deg` steps,
+   scored in a smoother field (σ = `coarse_sigma_m`) so that no peak falls between the steps;
+2. fine: around each of the `candidates` best coarse poses, ± one coarse step in `fine_step_m` /
+   `fine_step_deg` steps in the sharp field; the best candidate wins;
 3. the result is the mean of the normalised distribution exp(log P) over its fine cells, and its covariance the
    inverse curvature of a quadratic fitted to log P near the peak (the Laplace approximation); a peak too flat for
    the fine cells (a corridor, a single wall) takes the covariance of the coarse distribution over the whole window
-   instead, which says how long it is. Floors: `scan_min_sigma_m`, `scan_min_sigma_deg`.
+   instead, which says how long it is. Floors: `min_sigma_m`, `min_sigma_deg`.
 
 ICP against the walls (`registration.fine`) is precise but has a narrow basin and takes tens of ms; this matcher's
 basin is the window, it costs about 2 ms, and its accuracy is the grid's: about 5 cm and 0.4° (`bimfactor bench
 scanmatch`).
 
 When the best pose lies on the window's edge, the optimum is outside the window: the search starts again about
-that edge pose, up to `scan_recentre` times (a mode seeded from the biased mean of a wide particle cloud can sit
+that edge pose, up to `recentre` times (a mode seeded from the biased mean of a wide particle cloud can sit
 0.5–1.5 m and 20–40° off, beyond one window). The pose graphs treat a match beyond the first window as a
 disagreement with their history (`backend.posegraph`); the offline refinement matches from its smoothed poses
 with the first window alone (`recentre=0`), where a wider search finds more look-alike optima than it mends.
 
-A match is rejected, with the reason, when the scan has fewer than `scan_min_endpoints` endpoints, when fewer than
-`scan_min_inliers` endpoints lie on the BIM's faces at the best pose (the scan sees clutter or nothing the BIM
+A match is rejected, with the reason, when the scan has fewer than `min_endpoints` endpoints, when fewer than
+`min_inliers` endpoints lie on the BIM's faces at the best pose (the scan sees clutter or nothing the BIM
 has), or when the best coarse pose still lies on the window's edge after the last search.
 """
 
@@ -48,7 +48,7 @@ import numpy as np
 from bimfactor.backend.factors import covariance_world_to_body
 from bimfactor.bim.field import LikelihoodField, face_distances
 from bimfactor.bim.prior import BimPrior
-from bimfactor.config import BackendConfig
+from bimfactor.config import ScanFactorConfig
 from bimfactor.types import wrap_angle
 
 LAPLACE_DEPTH = 8.0  # the quadratic is fitted to the fine cells within this much log-likelihood of the peak
@@ -125,24 +125,22 @@ def _laplace_covariance(poses: np.ndarray, log_p: np.ndarray, about: np.ndarray,
 class CorrelativeMatcher:
     """Matches base-frame 2-D scans (`localization.field.scan_endpoints`) against one prior's likelihood field."""
 
-    def __init__(self, prior: BimPrior, cfg: BackendConfig) -> None:
+    def __init__(self, prior: BimPrior, cfg: ScanFactorConfig) -> None:
         distance = face_distances(prior)
-        self.field = LikelihoodField(prior, cfg.scan_sigma_m, distance)
-        self.coarse_field = LikelihoodField(prior, cfg.scan_coarse_sigma_m, distance)
+        self.field = LikelihoodField(prior, cfg.sigma_m, distance)
+        self.coarse_field = LikelihoodField(prior, cfg.coarse_sigma_m, distance)
         self.cfg = cfg
-        window_rad, coarse_rad = np.deg2rad(cfg.scan_window_deg), np.deg2rad(cfg.scan_step_deg)
-        self._coarse_grid = _SearchGrid(cfg.scan_window_m, cfg.scan_step_m, window_rad, coarse_rad)
-        self._fine_grid = _SearchGrid(
-            cfg.scan_step_m, cfg.scan_fine_step_m, coarse_rad, np.deg2rad(cfg.scan_fine_step_deg)
-        )
+        window_rad, coarse_rad = np.deg2rad(cfg.window_deg), np.deg2rad(cfg.step_deg)
+        self._coarse_grid = _SearchGrid(cfg.window_m, cfg.step_m, window_rad, coarse_rad)
+        self._fine_grid = _SearchGrid(cfg.step_m, cfg.fine_step_m, coarse_rad, np.deg2rad(cfg.fine_step_deg))
         self._coarse, self._fine = self._coarse_grid.offsets, self._fine_grid.offsets
         self._edge = np.any(np.abs(self._coarse) >= np.abs(self._coarse).max(axis=0), axis=1)
         self._fine_half = np.abs(self._fine).max(axis=0)
-        scale = np.array([cfg.scan_window_m, cfg.scan_window_m, window_rad])
+        scale = np.array([cfg.window_m, cfg.window_m, window_rad])
         self._tie_break = 1e-6 * ((self._coarse / scale) ** 2).sum(axis=1)
         # The coarse grid's quantisation, step² / 12 per axis, is part of the whole window's spread.
-        self._coarse_floor = np.diag([cfg.scan_step_m, cfg.scan_step_m, coarse_rad]) ** 2 / 12.0
-        self._min_cov = np.diag([cfg.scan_min_sigma_m, cfg.scan_min_sigma_m, np.deg2rad(cfg.scan_min_sigma_deg)]) ** 2
+        self._coarse_floor = np.diag([cfg.step_m, cfg.step_m, coarse_rad]) ** 2 / 12.0
+        self._min_cov = np.diag([cfg.min_sigma_m, cfg.min_sigma_m, np.deg2rad(cfg.min_sigma_deg)]) ** 2
 
     def factor_fn(
         self, endpoints: np.ndarray, recentre: int | None = None
@@ -169,8 +167,8 @@ class CorrelativeMatcher:
         on the BIM (field value ≥ 1/2: within 1.18 σ of a face)."""
         cfg = self.cfg
         f = values.astype(np.float32) / np.float32(255.0)
-        scale = cfg.scan_effective_endpoints / max(f.shape[1], cfg.scan_effective_endpoints)
-        log_p = scale * np.log(f + np.float32(cfg.scan_outlier)).sum(axis=1, dtype=np.float64)
+        scale = cfg.effective_endpoints / max(f.shape[1], cfg.effective_endpoints)
+        log_p = scale * np.log(f + np.float32(cfg.outlier)).sum(axis=1, dtype=np.float64)
         return log_p, (f >= np.float32(0.5)).sum(axis=1)
 
     def _search(
@@ -178,18 +176,18 @@ class CorrelativeMatcher:
     ) -> tuple[np.ndarray, np.ndarray]:
         """`log_likelihood` at every pose of a search grid around `pose` (`coarse`: in the smoother field)."""
         field = self.coarse_field if coarse else self.field
-        values = field.grid_values(pose, grid.dxy, grid.dyaw, storey, endpoints, self.cfg.scan_clear_before_m)
+        values = field.grid_values(pose, grid.dxy, grid.dyaw, storey, endpoints, self.cfg.clear_before_m)
         return self.log_likelihood(values)
 
     def _candidates(self, log_c: np.ndarray) -> list[int]:
-        """Indices of the `scan_candidates` best coarse poses, each more than one coarse step from the others."""
+        """Indices of the `candidates` best coarse poses, each more than one coarse step from the others."""
         cfg = self.cfg
-        step = np.array([cfg.scan_step_m, cfg.scan_step_m, np.deg2rad(cfg.scan_step_deg)]) * 1.5
+        step = np.array([cfg.step_m, cfg.step_m, np.deg2rad(cfg.step_deg)]) * 1.5
         picked: list[int] = []
         for i in np.argsort(-log_c):
             if all(np.any(np.abs(self._coarse[i] - self._coarse[j]) > step) for j in picked):
                 picked.append(int(i))
-                if len(picked) == cfg.scan_candidates:
+                if len(picked) == cfg.candidates:
                     break
         return picked
 
@@ -199,10 +197,10 @@ class CorrelativeMatcher:
         pose = np.asarray(pose, np.float64).reshape(3)
         endpoints = np.asarray(endpoints, np.float64).reshape(-1, 2)
         cfg = self.cfg
-        if len(endpoints) < cfg.scan_min_endpoints:
+        if len(endpoints) < cfg.min_endpoints:
             return ScanMatch(pose, np.full((3, 3), np.nan), 0, False, f"{len(endpoints)} endpoints")
         centre = pose
-        for _ in range(1 + (cfg.scan_recentre if recentre is None else recentre)):
+        for _ in range(1 + (cfg.recentre if recentre is None else recentre)):
             coarse = centre + self._coarse
             log_c, _ = self._search(self._coarse_grid, centre, storey, endpoints, coarse=True)
             # Ties (a flat direction: one wall, a corridor) go to the pose nearest the start, not to the window's edge.
@@ -220,7 +218,7 @@ class CorrelativeMatcher:
         else:
             return ScanMatch(pose, np.full((3, 3), np.nan), 0, False, "optimum on the window edge")
         inliers = int(on_wall[np.argmax(log_f)])
-        if inliers < cfg.scan_min_inliers:
+        if inliers < cfg.min_inliers:
             return ScanMatch(pose, np.full((3, 3), np.nan), inliers, False, f"{inliers} endpoints on the BIM")
         mean, _ = _moments(fine, log_f, coarse[best])
         # The peak's curvature (the Laplace approximation) is the covariance; a peak too flat for the fine cells, a

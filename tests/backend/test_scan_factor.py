@@ -1,14 +1,14 @@
-"""Correlative scan matching against the likelihood field of the BIM's faces (registration.correlative)."""
+"""Correlative scan matching against the likelihood field of the BIM's faces (backend.scan_factor)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from bimfactor.backend.scan_factor import CorrelativeMatcher
 from bimfactor.bim.field import LikelihoodField, face_distances
 from bimfactor.bim.prior import BimPrior
-from bimfactor.config import BackendConfig, Config
-from bimfactor.registration.correlative import CorrelativeMatcher
+from bimfactor.config import Config, ScanFactorConfig
 from bimfactor.types import wrap_angle
 from tests.localization.handmade import make_prior
 
@@ -20,8 +20,8 @@ def box() -> BimPrior:
 
 
 @pytest.fixture(scope="module")
-def cfg(test_config: Config) -> BackendConfig:
-    return test_config.backend
+def cfg(test_config: Config) -> ScanFactorConfig:
+    return test_config.backend.scan_factor
 
 
 def cast_scan(prior: BimPrior, pose: np.ndarray, fov_deg: float = 90.0, beam_deg: float = 2.0) -> np.ndarray:
@@ -75,22 +75,22 @@ def test_a_scan_is_not_matched_through_a_wall(box, cfg):
     match = CorrelativeMatcher(box, cfg).match(truth + np.array([0.25, 0.0, 0.0]), 0, scan)
     assert match.accepted, match.reason
     assert abs(match.pose[0] - truth[0]) < 0.04
-    seen_through = LikelihoodField(box, cfg.scan_sigma_m, face_distances(box))
+    seen_through = LikelihoodField(box, cfg.sigma_m, face_distances(box))
     east_face = truth + np.array([0.2 + 0.05, 0.0, 0.0])
     assert seen_through.values(east_face[None], 0, scan).mean() > 0.75 * 255  # without the ray check, about as good
-    assert seen_through.values(east_face[None], 0, scan, cfg.scan_clear_before_m).mean() < 50
+    assert seen_through.values(east_face[None], 0, scan, cfg.clear_before_m).mean() < 50
 
 
 def test_a_scan_counts_at_most_the_effective_endpoints(box, cfg):
-    """Up to `scan_effective_endpoints` endpoints each count once; more share that many: a 40-endpoint scan weighs
+    """Up to `effective_endpoints` endpoints each count once; more share that many: a 40-endpoint scan weighs
     what 20 of its endpoints would, and a 5-endpoint scan is not weighed as if it were 20."""
     matcher = CorrelativeMatcher(box, cfg)
-    n_eff = int(cfg.scan_effective_endpoints)
+    n_eff = int(cfg.effective_endpoints)
     rng = np.random.default_rng(3)
     values = rng.integers(0, 256, size=(4, 2 * n_eff), dtype=np.uint8)
-    plain = np.log(values.astype(np.float32) / np.float32(255.0) + np.float32(cfg.scan_outlier)).sum(axis=1)
+    plain = np.log(values.astype(np.float32) / np.float32(255.0) + np.float32(cfg.outlier)).sum(axis=1)
     few, _ = matcher.log_likelihood(values[:, :5])
-    np.testing.assert_allclose(few, np.log(values[:, :5] / 255.0 + cfg.scan_outlier).sum(axis=1), rtol=1e-5)
+    np.testing.assert_allclose(few, np.log(values[:, :5] / 255.0 + cfg.outlier).sum(axis=1), rtol=1e-5)
     many, on_wall = matcher.log_likelihood(values)
     np.testing.assert_allclose(many, plain / 2.0, rtol=1e-5)
     np.testing.assert_array_equal(on_wall, (values >= 128).sum(axis=1))
@@ -113,13 +113,13 @@ def test_matches_are_rejected_with_the_reason(box, cfg):
 def test_an_optimum_beyond_the_window_is_found_by_searching_again_about_the_edge(box, cfg):
     """The corner seen from 1.1 m and 30° off the start: each search of the ± 0.5 m / ± 18° window ends on its
     edge, and the matcher searches again about that edge pose, `recentre` times at most (`scan_recentre`)."""
-    assert cfg.scan_window_m < 1.1 and cfg.scan_window_deg < 30.0
+    assert cfg.window_m < 1.1 and cfg.window_deg < 30.0
     truth = np.array([4.0, 4.0, np.deg2rad(30.0)])
     scan = cast_scan(box, truth)
     start = truth + np.array([-0.8, -0.75, np.deg2rad(-30.0)])
-    once = CorrelativeMatcher(box, cfg.model_copy(update={"scan_recentre": 0}))
+    once = CorrelativeMatcher(box, cfg.model_copy(update={"recentre": 0}))
     assert once.match(start, 0, scan).reason == "optimum on the window edge"
-    again = CorrelativeMatcher(box, cfg.model_copy(update={"scan_recentre": 2}))
+    again = CorrelativeMatcher(box, cfg.model_copy(update={"recentre": 2}))
     assert again.match(start, 0, scan, recentre=0).reason == "optimum on the window edge"
     match = again.match(start, 0, scan)
     assert match.accepted, match.reason
