@@ -70,17 +70,18 @@ def write_preview(sequence: Sequence, path_png: str | Path, max_frames: int = 12
     depth_max = float(np.percentile(finite, 99)) if finite.size else 1.0
 
     K = sequence.meta.intrinsics
-    panel_h = PANEL_WIDTH_IN * K.height / K.width + 0.3  # room for the title
-    fig = Figure(figsize=(PANEL_WIDTH_IN * columns, panel_h * len(rows)), dpi=DPI)
+    panel_h = PANEL_WIDTH_IN * K.height / K.width + 0.35  # room for the title
+    fig = Figure(figsize=(PANEL_WIDTH_IN * columns, panel_h * len(rows) + 0.9), dpi=DPI, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(len(rows), columns, squeeze=False)
     for row, frame in zip(axes, rows, strict=True):
-        _draw_row(row, frame, depth_max, with_instances)
-    fig.suptitle(f"{sequence.meta.name} ({sequence.meta.source}, {len(sequence)} frames)", fontsize=10)
-    with missing_glyphs_quiet():
-        fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - 0.4 / (panel_h * len(rows))))  # 0.4 in above for the title
-        with atomic_path(path_png) as tmp:
-            fig.savefig(tmp, format="png", dpi=DPI)
+        depth = _draw_row(row, frame, depth_max, with_instances)
+    bar = fig.colorbar(depth, ax=axes[:, 1], orientation="horizontal", fraction=0.4 / (panel_h * len(rows)), pad=0.01)
+    bar.set_label("depth (m); black: no return", fontsize=9)
+    bar.ax.tick_params(labelsize=8)
+    fig.suptitle(f"{sequence.meta.name} ({sequence.meta.source}, {len(sequence)} frames)", fontsize=11)
+    with missing_glyphs_quiet(), atomic_path(path_png) as tmp:
+        fig.savefig(tmp, format="png", dpi=DPI)
     log.info("wrote preview %s (%d frames)", path_png, len(rows))
     return path_png
 
@@ -99,22 +100,28 @@ def panel_image(image: np.ndarray, smooth: bool) -> np.ndarray:
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA if smooth else cv2.INTER_NEAREST)
 
 
-def _draw_row(axes: np.ndarray, frame: Frame, depth_max: float, with_instances: bool) -> None:
-    stamp = f"#{frame.index}  t={frame.timestamp_s:.3f} s"
+def _draw_row(axes: np.ndarray, frame: Frame, depth_max: float, with_instances: bool):
+    """One frame's panels; the depth image (for the sheet's colour bar)."""
     axes[0].imshow(panel_image(np.ascontiguousarray(frame.rgb), smooth=True), interpolation="nearest")
-    axes[0].set_title(f"{stamp}  rgb", fontsize=7)
+    axes[0].set_title(f"frame {frame.index}, t = {frame.timestamp_s:.2f} s", fontsize=9)
     cmap = matplotlib.colormaps["turbo"].with_extremes(bad="black")
     depth = panel_image(np.asarray(frame.depth_m, dtype=np.float32), smooth=False)
-    axes[1].imshow(np.ma.masked_invalid(depth), cmap=cmap, vmin=0.0, vmax=max(depth_max, 1e-3), interpolation="nearest")
-    axes[1].set_title(f"depth 0–{depth_max:.1f} m", fontsize=7)
+    shown = axes[1].imshow(
+        np.ma.masked_invalid(depth), cmap=cmap, vmin=0.0, vmax=max(depth_max, 1e-3), interpolation="nearest"
+    )
+    axes[1].set_title("depth", fontsize=9)
     if with_instances:
         if frame.instance_ids is not None:
             ids = panel_image(np.asarray(frame.instance_ids, dtype=np.int32), smooth=False)
             axes[2].imshow(instance_colours(ids), interpolation="nearest")
-        axes[2].set_title("instances", fontsize=7)
+            n = len(np.unique(frame.instance_ids[frame.instance_ids >= 0]))
+            axes[2].set_title(f"{n} instances, a colour each (black: none)", fontsize=9)
+        else:
+            axes[2].set_title("no instance ids", fontsize=9)
     for ax in axes:
         # No ticks at all: matplotlib places every title above its axes' tick labels, hidden or not, and measuring
         # those took most of the sheet's rendering.
         ax.set_xticks([])
         ax.set_yticks([])
         ax.set_axis_off()
+    return shown

@@ -40,6 +40,13 @@ def test_write_preview(tmp_path: Path) -> None:
     assert 900 <= width <= 1000
     assert 4 * 240 <= height <= 4 * 300 + 100
     assert image.std() > 10  # not a blank canvas
+    # the depth column's colour bar under the last row: dark blue (near) on the left to dark red (far) on the right
+    column = image[-100:, width // 3 : 2 * width // 3].astype(int)  # BGR
+    rows = np.flatnonzero(column.std(axis=2).max(axis=1) > 30)
+    bar = column[rows[-1] - 3]  # the lowest coloured stripe: the bar, below the last depth image
+    span = np.flatnonzero(bar.std(axis=1) > 30)
+    left, right = bar[span[0] + len(span) // 10], bar[span[-1] - len(span) // 10]
+    assert left[0] > left[2] + 50 and right[2] > right[0] + 50
 
     # without instance images: two columns
     frames = make_frames(3)
