@@ -22,17 +22,20 @@ if TYPE_CHECKING:
 
 
 ROOM_LABEL = "room-label"  # the gid of a floor plan's room names, which `drop_colliding_labels` thins
+OBJECT_LABEL = "object-label"  # ... and of its object labels, thinned after the room names
 
 
 def drop_colliding_labels(fig: Figure) -> int:
-    """Hide each room name that would overlap one drawn before it on its axes (names come largest room first), or
-    that lies outside its axes' view; the number hidden. Run once the axes have their final limits."""
+    """Hide each room name, then each object label, that would overlap a label kept before it on its axes (room
+    names come largest room first), or that lies outside its axes' view; the number hidden. Run once the axes have
+    their final limits."""
     renderer = fig.canvas.get_renderer()
     hidden = 0
     for ax in fig.axes:
         view = ax.get_window_extent(renderer)
         placed = []
-        for text in (t for t in ax.texts if t.get_gid() == ROOM_LABEL and t.get_visible()):
+        labels = [t for gid in (ROOM_LABEL, OBJECT_LABEL) for t in ax.texts if t.get_gid() == gid]
+        for text in (t for t in labels if t.get_visible()):
             box = text.get_window_extent(renderer).expanded(1.05, 1.1)
             inside = view.contains(*box.p0) and view.contains(*box.p1)
             if not inside or any(box.overlaps(other) for other in placed):
@@ -132,6 +135,7 @@ def draw_floorplan(
                     color="navy",
                     xytext=(2, 2),
                     textcoords="offset points",
+                    gid=OBJECT_LABEL,
                 )
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")

@@ -53,3 +53,19 @@ def test_room_names_that_would_collide_are_dropped_the_larger_room_kept() -> Non
     assert large.get_visible() and apart.get_visible() and other.get_visible()
     assert not small.get_visible() and not outside.get_visible()
     plt.close(fig)
+
+
+def test_object_labels_give_way_to_room_names_and_to_each_other() -> None:
+    from bimfactor.evaluation.plots import OBJECT_LABEL, ROOM_LABEL, drop_colliding_labels
+
+    fig, ax = plt.subplots(figsize=(4, 4))
+    ax.set_xlim(0, 10)
+    ax.set_ylim(0, 10)
+    chair = ax.annotate("chair", (5.0, 5.0), gid=OBJECT_LABEL)  # drawn before the room name, placed after it
+    room = ax.text(5.0, 5.0, "office", gid=ROOM_LABEL)
+    window = ax.annotate("window", (1.0, 1.0), gid=OBJECT_LABEL)
+    next_window = ax.annotate("window", (1.3, 1.0), gid=OBJECT_LABEL)
+    assert drop_colliding_labels(fig) == 2
+    assert room.get_visible() and window.get_visible()
+    assert not chair.get_visible() and not next_window.get_visible()
+    plt.close(fig)
