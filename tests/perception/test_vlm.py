@@ -214,7 +214,7 @@ def test_localize_without_a_vlm_library_names_setup(
 def test_auto_never_picks_vlm_it_takes_the_shipped_detector(config_overrides, tmp_path: Path) -> None:
     """A recorded sequence without detections runs the shipped detector under auto, even where vlm weights are set
     (missing ones here): vlm is asked for by name, and auto is never an error for lack of weights."""
-    from bimfactor.cli import _perception_source
+    from bimfactor.workflows import _perception_source
 
     class Recorded:
         meta = SequenceMeta("office", "tum", CameraIntrinsics.from_hfov(160, 120, 90.0), np.eye(4))
