@@ -30,7 +30,7 @@ from bimfactor.localization.measurements import FrameData, MeasurementModel
 from bimfactor.localization.measurements.scan import ScanLikelihood
 from bimfactor.localization.measurements.semantic import SemanticLikelihood
 from bimfactor.localization.measurements.text import PlateLikelihood
-from bimfactor.pipeline import GRAPH_VARIANTS, LocalizationRun, Track, _stretches, visibility_of
+from bimfactor.pipeline import GRAPH_VARIANTS, LocalizationRun, Track, _stretches, scan_matcher, visibility_of
 from bimfactor.progress import progress
 from bimfactor.types import Observations
 
@@ -174,7 +174,7 @@ class _Refiner:
         has_scans = any(scan is not None for scan in run.scans)
         measure_fns: list[PoseFactorFn | None] | None = None
         if cfg.backend.scan_factor.enabled and has_scans:
-            matcher = matcher or CorrelativeMatcher(prior, cfg.backend.scan_factor)
+            matcher = matcher or scan_matcher(prior, cfg)
             measure_fns = [None if scan is None else matcher.factor_fn(scan, recentre=0) for scan in run.scans]
         # The filter's measurement models; the scan term wherever the run has scans, as the matcher had them.
         models: list[MeasurementModel] = [

@@ -252,7 +252,7 @@ def refine_files(
         say(f"warning: {skipped} (forward pass)")
     refined = refine_run(run, opened.prior, opened.cfg, matcher, show_progress=True)
     title = f"{opened.sequence.meta.name} refined against {prior_dir}"
-    write_refined(refined, opened.prior, output, opened.cfg.dump_yaml(), title=title, inputs=opened.inputs[:2])
+    write_refined(refined, opened.prior, output, opened.cfg.dump_yaml(), title=title, inputs=[prior_dir, sequence_dir])
     return run, refined
 
 

@@ -27,7 +27,7 @@ from bimfactor.errors import InputError
 from bimfactor.evaluation.metrics import chi2_2dof_quantile
 from bimfactor.evaluation.plots import FURNITURE_RGB, WALL_RGB, room_name
 from bimfactor.io.atomic import atomic_path
-from bimfactor.types import se2_compose
+from bimfactor.registration.icp import scan_in_world
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -82,13 +82,6 @@ def ellipse_outline(pose: np.ndarray, covariance: np.ndarray, p: float = ELLIPSE
     radii = np.sqrt(chi2_2dof_quantile(p) * np.clip(values, 0.0, None))
     t = np.linspace(0.0, 2 * np.pi, n + 1)
     return np.asarray(pose[:2]) + (np.column_stack([np.cos(t), np.sin(t)]) * radii) @ vectors.T
-
-
-def place(pose: np.ndarray, xy_base: np.ndarray) -> np.ndarray:
-    """(N, 2) world positions of (N, 2) base-frame points seen from a (3,) world pose."""
-    xy_base = np.asarray(xy_base, np.float64).reshape(-1, 2)
-    local = np.column_stack([xy_base, np.zeros(len(xy_base))])
-    return se2_compose(np.broadcast_to(pose, local.shape), local)[:, :2]
 
 
 def log_prior(rec: Any, rr: ModuleType, prior: BimPrior, storey: int) -> None:
@@ -175,7 +168,7 @@ class RunRecorder:
         best = out.graph.best if out.graph is not None else None
         pose = out.pose if best is None else best.pose
         ranges, bearings = seen.measurements()
-        nodes = place(pose, np.column_stack([ranges * np.cos(bearings), ranges * np.sin(bearings)]))
+        nodes = scan_in_world(np.column_stack([ranges * np.cos(bearings), ranges * np.sin(bearings)]), pose)
         labels = list(seen.labels) + (list(seen.texts.texts) if seen.texts is not None else [])
         self.rec.log("world/scene_graph", rr.Points3D(_xyz(nodes, 0.5), labels=labels, radii=0.12))
         if best is not None:
@@ -185,12 +178,12 @@ class RunRecorder:
             self.rec.log("world/scene_graph/matches", rr.LineStrips3D(lines, colors=_rgb8(MODE_RGB)))
         scan = None
         if key.scan is not None:
-            scan = rr.Points3D(_xyz(place(out.pose, key.scan), 0.05), radii=0.03)
+            scan = rr.Points3D(_xyz(scan_in_world(key.scan, out.pose), 0.05), radii=0.03)
         self._log_or_clear("world/scan", scan)
         icp = None
         if out.fine is not None and out.fine.registration is not None and key.points is not None:
             base = key.points.base[:: max(1, len(key.points.base) // MAX_ICP_POINTS)]
-            registered = np.column_stack([place(out.fine.pose, base[:, :2]), base[:, 2]])
+            registered = np.column_stack([scan_in_world(base, out.fine.pose), base[:, 2]])
             accepted = to_rgb("tab:blue" if out.fine.accepted else "tab:gray")
             icp = rr.Points3D(registered, colors=_rgb8(accepted), radii=0.02)
         self._log_or_clear("world/icp", icp)
