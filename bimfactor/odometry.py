@@ -5,9 +5,10 @@ draws odometry with that noise (`sim.sensors`), and by the back end, whose odome
 (`backend.factors`); the localizer's motion model applies the increments (`localization.motion`).
 
 The S-MCL motion model's noise does not scale with the length of the increment, so a filter step is a keyframe,
-taken every `localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn (`keyframe_due`): the
-simulator records at that spacing, `bimfactor convert` keeps a recording's frames at it (`keyframe_indices`), and a
-live feed should step the localizer at it. Stepping every camera frame would add σ_trans of noise per frame.
+taken every `localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn of the odometry
+(`keyframe_due`): the localizer keeps the keyframes of the frames it is given (`Localizer.due`), the simulator
+records at that spacing of its wheel odometry, and `bimfactor convert` keeps a recording's keyframes
+(`keyframe_indices`). Stepping every camera frame would add σ_trans of noise per frame.
 """
 
 from __future__ import annotations
@@ -36,22 +37,6 @@ def keyframe_indices(poses: np.ndarray, distance_m: float, angle_rad: float) -> 
         if keyframe_due(poses[kept[-1]], poses[i], distance_m, angle_rad):
             kept.append(i)
     return np.asarray(kept, np.int64)
-
-
-def dense_steps_note(odometry: np.ndarray, distance_m: float, angle_rad: float) -> str | None:
-    """A warning when (N, 3) odometry poses lie much closer than keyframes (median travel below half of
-    `distance_m` and median turn below half of `angle_rad`), else None: every such frame adds a step's motion noise."""
-    odometry = np.asarray(odometry, np.float64).reshape(-1, 3)
-    if len(odometry) < 3:
-        return None
-    travel = float(np.median(np.hypot(*np.diff(odometry[:, :2], axis=0).T)))
-    turn = float(np.median(np.abs(wrap_angle(np.diff(odometry[:, 2])))))
-    if travel >= distance_m / 2 or turn >= angle_rad / 2:
-        return None
-    return (
-        f"its frames are {travel:.2f} m / {math.degrees(turn):.1f}° apart (median), but each step adds the motion "
-        f"model's noise, made for keyframes every {distance_m:g} m or {math.degrees(angle_rad):g}°"
-    )
 
 
 def odometry_increment(odom_prev: np.ndarray, odom_curr: np.ndarray) -> np.ndarray:

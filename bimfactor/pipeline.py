@@ -69,7 +69,7 @@ from bimfactor.localization.stats import (
     near_pose,
     weighted_geometric_median,
 )
-from bimfactor.odometry import odometry_increment
+from bimfactor.odometry import keyframe_due, odometry_increment
 from bimfactor.perception.base import Detection, TextReading
 from bimfactor.perception.detections import DetectionsTable
 from bimfactor.perception.ocr import plate_columns
@@ -494,11 +494,14 @@ class Localizer:
             self.backend = MultiHypothesisBackend.from_prior(self.prior, self.cfg.backend, self.cfg.odometry)
         self._recent.clear()
 
-    def step(self, frame: Frame) -> LocalizerStep:
-        """One frame through the variant's fixed chain: the keyframe (odometry, depth checks, perception, scan), the
-        filter, then the variant's stages (`_stages`: the back end, the fine stage, the output choice, the twin
-        check, the submap). An implausible frame (`FrameSkip`: unusable depth, an odometry jump) is skipped: the
-        filter only predicts, by the odometry increment or, across a jump, the previous step's."""
+    def step(self, frame: Frame) -> LocalizerStep | None:
+        """One camera frame: None unless it is a keyframe (`due`); a keyframe goes through the variant's fixed chain:
+        the keyframe (odometry, depth checks, perception, scan), the filter, then the variant's stages (`_stages`:
+        the back end, the fine stage, the output choice, the twin check, the submap). An implausible keyframe
+        (`FrameSkip`: unusable depth, an odometry jump) is skipped: the filter only predicts, by the odometry
+        increment or, across a jump, the previous step's."""
+        if not self.due(frame):
+            return None
         key = self.keyframe(frame)
         filtered = self.filter.step(key.increment, key.seen, key.scan)
         self._converged, self._suggestion = filtered.converged, None
@@ -506,6 +509,19 @@ class Localizer:
         for stage in self._stages:
             stage(key, out)
         return out
+
+    def due(self, frame: Frame) -> bool:
+        """Whether `frame` is a keyframe: the first, or one whose odometry has moved `localization.keyframe_distance_m`
+        or turned `keyframe_angle_deg` since the last keyframe (`odometry.keyframe_due`; AMCL's update_min_d and
+        update_min_a). The motion model's noise is per step, so a step at every camera frame would pile it up; the
+        frames between keyframes bring nothing the next keyframe's increment does not carry. A frame without a
+        finite odometry pose is due, for `keyframe` to refuse."""
+        raw = np.asarray(frame.odom_pose, float)
+        if self._last_odom is None or not np.all(np.isfinite(raw)):
+            return True
+        odom = raw if self._odom_offset is None else se2_compose(self._odom_offset, raw)
+        steps = self.cfg.localization
+        return keyframe_due(self._believed_odom, odom, steps.keyframe_distance_m, np.deg2rad(steps.keyframe_angle_deg))
 
     def keyframe(self, frame: Frame) -> Keyframe:
         """Derive what every stage reads from one frame, once: the odometry step and its checks, the depth checks, the
@@ -840,11 +856,16 @@ def localize_sequence(
     if 0 in snapshot_steps:
         snapshots[-1] = (localizer.filter.particles.copy(), localizer.filter.weights.copy())
     iterator = progress(frames, desc=f"localize ({localizer.variant})", unit="frame") if show_progress else frames
-    for i, frame in enumerate(iterator):
-        rows.append(localizer.step(frame))
-        if i in snapshot_steps:
-            snapshots[i] = (localizer.filter.particles.copy(), localizer.filter.weights.copy())
-    run = localizer.run_of(frames, rows, snapshots)
+    keyframes: list[Frame] = []
+    for frame in iterator:
+        step = localizer.step(frame)
+        if step is None:
+            continue
+        keyframes.append(frame)
+        rows.append(step)
+        if len(rows) - 1 in snapshot_steps:
+            snapshots[len(rows) - 1] = (localizer.filter.particles.copy(), localizer.filter.weights.copy())
+    run = localizer.run_of(keyframes, rows, snapshots)
     if rows and all(step.skipped is not None for step in rows):
         raise InputError(f"sequence {meta.name}: no frame could be used, {skipped_frames_note(run)}")
     run.suggestion = localizer.suggest() if suggest else None

@@ -110,10 +110,7 @@ def convert_recording(
         sequence = sequence.subset(
             keyframe_indices(odometry_poses, steps.keyframe_distance_m, math.radians(steps.keyframe_angle_deg))
         )
-        kept = (
-            f"{len(sequence)} keyframes of {recorded} frames (every {steps.keyframe_distance_m:g} m or "
-            f"{steps.keyframe_angle_deg:g}° of odometry)"
-        )
+        kept = _keyframes_note(len(sequence), recorded, cfg)
     else:
         kept = f"{recorded} frames" + ("" if odometry_poses is not None else " (no odometry: every frame kept)")
     with output_dir(output, "sequence", inputs=[source], replace=overwrite) as folder:
@@ -217,7 +214,7 @@ def localize_files(
     opened = _open_run(prior_dir, sequence_dir, output, cfg, detections, force, rerun, say)
     n = len(opened.sequence)
     snapshot_steps = sorted({0, n // 10, n // 4, n // 2, n - 1})
-    run = _localize(opened, seed, rerun, snapshot_steps=snapshot_steps, suggest=suggest)
+    run = _localize(opened, seed, rerun, say, snapshot_steps=snapshot_steps, suggest=suggest)
     title = f"{opened.sequence.meta.name} against {prior_dir}"
     return run, write_run(run, opened.prior, output, opened.cfg.dump_yaml(), title=title, inputs=opened.inputs)
 
@@ -246,7 +243,7 @@ def refine_files(
         )
     opened = _open_run(prior_dir, sequence_dir, output, cfg, detections, force, rerun, say)
     matcher = scan_matcher(opened.prior, opened.cfg)
-    run = _localize(opened, seed, rerun, matcher=matcher)
+    run = _localize(opened, seed, rerun, say, matcher=matcher)
     skipped = skipped_frames_note(run)
     if skipped is not None:
         say(f"warning: {skipped} (forward pass)")
@@ -292,36 +289,32 @@ def _open_run(
     _check_building(sequence.meta, prior, force, say)
     cfg, table, perception_line = _perception_source(cfg, sequence, sequence_dir, detections, prior)
     say(perception_line)
-    _warn_dense_steps(sequence, sequence_dir, cfg, say)
     return _Opened(prior, sequence, cfg, table, inputs)
 
 
-def _localize(opened: _Opened, seed: int | None, rerun: Path | None, **options: Any) -> LocalizationRun:
+def _localize(opened: _Opened, seed: int | None, rerun: Path | None, say: Say, **options: Any) -> LocalizationRun:
     """`localize_sequence` over the opened run with the seed (None: the config's), recorded into the Rerun recording
-    `rerun` when one is asked for."""
+    `rerun` when one is asked for; says how many of the frames were keyframes when not all were."""
     from bimfactor.evaluation.viewer import maybe_record
     from bimfactor.pipeline import localize_sequence
 
     cfg, sequence = opened.cfg, opened.sequence
     with maybe_record(rerun, opened.prior, sequence.meta.name) as recorder:
-        return localize_sequence(
+        run = localize_sequence(
             opened.prior, sequence.meta, sequence, cfg, cfg.seed if seed is None else seed,
             detections=opened.detections, observer=recorder, **options,
         )  # fmt: skip
+    if len(run.timestamps_s) < len(sequence):
+        say(_keyframes_note(len(run.timestamps_s), len(sequence), cfg))
+    return run
 
 
-def _warn_dense_steps(sequence: Any, path: Path, cfg: Any, say: Say) -> None:
-    """One warning line when a sequence's frames are much closer than the localizer's keyframes."""
-    from bimfactor.odometry import dense_steps_note
-
-    odometry, steps = sequence.odometry(), cfg.localization
-    note = (
-        None
-        if odometry is None
-        else dense_steps_note(odometry, steps.keyframe_distance_m, math.radians(steps.keyframe_angle_deg))
+def _keyframes_note(kept: int, recorded: int, cfg: Config) -> str:
+    steps = cfg.localization
+    return (
+        f"{kept} keyframes of {recorded} frames (every {steps.keyframe_distance_m:g} m or "
+        f"{steps.keyframe_angle_deg:g}° of odometry)"
     )
-    if note is not None:
-        say(f"warning: {path}: {note}; 'bimfactor convert sequence {path} -o OUT' keeps the keyframes")
 
 
 def _check_building(meta: Any, prior: BimPrior, force: bool, say: Say) -> None:

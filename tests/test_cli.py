@@ -16,6 +16,7 @@ import yaml
 
 from bimfactor.config import load_config
 from bimfactor.io.sequence import read_sequence, write_sequence
+from bimfactor.odometry import keyframe_indices
 from tests.cli import assert_one_line_error, invoke
 
 PRIOR_FILES = ("prior.json", "arrays.npz", "config.yaml", "floorplan_0.png")
@@ -581,16 +582,20 @@ def test_refine_writes_the_refined_run(demo_prior: Path, short_sequence: Path, t
     assert load_config(out / "config.yaml").localization.variant == "smcl+graph"
 
 
-def test_localize_warns_when_frames_are_much_closer_than_keyframes(
+def test_localize_keeps_the_keyframes_of_frames_closer_than_its_spacing(
     demo_prior: Path, short_sequence: Path, tmp_path: Path
 ) -> None:
-    """The sequence's 0.5 m / 15° keyframes are dense for a localizer configured for steps every 2 m or 60°."""
+    """The sequence's 0.5 m / 15° keyframes are dense for a localizer configured for steps every 2 m or 60°: it steps
+    at the frames its odometry rule keeps, and says how many."""
     spacing = ["--set", "localization.keyframe_distance_m=2", "--set", "localization.keyframe_angle_deg=60"]
     result = invoke("localize", demo_prior, short_sequence, "-o", tmp_path / "run", *spacing)
     assert result.exit_code == 0, result.output
-    warning = result.stderr.strip()
-    assert warning.startswith(f"warning: {short_sequence}: its frames are 0.") and "\n" not in warning
-    assert "keyframes every 2 m or 60°" in warning and f"convert sequence {short_sequence} -o OUT" in warning
+    frames = read_sequence(short_sequence)
+    want = keyframe_indices(np.array([f.odom_pose for f in frames]), 2.0, np.radians(60.0))
+    assert 1 < len(want) < len(frames)
+    assert f"{len(want)} keyframes of {len(frames)} frames (every 2 m or 60° of odometry)" in result.stdout
+    estimate = np.loadtxt(tmp_path / "run/estimate.txt")
+    np.testing.assert_allclose(estimate[:, 0], [frames[i].timestamp_s for i in want])
 
 
 def test_localize_moves_a_belief_started_in_the_look_alike_room_next_door(

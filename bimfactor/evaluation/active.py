@@ -40,9 +40,8 @@ from bimfactor.pipeline import (
     localize_sequence,
     scan_matcher,
 )
-from bimfactor.sim.sensors import RgbdCamera, simulate_odometry
+from bimfactor.sim.sensors import RgbdCamera
 from bimfactor.sim.simulate import (
-    ODOMETRY_STREAM,
     SENSOR_STREAM,
     build_world,
     load_world_inputs,
@@ -65,26 +64,20 @@ class _Steer:
     camera: RgbdCamera
     elevation_m: float
     storey: int
-    alpha: list[float]
-    odometry_rng: np.random.Generator
     sensor_rng: np.random.Generator
     frames: list[Frame] = field(default_factory=list)
     rows: list[LocalizerStep] = field(default_factory=list)
     goals: list[dict] = field(default_factory=list)
     first_suggestion: int | None = None
 
-    def on_keyframe(self, pose: np.ndarray, time_s: float, following: bool) -> np.ndarray | None:
-        if self.frames:
-            previous = self.frames[-1]
-            increment = simulate_odometry(np.stack([previous.gt_pose, pose]), self.alpha, self.odometry_rng)[1]
-            odom = se2_compose(previous.odom_pose, increment)
-        else:
-            odom = np.zeros(3)
+    def on_keyframe(self, pose: np.ndarray, odom: np.ndarray, time_s: float, following: bool) -> np.ndarray | None:
         frame = render_frame(
             self.camera, len(self.frames), float(time_s), pose, odom, self.storey, self.elevation_m, self.sensor_rng
         )
+        step = self.localizer.step(frame)  # the drive takes keyframes by the localizer's own rule: never None
+        assert step is not None, f"keyframe {frame.index} is no keyframe to the localizer"
         self.frames.append(frame)
-        self.rows.append(self.localizer.step(frame))
+        self.rows.append(step)
         if not following:
             return self._next_goal()
         # On the way: once nothing is to be told apart any more (one place holds the belief, or it converged, or it
@@ -139,8 +132,6 @@ def active_route(
         camera,
         prior.storeys[storey].storey.elevation_m,
         storey,
-        list(cfg.odometry.alpha),
-        np.random.default_rng([cfg.seed, trajectory, ODOMETRY_STREAM]),
         np.random.default_rng([cfg.seed, trajectory, SENSOR_STREAM]),
     )
     sim.trajectory(trajectory, cfg.seed, steer=steer)

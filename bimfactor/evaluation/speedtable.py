@@ -116,7 +116,7 @@ def real_perception_rows(cfg: Config, building: str, prior, frames, meta, seed: 
     frames = [dataclasses.replace(f, instance_ids=None) for f in frames]
     localizer = Localizer(prior, recording, updated(cfg, {"localization.variant": "full"}), seed)
     steps = [localizer.step(frame) for frame in frames]
-    used = [s for s in steps if s.skipped is None]
+    used = [s for s in steps if s is not None and s.skipped is None]
     total = np.array([s.perception_ms - s.perception_parts[DEPTH_PART] for s in used])
     names = [name for name in used[0].perception_parts if name != DEPTH_PART]
     parts = {name: np.array([s.perception_parts[name] for s in used]) for name in names}

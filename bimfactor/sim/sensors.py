@@ -8,6 +8,7 @@ ambient light, plus Gaussian noise. Odometry follows the odometry motion model o
 
 from __future__ import annotations
 
+import itertools
 from typing import NamedTuple
 
 import numpy as np
@@ -16,7 +17,7 @@ from scipy import special
 from bimfactor.config import CameraSimConfig, Config, DepthDropoutConfig, DepthSigmaConfig
 from bimfactor.odometry import odometry_increment_variances, odometry_increments
 from bimfactor.sim.world import SimWorld
-from bimfactor.types import CameraIntrinsics, se2_to_matrix, wrap_angle
+from bimfactor.types import CameraIntrinsics, se2_compose, se2_to_matrix, wrap_angle
 
 # Camera axes (OpenCV: x right, y down, z forward) in the base frame (x forward, y left, z up), pitch 0.
 R_BASE_CAMERA_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -162,19 +163,34 @@ def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------ wheel odometry
 
 
-def simulate_odometry(gt_poses: np.ndarray, alpha: list[float] | np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Wheel odometry T_odom_base (N, 3) for ground-truth poses (N, 3): noisy increments accumulated from (0, 0, 0).
+class WheelOdometry:
+    """Wheel odometry along one drive, read between keyframes (sample_motion_model_odometry, α1..α4).
 
-    Each increment between consecutive poses is perturbed by sample_motion_model_odometry (α1..α4).
-    """
-    increments = odometry_increments(gt_poses)
-    sigma = np.sqrt(odometry_increment_variances(increments, alpha))
-    noisy = increments - sigma * rng.standard_normal(increments.shape)
-    rot1, trans, rot2 = noisy.T
-    heading = np.concatenate([[0.0], np.cumsum(rot1 + rot2)])
-    direction = heading[:-1] + rot1
-    odom = np.zeros((len(increments) + 1, 3))
-    odom[1:, 0] = np.cumsum(trans * np.cos(direction))
-    odom[1:, 1] = np.cumsum(trans * np.sin(direction))
-    odom[:, 2] = wrap_angle(heading)
-    return odom
+    The noise of the increment since the last keyframe is drawn once per keyframe and scales with the increment as
+    it grows, so a robot can take its keyframes on what its odometry reads, as a real one does, and each keyframe's
+    increment carries the model's noise. `pose` is T_odom_base at the last keyframe, from (0, 0, 0)."""
+
+    def __init__(self, alpha: list[float] | np.ndarray, rng: np.random.Generator) -> None:
+        self.alpha, self.rng = alpha, rng
+        self.pose = np.zeros(3)
+        self._draw = rng.standard_normal(3)
+
+    def read(self, last: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """(3,) dx, dy, dyaw the odometry reads since the keyframe at the true pose `last`, the robot now at `pose`."""
+        increment = odometry_increments(np.stack([last, pose]))
+        sigma = np.sqrt(odometry_increment_variances(increment, self.alpha))
+        rot1, trans, rot2 = (increment - sigma * self._draw)[0]
+        return np.array([trans * np.cos(rot1), trans * np.sin(rot1), wrap_angle(rot1 + rot2)])
+
+    def take(self, last: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """A keyframe at the true `pose`: its (3,) odometry pose; the next keyframe's noise is drawn."""
+        self.pose = se2_compose(self.pose, self.read(last, pose))
+        self._draw = self.rng.standard_normal(3)
+        return self.pose
+
+
+def simulate_odometry(gt_poses: np.ndarray, alpha: list[float] | np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Wheel odometry T_odom_base (N, 3) at ground-truth keyframe poses (N, 3): `WheelOdometry` from (0, 0, 0)."""
+    wheels = WheelOdometry(alpha, rng)
+    poses = np.asarray(gt_poses, float)
+    return np.array([np.zeros(3)] + [wheels.take(a, b).copy() for a, b in itertools.pairwise(poses)])

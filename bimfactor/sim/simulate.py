@@ -18,7 +18,7 @@ from bimfactor.bim.prior import BimPrior, source_model
 from bimfactor.config import Config, load_config
 from bimfactor.errors import InputError
 from bimfactor.progress import progress as progress_bar
-from bimfactor.sim.sensors import RgbdCamera, simulate_odometry
+from bimfactor.sim.sensors import RgbdCamera
 from bimfactor.sim.trajectory import SimTrajectory, TrajectorySimulator
 from bimfactor.sim.world import SimWorld
 from bimfactor.types import Frame, SequenceMeta, se2_between, se2_compose
@@ -26,7 +26,7 @@ from bimfactor.types import Frame, SequenceMeta, se2_between, se2_compose
 log = logging.getLogger(__name__)
 
 # Independent random streams of one (seed, trajectory): the world is shared by all trajectories of a seed.
-WORLD_STREAM, ODOMETRY_STREAM, SENSOR_STREAM = 0x3D, 0x0D0, 0x5E5
+WORLD_STREAM, SENSOR_STREAM = 0x3D, 0x5E5
 ODOMETRY_STEP = "keyframe"  # the odometry motion model is applied to the increments between keyframes
 
 
@@ -70,9 +70,7 @@ def simulate_sequence(
     """
     world = world if world is not None else build_world(prior, model, cfg, seed)
     trajectory = TrajectorySimulator(prior, cfg, world_obstacles(prior, world, cfg)).trajectory(trajectory_index, seed)
-    gt = trajectory.keyframe_poses
-    odometry_rng = np.random.default_rng([seed, trajectory_index, ODOMETRY_STREAM])
-    odom = simulate_odometry(gt, cfg.odometry.alpha, odometry_rng)
+    gt, odom = trajectory.keyframe_poses, trajectory.odometry
     camera = RgbdCamera.from_config(world, cfg)
     sensor_rng = np.random.default_rng([seed, trajectory_index, SENSOR_STREAM])
     storey = trajectory.storey_index

@@ -3,7 +3,8 @@
 The robot drives on a storey's indoor free space along paths planned on the BIM's navigation graph
 (`bim.navigation`: Dijkstra on 0.2 m blocks, shortcut at full resolution). A unicycle pure-pursuit controller
 with the robot's speed and turn-rate limits follows them; a keyframe is taken every
-`localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn (`odometry.keyframe_due`), and a
+`localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn that the wheel odometry reads
+(`odometry.keyframe_due` on `sim.sensors.WheelOdometry`, as the localizer's own keyframe rule sees it), and a
 trajectory has exactly T keyframes: when a goal is reached first, a next goal in another room is chosen.
 
 Routes (`sim.trajectory.route`): `viewpoints` (the default) starts and stops where at least
@@ -28,6 +29,7 @@ from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config, load_config
 from bimfactor.errors import BimfactorError, InputError
 from bimfactor.odometry import keyframe_due
+from bimfactor.sim.sensors import WheelOdometry
 from bimfactor.types import wrap_angle
 
 log = logging.getLogger(__name__)
@@ -45,6 +47,7 @@ LEG_TIME_FACTOR = 4.0  # a leg that takes this many times its nominal duration i
 MAX_LEGS_PER_STEP = 5  # a trajectory needing more legs than this per keyframe is stuck
 _START_ORDER_STREAM = 0x57A7
 _TRAJECTORY_STREAM = 0x7A1
+ODOMETRY_STREAM = 0x0D0
 
 
 class SimulationError(BimfactorError):
@@ -56,7 +59,8 @@ class SimTrajectory:
     """Ground truth of one simulated drive on one storey.
 
     `poses` (K, 3) T_world_base at `times_s` (K,), every control step; `commands` (K, 2) the (v, ω) commanded
-    from times_s[i] to times_s[i+1] (the last is zero); `keyframe_indices` (T,) the steps where frames are taken.
+    from times_s[i] to times_s[i+1] (the last is zero); `keyframe_indices` (T,) the steps where frames are taken;
+    `odometry` (T, 3) the wheel odometry's T_odom_base at them (`sim.sensors.WheelOdometry`).
     """
 
     index: int
@@ -66,6 +70,7 @@ class SimTrajectory:
     poses: np.ndarray
     commands: np.ndarray
     keyframe_indices: np.ndarray
+    odometry: np.ndarray
     goals: list[dict] = field(default_factory=list)
 
     @property
@@ -85,10 +90,10 @@ class Steering(Protocol):
     """Closes the loop around a drive (`TrajectorySimulator.trajectory(..., steer=)`): a localizer that sees each
     keyframe as it is taken and may send the robot to a goal of its own."""
 
-    def on_keyframe(self, pose: np.ndarray, time_s: float, following: bool) -> np.ndarray | None:
-        """A keyframe at the true (3,) pose: a goal (3,) x, y, yaw in the world to drive to now (in place of the last
-        one; the pose itself: give the last one up), or None to drive on. `following`: the robot is on its way to the
-        last goal given."""
+    def on_keyframe(self, pose: np.ndarray, odom: np.ndarray, time_s: float, following: bool) -> np.ndarray | None:
+        """A keyframe at the true (3,) pose, where the wheel odometry reads `odom` (3,): a goal (3,) x, y, yaw in the
+        world to drive to now (in place of the last one; the pose itself: give the last one up), or None to drive on.
+        `following`: the robot is on its way to the last goal given."""
 
     def on_arrival(self) -> np.ndarray | None:
         """The robot reached the last goal given: the next one, or None to go on with the route."""
@@ -194,7 +199,8 @@ class TrajectorySimulator:
             near = candidates[to_other[candidates] <= np.quantile(to_other[candidates], 0.1)]
         near = self.viewpoints(storey, near)
         start_node = int(near[rng.integers(len(near))])
-        driver = _Driver(self, graph, rng, steps, steer)
+        wheels = WheelOdometry(self.cfg.odometry.alpha, np.random.default_rng([seed, index, ODOMETRY_STREAM]))
+        driver = _Driver(self, graph, rng, wheels, steps, steer)
         driver.run(start_node, rooms)
         return SimTrajectory(
             index=index,
@@ -204,6 +210,7 @@ class TrajectorySimulator:
             poses=np.asarray(driver.poses),
             commands=np.asarray(driver.commands),
             keyframe_indices=np.asarray(driver.keyframes, np.int64),
+            odometry=np.asarray(driver.odometry),
             goals=driver.goals,
         )
 
@@ -216,10 +223,11 @@ class _Driver:
         sim: TrajectorySimulator,
         graph: NavGraph,
         rng: np.random.Generator,
+        wheels: WheelOdometry,
         steps: int,
         steer: Steering | None = None,
     ) -> None:
-        self.sim, self.graph, self.rng, self.steps, self.steer = sim, graph, rng, steps, steer
+        self.sim, self.graph, self.rng, self.wheels, self.steps, self.steer = sim, graph, rng, wheels, steps, steer
         self.redirect: np.ndarray | None = None  # a goal the steering sent, not yet driven to
         self.following = False
         robot, tcfg, steps_cfg = sim.cfg.sim.robot, sim.cfg.sim.trajectory, sim.cfg.localization
@@ -233,6 +241,7 @@ class _Driver:
         self.poses: list[tuple[float, float, float]] = []
         self.commands: list[tuple[float, float]] = []
         self.keyframes: list[int] = []
+        self.odometry: list[np.ndarray] = []  # the wheel odometry's pose at each keyframe
         self.goals: list[dict] = []
 
     def run(self, start_node: int, rooms: list[int]) -> None:
@@ -390,16 +399,20 @@ class _Driver:
         return v, v * curvature
 
     def _is_keyframe(self, pose) -> bool:
-        return keyframe_due(self.poses[self.keyframes[-1]], pose, self.kf_distance, self.kf_angle)
+        """Whether the wheel odometry has moved or turned a keyframe's worth since the last keyframe."""
+        reading = self.wheels.read(np.asarray(self.poses[self.keyframes[-1]]), np.asarray(pose))
+        return keyframe_due(np.zeros(3), reading, self.kf_distance, self.kf_angle)
 
     def _log(self, pose, keyframe: bool) -> None:
         self.times.append(len(self.times) * self.dt)
         self.poses.append(pose)
         self.commands.append((0.0, 0.0))
         if keyframe:
+            last = np.asarray(self.poses[self.keyframes[-1]]) if self.keyframes else None
+            self.odometry.append(np.zeros(3) if last is None else self.wheels.take(last, np.asarray(pose)).copy())
             self.keyframes.append(len(self.poses) - 1)
             if self.steer is not None:
-                goal = self.steer.on_keyframe(np.array(pose), self.times[-1], self.following)
+                goal = self.steer.on_keyframe(np.array(pose), self.odometry[-1], self.times[-1], self.following)
                 if goal is not None:
                     self.redirect = np.asarray(goal, float)
 

@@ -8,7 +8,6 @@ import pytest
 
 from bimfactor.localization.motion import propagate, propagate_velocity, velocity_increment
 from bimfactor.odometry import (
-    dense_steps_note,
     keyframe_due,
     keyframe_indices,
     odometry_covariance,
@@ -121,15 +120,3 @@ def test_keyframes_every_distance_or_turn_from_the_last_kept():
     assert keyframe_indices(np.zeros((0, 3)), 0.5, turn).shape == (0,)
     assert not keyframe_due(poses[7], poses[8], 0.5, turn)
     assert keyframe_due(poses[7], poses[8], 0.5, np.deg2rad(11.0))
-
-
-def test_frames_much_closer_than_keyframes_get_a_note():
-    turn = np.deg2rad(15.0)
-    t = np.arange(20.0)
-    creeping = np.column_stack([0.05 * t, np.zeros(20), np.deg2rad(1.0) * t])
-    note = dense_steps_note(creeping, 0.5, turn)
-    assert note is not None and note.startswith("its frames are 0.05 m / 1.0° apart (median)")
-    assert "keyframes every 0.5 m or 15°" in note
-    assert dense_steps_note(creeping * [10.0, 1.0, 1.0], 0.5, turn) is None  # 0.5 m apart
-    assert dense_steps_note(creeping * [1.0, 1.0, 10.0], 0.5, turn) is None  # turning 10° a frame
-    assert dense_steps_note(creeping[:2], 0.5, turn) is None  # too few frames to say
