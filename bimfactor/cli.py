@@ -109,7 +109,6 @@ bench_app = typer.Typer(
 app.add_typer(bench_app, name="bench")
 
 DEFAULT_DEMO_OUT = Path("runs/demo")
-DEFAULT_BENCH_PRIOR_OUT = Path("runs/bench-prior")
 DEFAULT_PRIOR_ROOT = Path("runs/prior")
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 SIGPIPE_EXIT = 141  # 128 + SIGPIPE, what a shell reports for `yes | head`
@@ -390,7 +389,7 @@ def main(
       bimfactor demo
       bimfactor synth --preset office --seed 3 -o office.ifc
       bimfactor prior model.ifc -o runs/prior/model
-      bimfactor bench prior
+      bimfactor bench speed
     """
 
 
@@ -691,96 +690,6 @@ def view(
 
 
 # ------------------------------------------------------------------------------------------ bench
-
-
-@bench_app.command("prior", short_help="Time cold build, save and reload of the prior on real IFC files.")
-def bench_prior(
-    ifc: Annotated[
-        list[Path] | None,
-        typer.Option(
-            "--ifc",
-            metavar="PATH",
-            help="IFC file to benchmark (repeatable; default: AC11-Institute-Var-2-IFC.ifc from ../shared).",
-        ),
-    ] = None,
-    output: Annotated[
-        Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")
-    ] = DEFAULT_BENCH_PRIOR_OUT,
-    repeats: Annotated[
-        int, typer.Option("--repeats", min=1, metavar="N", help="Timed reloads per prior (median).")
-    ] = 5,
-    all_buildings: Annotated[
-        bool, typer.Option("--all", help="Every IFC building in ../shared/data/ifc instead of the default one.")
-    ] = False,
-    config: ConfigOption = None,
-    overrides: SetOption = None,
-    verbose: VerboseOption = False,
-    debug: DebugOption = False,
-) -> None:
-    """Time the offline stage: a cold build (empty geometry cache), save, and reload of each prior.
-
-    Writes OUT/results.json, OUT/config.yaml and each prior under OUT/priors/<IFC name>/.
-    The text encoder is loaded once before timing; its load time is reported on its own.
-
-    \b
-    Examples:
-      bimfactor bench prior
-      bimfactor bench prior --all
-      bimfactor bench prior --ifc ../shared/data/ifc/duplex.ifc --ifc ../shared/data/ifc/SampleHouse4.ifc
-    """
-    with _cli_errors(debug):
-        cfg = _start(config, overrides, verbose)
-        from bimfactor.evaluation.bench import default_prior_bench_files, format_prior_table, run_prior_bench
-
-        files = list(ifc) if ifc else default_prior_bench_files(all_buildings)
-        with _bench_dir(output, *files):
-            result = run_prior_bench(files, cfg, output, reload_repeats=repeats)
-        typer.echo(format_prior_table(result.rows))
-        typer.echo(f"text encoder load (once, not in the builds): {result.embedder_load_s:.1f} s")
-        typer.echo(f"results: {output / 'results.json'}")
-
-
-@bench_app.command("sim", short_help="Render speed of the RGB-D simulator (frames/s at the configured size).")
-def bench_sim(
-    ifc: Annotated[
-        list[Path] | None,
-        typer.Option("--ifc", metavar="PATH", help="IFC file (repeatable; default: paper-floor and duplex.ifc)."),
-    ] = None,
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-sim"
-    ),
-    frames: Annotated[int, typer.Option("--frames", min=1, metavar="N", help="Frames rendered per building.")] = 200,
-    config: ConfigOption = None,
-    overrides: SetOption = None,
-    verbose: VerboseOption = False,
-    debug: DebugOption = False,
-) -> None:
-    """Time RGB + depth + instance-id rendering with the noise model, along trajectory 0 of each building.
-
-    \b
-    Examples:
-      bimfactor bench sim
-      bimfactor bench sim --ifc ../shared/data/ifc/AC11-Institute-Var-2-IFC.ifc --frames 100
-    """
-    with _cli_errors(debug):
-        cfg = _start(config, overrides, verbose)
-        from bimfactor.bim.synth import write_building
-        from bimfactor.evaluation.bench import run_sim_bench, shared_ifc_dir
-
-        with _bench_dir(output, *(ifc or [])):
-            if ifc:
-                files = list(ifc)
-            else:
-                paper = output / "paper-floor.ifc"
-                write_building("paper-floor", cfg.seed, paper)
-                files = [paper, shared_ifc_dir() / "duplex.ifc"]
-            rows = run_sim_bench(files, cfg, output, n_frames=frames)
-        for row in rows:
-            typer.echo(
-                f"{row['building']:<32} {row['width']}x{row['height']}  {row['frames_per_s']:6.1f} frames/s  "
-                f"median {row['median_ms']:.1f} ms  p90 {row['p90_ms']:.1f} ms  ({row['triangles']} triangles)"
-            )
-        typer.echo(f"results: {output / 'results.json'}")
 
 
 # ------------------------------------------------------------------------------------------ sequences
@@ -1644,42 +1553,6 @@ def _echo_bench(output: Path, name: str, result: dict[str, Any], cfg: Config) ->
     typer.echo(f"results: {results}")
 
 
-@bench_app.command("registration", short_help="Time of one fine registration at the default voxel, and the fine stage.")
-def bench_registration(
-    prior_dir: BenchPriorOption = None,
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-registration"
-    ),
-    method: Annotated[
-        str | None, typer.Option("--method", "-m", metavar="NAME", help="Registrar (default: the config's).")
-    ] = None,
-    keyframes: Annotated[int, typer.Option("--keyframes", min=1, help="Simulated keyframes.")] = 10,
-    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Perturbed starts per keyframe.")] = 5,
-    config: ConfigOption = None,
-    overrides: SetOption = None,
-    verbose: VerboseOption = False,
-    debug: DebugOption = False,
-) -> None:
-    """Median time of one registration at the default scan voxel from 0.3 m / 5° perturbed starts on simulated
-    keyframes, and of the whole fine stage per mode (registration, gate, ambiguity probes); writes
-    OUT/results.json and OUT/config.yaml.
-
-    \b
-    Examples:
-      bimfactor bench registration
-      bimfactor bench registration --prior runs/prior/duplex -m gicp
-    """
-    with _cli_errors(debug):
-        cfg = _start(config, overrides, verbose)
-        from bimfactor.evaluation.registrars import benchmark_registration
-
-        world = _bench_world(prior_dir, cfg)
-        with _bench_dir(output, prior_dir):
-            prior, model = world or _paper_floor_world(output, cfg)
-            result = benchmark_registration(prior, model, cfg, method, n_keyframes=keyframes, repeats=repeats)
-            _echo_bench(output, "registration", result, cfg)
-
-
 @bench_app.command(
     "speed", short_help="Every speed figure in one table: keyframes, registrars side by side, filter, startup, prior."
 )
@@ -1808,121 +1681,3 @@ def bench_scanmatch(
             prior, model = world or _paper_floor_world(output, cfg)
             result = benchmark_scan_matching(prior, model, cfg, every=every)
             _echo_bench(output, "scanmatch", result, cfg)
-
-
-@bench_app.command("smcl", short_help="Particle-filter step time (predict + update + resample) against M.")
-def bench_smcl(
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-smcl"
-    ),
-    observations: Annotated[int, typer.Option("--observations", min=1, help="Observations per step.")] = 12,
-    config: ConfigOption = None,
-    overrides: SetOption = None,
-    verbose: VerboseOption = False,
-    debug: DebugOption = False,
-) -> None:
-    """Median step time of the semantic MCL on the paper-floor building for M = 100 ... 20000 particles, from a
-    uniform start (every particle with its own candidate set); writes OUT/results.json.
-
-    \b
-    Examples:
-      bimfactor bench smcl
-    """
-    with _cli_errors(debug):
-        cfg = _start(config, overrides, verbose)
-        from bimfactor.bim.prior import build_prior
-        from bimfactor.bim.synth import write_building
-        from bimfactor.evaluation.speed import benchmark_step
-
-        with _bench_dir(output):
-            write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
-            prior = build_prior(output / "paper-floor.ifc", cfg)
-            assert prior.visibility is not None
-            rows = benchmark_step(prior, prior.visibility, cfg.smcl, cfg.sensor.max_range_m, n_obs=observations)
-            results = _write_bench(output, "smcl", {"rows": rows}, cfg)
-        for row in rows:
-            typer.echo("  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
-        typer.echo(f"results: {results}")
-
-
-@bench_app.command("suggest", short_help="Time of one active-localization suggestion (5 modes, 200 candidates).")
-def bench_suggest(
-    ifc: Annotated[
-        list[Path] | None,
-        typer.Option("--ifc", metavar="PATH", help="IFC file (repeatable; default: the paper-floor building)."),
-    ] = None,
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-suggest"
-    ),
-    modes: Annotated[int, typer.Option("--modes", min=2, help="Hypotheses to tell apart.")] = 5,
-    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Timed suggestions per building.")] = 20,
-    config: ConfigOption = None,
-    overrides: SetOption = None,
-    verbose: VerboseOption = False,
-    debug: DebugOption = False,
-) -> None:
-    """Median and 90th-percentile milliseconds of `Localizer.suggest`'s work for MODES hypotheses at random navigable
-    poses: the whole suggestion (candidates, reachability in every place, gains, the path), and the expected gain of
-    exactly active.candidates candidate views; writes OUT/results.json.
-
-    \b
-    Examples:
-      bimfactor bench suggest
-      bimfactor bench suggest --ifc ../shared/data/ifc/AC11-Institute-Var-2-IFC.ifc --ifc ../shared/data/ifc/duplex.ifc
-    """
-    with _cli_errors(debug):
-        cfg = _start(config, overrides, verbose)
-        from bimfactor.bim.prior import build_prior
-        from bimfactor.bim.synth import write_building
-        from bimfactor.bim.visibility import VisibilityTable
-        from bimfactor.evaluation.speed import benchmark_suggest
-
-        files = list(ifc or [])
-        rows = []
-        with _bench_dir(output, *files):
-            if not files:
-                write_building("paper-floor", cfg.seed, output / "paper-floor.ifc")
-                files = [output / "paper-floor.ifc"]
-            for path in files:
-                prior = build_prior(path, cfg)
-                visibility = prior.visibility or VisibilityTable.build(prior, cfg.bim.visibility)
-                rows.append({"building": path.name, **benchmark_suggest(prior, visibility, cfg, modes, repeats)})
-            results = _write_bench(output, "suggest", {"rows": rows}, cfg)
-        for row in rows:
-            typer.echo(
-                f"{row['building']}: suggestion {row['suggest_ms_median']:.0f} ms median, {row['suggest_ms_p90']:.0f} "
-                f"ms p90 ({row['candidates_scored_median']:.0f} candidates reachable in every place); "
-                f"{row['candidates']} candidates x {row['modes']} modes scored in "
-                f"{row['score_all_candidates_ms_median']:.0f} ms median, "
-                f"{row['score_all_candidates_ms_p90']:.0f} ms p90"
-            )
-        typer.echo(f"results: {results}")
-
-
-@bench_app.command("backend", short_help="Pose-graph back-end update time of all modes per keyframe.")
-def bench_backend(
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-backend"
-    ),
-    modes: Annotated[int, typer.Option("--modes", min=1, help="Modes (one GTSAM graph each).")] = 5,
-    keyframes: Annotated[int, typer.Option("--keyframes", min=2, help="Keyframes per run.")] = 100,
-    config: ConfigOption = None,
-    overrides: SetOption = None,
-    verbose: VerboseOption = False,
-    debug: DebugOption = False,
-) -> None:
-    """Median time of the multi-hypothesis back end's step (ISAM2 update of every mode's graph) per keyframe, on a
-    synthetic loop with landmarks; writes OUT/results.json.
-
-    \b
-    Examples:
-      bimfactor bench backend --modes 5
-    """
-    with _cli_errors(debug):
-        cfg = _start(config, overrides, verbose)
-        from bimfactor.evaluation.speed import benchmark_backend
-
-        with _bench_dir(output):
-            result = benchmark_backend(cfg.backend, cfg.odometry, n_modes=modes, n_keyframes=keyframes)
-            _write_bench(output, "backend", result, cfg)
-        typer.echo(json.dumps(result, indent=1, default=float))

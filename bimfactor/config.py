@@ -969,8 +969,7 @@ class BackendConfig(_Strict):
     # ISAM2 relinearization threshold.
     relinearize_threshold: ClassVar[float] = 0.01
     # ISAM2 considers relinearizing every this many updates (1: every keyframe; GTSAM's default 10). GTSAM's default;
-    # 1 (every keyframe): bench backend 9–13 ms instead of 3–6 ms on the slowest machine, bench paper's graph, refine
-    # and full rows alike (docs/pose-graphs.md)
+    # 1 (every keyframe) took two to three times as long per back-end step, for the same accuracy
     relinearize_skip: ClassVar[int] = 10
     # Levenberg–Marquardt iterations of the offline batch refine.
     lm_max_iterations: ClassVar[int] = 100

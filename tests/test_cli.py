@@ -228,7 +228,7 @@ def test_bench_without_shared_data(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     import bimfactor.evaluation.bench as bench
 
     monkeypatch.setattr(bench, "SHARED_IFC_DIR", tmp_path / "nowhere")
-    result = invoke("bench", "prior", "-o", tmp_path / "bench")
+    result = invoke("bench", "speed", "-o", tmp_path / "bench")
     assert_one_line_error(result, contains=str(tmp_path / "nowhere"))
 
 
@@ -325,24 +325,6 @@ def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: 
     args = ("localize", out / "prior", out / "sequence", "-o", again, "-c", out / "localize" / "config.yaml")
     assert invoke(*args).exit_code == 0
     assert (again / "estimate.txt").read_text() == (out / "localize" / "estimate.txt").read_text()
-
-
-def test_bench_prior_writes_results(tmp_path: Path, ifc_file, cli_config_args: list[str]) -> None:
-    out = tmp_path / "bench"
-    result = invoke(
-        "bench", "prior", "--ifc", ifc_file("AC20-FZK-Haus.ifc"), "--repeats", "2", "-o", out, *cli_config_args
-    )
-    assert result.exit_code == 0, result.output
-    header, _rule, row = result.stdout.splitlines()[:3]
-    assert header.split()[:5] == ["file", "storeys", "rooms", "doors", "objects"]
-    assert row.split()[:5] == ["AC20-FZK-Haus.ifc", "2", "7", "5", "17"]  # 16 objects and the staircase
-    report = json.loads((out / "results.json").read_text())
-    (entry,) = report["rows"]
-    assert entry["file"] == "AC20-FZK-Haus.ifc"
-    assert len(entry["reload_runs_s"]) == 2
-    assert entry["cold_build_s"] > entry["reload_s"] > 0
-    assert (out / "priors" / "AC20-FZK-Haus" / "prior.json").is_file()
-    assert load_config(out / "config.yaml") == load_config(None, [a for a in cli_config_args if a != "--set"])
 
 
 def test_prior_refuses_to_replace_a_folder_that_is_not_a_prior(tmp_path: Path) -> None:

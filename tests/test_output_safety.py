@@ -139,7 +139,7 @@ def test_a_folder_given_as_model_that_is_not_a_prior(user_folder: Path) -> None:
 
 def test_a_bench_never_writes_into_a_users_folder(user_folder: Path) -> None:
     before = snapshot(user_folder)
-    line = assert_one_line_error(invoke("bench", "backend", "-o", user_folder, "--keyframes", "2", "--modes", "1"))
+    line = assert_one_line_error(invoke("bench", "scanmatch", "-o", user_folder))
     assert "holds no bimfactor output marker" in line
     assert snapshot(user_folder) == before
 

@@ -11,7 +11,7 @@ by `name_margin`; a generic name ("Room") or an unknown one ("Dachboden") falls 
 
 `bimfactor/configs/room_names_eval.yaml` maps architects' room names to the same categories by regular
 expressions. It is for evaluation only: the ground truth that both paths, with and without names, are scored
-against (`bimfactor bench prior`).
+against (`bimfactor.evaluation.rooms`).
 """
 
 from __future__ import annotations

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import logging
 import statistics
-import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -310,76 +309,6 @@ def plot_basins(records: list[dict], path: str | Path, title: str = "") -> Path:
     with missing_glyphs_quiet():
         fig.tight_layout()
     return save_figure(fig, path, dpi=120, tight=False)
-
-
-def benchmark_registration(
-    prior: BimPrior,
-    model: IfcModel,
-    cfg: Config,
-    method: str | None = None,
-    n_keyframes: int = 10,
-    repeats: int = 5,
-    trans_m: float = 0.3,
-    rot_deg: float = 5.0,
-) -> dict:
-    """Median and p90 ms of one registration (default voxel, registrar `method`) from 0.3 m / 5° perturbed starts.
-
-    Scan building and the surface's one-off KD-tree are timed separately, and so is the whole fine stage per
-    mode (`FineRegistration.register_scan`: registration, gate and ambiguity probes, with a coarse covariance
-    calibrated to the start error), which is what the localizer pays per mode and keyframe.
-    """
-    from bimfactor.registration.fine import FineRegistration
-
-    rc = cfg.registration
-    t0 = time.perf_counter()
-    surfaces = build_surface_models(wall_meshes(model), rc, cfg.seed)
-    surface_s = time.perf_counter() - t0
-    keyframes = select_keyframes(prior, model, cfg, surfaces, n_keyframes, cfg.seed)
-    registrar = make_registrar(rc, method)
-    t0 = time.perf_counter()
-    for s in surfaces:
-        _ = s.nn_tree  # built once per storey
-    tree_s = time.perf_counter() - t0
-    scan_ms = []
-    for key in keyframes:
-        t = time.perf_counter()
-        frame_scan(key.frame, key.meta, rc, cfg.sensor)
-        scan_ms.append((time.perf_counter() - t) * 1000)
-    rng = np.random.default_rng(cfg.seed)
-    times, successes = [], []
-    fine = FineRegistration(surfaces, rc, cfg.sensor, registrar)
-    coarse = calibrated_covariance(trans_m, np.deg2rad(rot_deg), rc)
-    stage_ms, stage_accepted = [], []
-    for key in keyframes:
-        surface = surfaces[key.frame.gt_storey or 0]
-        registrar.register(key.scan_base, surface, key.frame.gt_pose)  # warm-up
-        for _ in range(repeats):
-            init = perturb(key.frame.gt_pose, trans_m, np.deg2rad(rot_deg), rng)
-            result = registrar.register(key.scan_base, surface, init)
-            times.append(result.time_ms)
-            err = result.pose - key.frame.gt_pose
-            successes.append(np.hypot(*err[:2]) < rc.success_trans_m and abs(np.rad2deg(wrap_angle(err[2]))) < 1.0)
-            stage = fine.register_scan(key.scan_base, init, key.frame.gt_storey or 0, coarse)
-            stage_ms.append(stage.time_ms)
-            stage_accepted.append(stage.accepted)
-    return {
-        "building": Path(prior.source_file).name,
-        "method": registrar.name,
-        "scan_voxel_m": rc.scan_voxel_m,
-        "keyframes": len(keyframes),
-        "runs": len(times),
-        "median_ms": statistics.median(times) if times else None,
-        "p90_ms": float(np.percentile(times, 90)) if times else None,
-        "success_rate": float(np.mean(successes)) if successes else None,
-        "fine_stage_median_ms": statistics.median(stage_ms) if stage_ms else None,
-        "fine_stage_p90_ms": float(np.percentile(stage_ms, 90)) if stage_ms else None,
-        "fine_stage_accepted_rate": float(np.mean(stage_accepted)) if stage_accepted else None,
-        "median_scan_points": statistics.median(len(k.scan_base) for k in keyframes) if keyframes else None,
-        "median_scan_build_ms": statistics.median(scan_ms) if scan_ms else None,
-        "surface_build_s": surface_s,
-        "kdtree_build_s": tree_s,
-        "surface_points": [len(s) for s in surfaces],
-    }
 
 
 def make_registrars(cfg: RegistrationConfig, names: list[str] | None = None) -> dict[str, Registrar]:

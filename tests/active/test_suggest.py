@@ -115,15 +115,6 @@ def test_a_suggestion_is_written_as_json_and_drawn(twins: Suggester, tmp_path) -
     assert save_suggestion_figure(twins.prior, none, tmp_path / "none.png").is_file()
 
 
-def test_the_suggestion_benchmark_times_the_whole_suggestion_and_the_scoring(twins: Suggester, test_config) -> None:
-    from bimfactor.evaluation.speed import benchmark_suggest
-
-    row = benchmark_suggest(twins.prior, twins.views.visibility, test_config, n_modes=3, repeats=2)
-    assert row["modes"] == 3 and row["candidates"] == test_config.active.candidates
-    assert row["suggest_ms_median"] > 0 and row["score_all_candidates_ms_median"] > 0
-    assert 0 <= row["candidates_scored_median"] <= test_config.active.candidates
-
-
 def test_a_plate_too_close_is_above_the_image(twins: Suggester) -> None:
     # Room B's plate hangs on the corridor side of its door (x ≈ 9.1, y = 3.0), 1.4 m up; the camera is 0.5 m up.
     facing = np.pi / 2

@@ -49,17 +49,3 @@ def test_compare_registrars_on_a_recorded_sequence(prior_and_sequence, tmp_path:
     assert row["runs"] == 4 and {"accepted_wrong", "accepted_without_probes_wrong", "accepted_coarse_wrong"} <= set(row)
     missing = invoke("compare-registrars", prior, tmp_path / "nowhere", "-o", out, *cli_config_args)
     assert missing.exit_code == 2 and "nowhere" in missing.stderr
-
-
-def test_bench_registration_times_the_registrar_and_the_stage(prior_and_sequence, tmp_path: Path, cli_config_args):
-    prior, _ = prior_and_sequence
-    out = tmp_path / "bench"
-    result = invoke("bench", "registration", "--prior", prior, "-o", out, "--keyframes", "2", "--repeats", "1", *SHORT,
-                    *cli_config_args)  # fmt: skip
-    assert result.exit_code == 0, result.output
-    report = json.loads((out / "results.json").read_text())
-    assert report["benchmark"] == "registration" and report["method"] == "point_to_plane"
-    assert report["runs"] == report["keyframes"] == 2
-    assert report["median_ms"] > 0 and report["fine_stage_median_ms"] > 0
-    assert 0.0 <= report["fine_stage_accepted_rate"] <= 1.0
-    assert (out / "config.yaml").is_file()

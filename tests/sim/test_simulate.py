@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from bimfactor.errors import InputError
-from bimfactor.evaluation.speed import benchmark_render
 from bimfactor.sim.simulate import SimResult, load_world_inputs, simulate_sequence
 from bimfactor.types import CameraIntrinsics, se2_between
 
@@ -121,13 +120,6 @@ def test_the_ifc_is_found_from_another_working_directory_and_beside_a_moved_prio
     shutil.move(work / "runs" / "prior", moved / "prior")
     shutil.move(work / "data" / "building.ifc", moved / "building.ifc")
     assert load_world_inputs(moved / "prior", paper_floor.cfg)[1].sha256 == prior.source_sha256
-
-
-def test_benchmark_render_reports(paper_floor: Building, config_overrides: list[str]) -> None:
-    cfg = config_with(config_overrides, *SMALL_CAMERA)
-    report = benchmark_render(paper_floor.prior, paper_floor.model, cfg, n_frames=4)
-    assert report["n_frames"] == 4 and (report["width"], report["height"]) == (64, 48)
-    assert report["frames_per_s"] > 0 and report["median_ms"] > 0
 
 
 def _frames(poses: np.ndarray, odometry: np.ndarray, t0: float) -> list:
