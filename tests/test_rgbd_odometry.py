@@ -1,6 +1,6 @@
 """RGB-D odometry (`bimfactor.io.rgbd_odometry`): the mount projection, the fall-backs when features or depth give
 out, the noise model's fit, simulated textureless pairs and the real slambook frames. The simulated drift of a
-converted recording is tests/io/test_convert_odometry.py's; the figures are in docs/rgbd-odometry.md."""
+converted recording is tests/io/test_convert_odometry.py's; `-s` prints the figures."""
 
 from __future__ import annotations
 

@@ -116,7 +116,7 @@ def test_a_simulated_camera_only_recording_converts_with_little_drift_and_locali
         f"RGB-D odometry: {travelled:.2f} m travelled, end drift {drift:.3f} m ({100 * drift / travelled:.2f} %); the "
         f"simulated wheel odometry's {wheel_drift:.3f} m ({100 * wheel_drift / travelled:.2f} %)"
     )
-    # The target is 2 %; measured 6 % (docs/rgbd-odometry.md). This bound guards against a regression.
+    # The target is 2 %; measured 6 % (printed with -s). This bound guards against a regression.
     assert drift <= 0.10 * travelled
 
     run = tmp_path / "run"
