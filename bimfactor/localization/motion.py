@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 
-# Re-exported: the README's live-robot snippet imports the keyframe gate from here.
-from bimfactor.odometry import keyframe_due as keyframe_due
 from bimfactor.types import se2_compose, wrap_angle
 
 _MIN_TURN_RATE = 1e-9  # rad/s: below this a velocity command is a straight line
