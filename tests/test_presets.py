@@ -17,7 +17,7 @@ from bimfactor.errors import ConfigError
 from tests.cli import assert_one_line_error, invoke
 
 REPO = Path(__file__).resolve().parent.parent
-DATA_TABLES = ("perception_sim.yaml", "room_categories.yaml", "room_names_eval.yaml", "vocabulary.yaml")
+DATA_TABLES = ("perception_sim.yaml", "room_categories.yaml", "vocabulary.yaml")
 
 
 @pytest.fixture(scope="module")

@@ -9,9 +9,8 @@ each of its words are encoded and matched against the pool's `names` (short, mul
 "restroom"). The name decides when its best category scores at least `name_min_score` and leads the next category
 by `name_margin`; a generic name ("Room") or an unknown one ("Dachboden") falls back to the objects.
 
-`bimfactor/configs/room_names_eval.yaml` maps architects' room names to the same categories by regular
-expressions. It is for evaluation only: the ground truth that both paths, with and without names, are scored
-against (`bimfactor.evaluation.rooms`).
+The tests score both paths, with and without names, against architects' room names mapped to the same categories by
+regular expressions (`tests/bim/room_names_eval.yaml`).
 """
 
 from __future__ import annotations
@@ -22,7 +21,6 @@ import re
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from functools import cache
 from pathlib import Path
 from typing import Any, Literal
 
@@ -37,7 +35,6 @@ from bimfactor.errors import ConfigError
 logger = logging.getLogger(__name__)
 
 UNKNOWN = "unknown"
-ROOM_NAMES_EVAL_FILE = "room_names_eval.yaml"
 
 SentenceStyle = Literal["counted", "unique", "list"]
 _PREPOSITION = re.compile(r" (with|of|for|on|in|w) ")
@@ -296,64 +293,3 @@ def type_rooms(
             if by_name is not None:
                 results[i] = by_name
     return results
-
-
-def classify_room(
-    labels: Sequence[str],
-    pool: RoomCategoryPool,
-    *,
-    min_objects: int = 1,
-    style: SentenceStyle = "counted",
-) -> RoomClassification:
-    """Classify one room from its object labels (see `classify_rooms`)."""
-    return classify_rooms([labels], pool, min_objects=min_objects, style=style)[0]
-
-
-# --- evaluation-only room-name table ---------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class RoomNameTable:
-    """Ordered (pattern, category) rules; the first pattern found in a room name gives its category."""
-
-    rules: tuple[tuple[re.Pattern[str], str], ...]
-
-    def category(self, name: str) -> str | None:
-        """The category of an architect's room name, or None when no rule matches."""
-        for pattern, category in self.rules:
-            if pattern.search(name):
-                return category
-        return None
-
-    @property
-    def categories(self) -> set[str]:
-        return {category for _, category in self.rules}
-
-
-def load_room_name_table(path: str | Path | None = None) -> RoomNameTable:
-    """Read the evaluation table of room names (default `bimfactor/configs/room_names_eval.yaml`)."""
-    path = Path(path) if path is not None else config_file(ROOM_NAMES_EVAL_FILE)
-    return _load_room_name_table(path.resolve())
-
-
-@cache
-def _load_room_name_table(path: Path) -> RoomNameTable:
-    data = _read_yaml_mapping(path)
-    categories = data.get("categories")
-    if not isinstance(categories, dict):
-        raise ConfigError(f"{path}: 'categories' must be a mapping of category → list of name patterns")
-    rules: list[tuple[re.Pattern[str], str]] = []
-    for category, patterns in categories.items():
-        if not isinstance(patterns, list) or not all(isinstance(p, str) for p in patterns):
-            raise ConfigError(f"{path}: category '{category}' needs a list of pattern strings")
-        for pattern in patterns:
-            try:
-                rules.append((re.compile(pattern, re.IGNORECASE), str(category)))
-            except re.error as exc:
-                raise ConfigError(f"{path}: bad pattern {pattern!r} for '{category}': {exc}") from exc
-    return RoomNameTable(tuple(rules))
-
-
-def room_name_to_category(name: str, table: RoomNameTable | None = None) -> str | None:
-    """Evaluation only: the category an architect's room name (IfcSpace LongName) stands for, or None."""
-    return (table or load_room_name_table()).category(name)

@@ -11,18 +11,23 @@ import yaml
 from bimfactor.bim.classify import (
     UNKNOWN,
     RoomCategoryPool,
-    classify_room,
     classify_room_names,
     classify_rooms,
     load_room_category_pool,
-    load_room_name_table,
-    room_name_to_category,
     room_sentence,
     type_rooms,
 )
 from bimfactor.config import config_file, load_config
 from bimfactor.embed.text import MiniLMTextEmbedder
 from bimfactor.errors import ConfigError
+
+from .room_types import load_room_name_table, room_name_to_category
+
+
+def classify_room(labels, pool, **options):
+    """One room from its object labels (`classify_rooms` of one)."""
+    return classify_rooms([labels], pool, **options)[0]
+
 
 IFC_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "ifc"
 # Real room names that stand for no category of the pool; they must stay unscored.

@@ -12,7 +12,8 @@ from bimfactor.bim.rooms import NO_ROOM, OUTSIDE
 from bimfactor.embed.text import MiniLMTextEmbedder
 from bimfactor.errors import FormatError, InputError
 from bimfactor.evaluation.plots import save_floorplans
-from bimfactor.evaluation.rooms import ifcspace_matched_share, object_only_types, room_type_accuracy
+
+from .room_types import ifcspace_matched_share, load_room_name_table, object_only_types, room_type_accuracy
 
 REAL = ["AC20-FZK-Haus.ifc", "AC11-FZK-Haus-IFC.ifc", "SampleHouse4.ifc", "duplex.ifc", "AC11-Institute-Var-2-IFC.ifc"]
 SYNTH = ["synth:paper-floor", "synth:office", "synth:multi-storey"]
@@ -197,8 +198,6 @@ def test_loading_something_else_is_a_format_error(tmp_path) -> None:
 
 @pytest.mark.parametrize("name", ["AC11-Institute-Var-2-IFC.ifc", "duplex.ifc"])
 def test_object_less_rooms_joining_many_places_are_hallways(prior_of, session_cfg, name: str) -> None:
-    from bimfactor.bim.classify import load_room_name_table
-
     table = load_room_name_table()
     prior = prior_of(name)
     typed = object_only_types(prior, session_cfg(), MiniLMTextEmbedder())  # names would decide first

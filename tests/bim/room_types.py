@@ -1,14 +1,68 @@
-"""Evaluation of the offline prior's rooms: agreement with IfcSpace and room-type accuracy."""
+"""Scoring the prior's room typing against architects' room names (IfcSpace LongName) by regular expressions
+(`room_names_eval.yaml`), and its rooms against IfcSpace: evaluation only, never read by the prior itself."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
 
-from bimfactor.bim.classify import RoomNameTable, load_room_name_table
+import yaml
+
 from bimfactor.bim.prior import BimPrior, classify_prior_rooms
 from bimfactor.config import Config
 from bimfactor.embed.text import TextEmbedder
+from bimfactor.errors import ConfigError
+
+ROOM_NAMES_EVAL_FILE = Path(__file__).with_name("room_names_eval.yaml")
+
+
+@dataclass(frozen=True)
+class RoomNameTable:
+    """Ordered (pattern, category) rules; the first pattern found in a room name gives its category."""
+
+    rules: tuple[tuple[re.Pattern[str], str], ...]
+
+    def category(self, name: str) -> str | None:
+        """The category of an architect's room name, or None when no rule matches."""
+        for pattern, category in self.rules:
+            if pattern.search(name):
+                return category
+        return None
+
+    @property
+    def categories(self) -> set[str]:
+        return {category for _, category in self.rules}
+
+
+def load_room_name_table(path: str | Path | None = None) -> RoomNameTable:
+    """Read the table of architects' room names (default `room_names_eval.yaml` beside this file)."""
+    return _load_room_name_table(Path(path or ROOM_NAMES_EVAL_FILE).resolve())
+
+
+@cache
+def _load_room_name_table(path: Path) -> RoomNameTable:
+    data = yaml.safe_load(path.read_text())
+    categories = data.get("categories") if isinstance(data, dict) else None
+    if not isinstance(categories, dict):
+        raise ConfigError(f"{path}: 'categories' must be a mapping of category → list of name patterns")
+    rules: list[tuple[re.Pattern[str], str]] = []
+    for category, patterns in categories.items():
+        if not isinstance(patterns, list) or not all(isinstance(p, str) for p in patterns):
+            raise ConfigError(f"{path}: category '{category}' needs a list of pattern strings")
+        for pattern in patterns:
+            try:
+                rules.append((re.compile(pattern, re.IGNORECASE), str(category)))
+            except re.error as exc:
+                raise ConfigError(f"{path}: bad pattern {pattern!r} for '{category}': {exc}") from exc
+    return RoomNameTable(tuple(rules))
+
+
+def room_name_to_category(name: str, table: RoomNameTable | None = None) -> str | None:
+    """Evaluation only: the category an architect's room name (IfcSpace LongName) stands for, or None."""
+    return (table or load_room_name_table()).category(name)
 
 
 @dataclass
