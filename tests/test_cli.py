@@ -301,7 +301,8 @@ def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: 
     # the default variant: every stage, each one's account on its own line
     result = invoke("demo", "-o", out, *cli_config_args, "--set", "localization.variant=full")
     assert result.exit_code == 0, result.output
-    stages = [line.strip().split(":")[0] for line in result.stdout.splitlines() if line.startswith("      ")]
+    localize = result.stdout.split("[5/5]")[0]  # the suggestion's line is indented too
+    stages = [line.strip().split(":")[0] for line in localize.splitlines() if line.startswith("      ")]
     assert stages == ["S-MCL (the paper's filter)", "+ per-mode GTSAM pose graphs", "+ Open3D ICP"]
     assert "ICP accepted on " in result.stdout
     assert json.loads((out / "localize" / "metrics.json").read_text())["icp"]["steps_registered"] > 0
