@@ -14,6 +14,7 @@ import argparse
 import base64
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -44,6 +45,7 @@ def main() -> None:
         [rerun, str(args.rrd), "--web-viewer", "--bind", "127.0.0.1", "--web-viewer-port", "9090", "--port", "9876"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
+        start_new_session=True,  # the `rerun` script starts the viewer binary: both end with the group
     )
     to_chrome_r, to_chrome_w = os.pipe()
     from_chrome_r, from_chrome_w = os.pipe()
@@ -51,6 +53,7 @@ def main() -> None:
     chrome = subprocess.Popen(
         [CHROMIUM, "--no-sandbox", "--remote-debugging-pipe", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
          "--ignore-gpu-blocklist", f"--window-size={width},{height}", "about:blank"],
+        start_new_session=True,  # /usr/bin/chromium-headless-shell is a script that starts the browser
         pass_fds=(3, 4),  # kept open after preexec_fn has put the pipe's ends there
         preexec_fn=lambda: _onto_3_and_4(to_chrome_r, from_chrome_w),
         stdout=subprocess.DEVNULL,
@@ -101,8 +104,8 @@ def main() -> None:
         args.png.write_bytes(base64.b64decode(shot["data"]))
         print(f"wrote {args.png} from {url}")
     finally:
-        chrome.terminate()
-        server.terminate()
+        for process in (chrome, server):
+            os.killpg(process.pid, signal.SIGTERM)
         chrome.wait(10)
         server.wait(10)
 
