@@ -32,7 +32,6 @@ from bimfactor import __version__
 from bimfactor.errors import BimfactorError, ConfigError, InputError
 
 if TYPE_CHECKING:
-    from bimfactor.active import Suggestion
     from bimfactor.bim.ifc import IfcModel
     from bimfactor.bim.prior import BimPrior
     from bimfactor.config import Config
@@ -618,7 +617,7 @@ def _counts(counts: dict[str, int]) -> str:
 # ------------------------------------------------------------------------------------------ demo
 
 
-@app.command(short_help="Run the demo: paper-floor building → prior → simulated drive → localization.")
+@app.command(short_help="Run the demo: paper-floor building → prior → simulated drive → localization → a suggestion.")
 def demo(
     output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = DEFAULT_DEMO_OUT,
     rerun: RerunOption = None,
@@ -630,8 +629,10 @@ def demo(
     """Run the end-to-end demo on the procedural "paper-floor" building.
 
     Steps: synth (OUT/paper-floor.ifc, seed from the config), prior (OUT/prior/ with floor plans), simulate
-    (OUT/sequence/, trajectory 0) and localize (OUT/localize/ with metrics and figures; with --rerun FILE.rrd also a
-    Rerun recording of it). OUT/config.yaml holds the resolved config.
+    (OUT/sequence/, trajectory 0), localize (OUT/localize/ with metrics and figures; with --rerun FILE.rrd also a
+    Rerun recording of it) and suggest (a short route on OUT/office.ifc, whose offices are alike, driven until the
+    split belief has a suggestion of where to look next: OUT/suggest/suggestion.json and suggestion.png).
+    OUT/config.yaml holds the resolved config.
 
     \b
     Examples:
@@ -1130,19 +1131,8 @@ def localize(
         if twins is not None:
             typer.echo(twins)
         if run.suggestion is not None:
-            typer.echo(_suggestion_line(run.suggestion))
-
-
-def _suggestion_line(suggestion: Suggestion) -> str:
-    """One line on where to look next: the goal in the odometry frame and its gain, or why there is none."""
-    if suggestion.goal_odom is None:
-        return f"nothing to suggest: {suggestion.reason} (suggestion.json)"
-    x, y, yaw = (float(v) for v in suggestion.goal_odom)
-    return (
-        f"next: drive to ({x:.2f} m, {y:.2f} m, {math.degrees(yaw):.0f}°) in the odometry frame, "
-        f"{suggestion.travel_m:.1f} m away; its view is expected to tell the {len(suggestion.hypotheses)} places "
-        f"apart by {suggestion.gain_nats:.2f} of {suggestion.entropy_nats:.2f} nats (suggestion.json, suggestion.png)"
-    )
+            files = "suggestion.json" if run.suggestion.goal_odom is None else "suggestion.json, suggestion.png"
+            typer.echo(f"{run.suggestion.describe()} ({files})")
 
 
 @app.command("scene-graph", short_help="Build the online open-set scene graph of an RGB-D recording with camera poses.")

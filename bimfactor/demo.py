@@ -18,11 +18,15 @@ from bimfactor.io.atomic import check_output_dir, container_dir, write_text_atom
 if TYPE_CHECKING:
     import numpy as np
 
+    from bimfactor.active import Suggestion
     from bimfactor.bim.prior import BimPrior
     from bimfactor.bim.synth import BuildingSpec
     from bimfactor.types import Frame, SequenceMeta
 
 DEMO_PRESET = "paper-floor"
+# The suggestion's building and route: eight alike offices, where route 2 starts in one and the belief is split
+# between them after a few keyframes; the route is driven until the localizer suggests where to look, at most this far.
+SUGGEST_PRESET, SUGGEST_ROUTE, SUGGEST_MAX_KEYFRAMES = "office", 2, 12
 
 
 @dataclass
@@ -38,6 +42,7 @@ class DemoContext:
     prior_dir: Path | None = None
     prior: BimPrior | None = None
     sequence_dir: Path | None = None
+    suggestion: Suggestion | None = None
     figures: list[Path] = field(default_factory=list)
     step_seconds: dict[str, float] = field(default_factory=dict)
 
@@ -197,6 +202,44 @@ def _localize(ctx: DemoContext) -> str:
     return f"wrote {run_dir}/ (variant {variant}):\n" + "\n".join(f"      {line}" for line in lines)
 
 
+def _suggest(ctx: DemoContext) -> str:
+    """Drive a short route on a building with alike rooms (`SUGGEST_PRESET`) until the belief, split between them,
+    has a suggestion (`Localizer.suggest`), at most `SUGGEST_MAX_KEYFRAMES`; write suggestion.json and suggestion.png.
+    Only the filter is run (the `smcl` variant): the suggestion reads the filter's belief alone."""
+    import json
+
+    from bimfactor.bim.prior import build_prior
+    from bimfactor.bim.synth import write_building
+    from bimfactor.config import updated
+    from bimfactor.evaluation.plots import save_suggestion_figure
+    from bimfactor.io.atomic import output_dir
+    from bimfactor.pipeline import Localizer
+    from bimfactor.sim.simulate import simulate_sequence, source_model
+
+    ifc = ctx.out_dir / f"{SUGGEST_PRESET}.ifc"
+    write_building(SUGGEST_PRESET, ctx.cfg.seed, ifc)
+    cfg = updated(ctx.cfg, {"evaluation.trajectory_length": SUGGEST_MAX_KEYFRAMES, "localization.variant": "smcl"})
+    prior = build_prior(ifc, cfg)
+    sim = simulate_sequence(prior, source_model(prior, cfg), cfg, SUGGEST_ROUTE, ctx.cfg.seed, progress=False)
+    localizer = Localizer(prior, sim.meta, cfg, ctx.cfg.seed)
+    for n, frame in enumerate(sim.frames, start=1):  # noqa: B007 (n: the keyframes driven, after the loop)
+        localizer.step(frame)
+        suggestion = localizer.suggest()
+        if suggestion.goal_odom is not None:
+            break
+    ctx.suggestion = suggestion
+    run_dir = ctx.out_dir / "suggest"
+    title = f"{ifc.name}, route {SUGGEST_ROUTE} after {n} keyframe{'' if n == 1 else 's'}"
+    with output_dir(run_dir, "run", inputs=[ifc]) as folder:
+        (folder / "suggestion.json").write_text(json.dumps(suggestion.to_dict(), indent=2))
+        save_suggestion_figure(prior, suggestion, folder / "suggestion.png", title, truth=frame.gt_pose)
+    ctx.figures.append(run_dir / "suggestion.png")
+    return (
+        f"wrote {run_dir}/ ({ifc.name}, its offices alike; route {SUGGEST_ROUTE}, {n} keyframes):\n"
+        f"      {suggestion.describe()}"
+    )
+
+
 def _stage_line(label: str, m, extra: str = "") -> str:
     """One stage's account: its label and the paper's metrics (`TrajectoryMetrics`) of its output."""
     return (
@@ -210,6 +253,7 @@ STEPS: tuple[DemoStep, ...] = (
     DemoStep("prior", _prior),
     DemoStep("simulate", _simulate),
     DemoStep("localize", _localize),
+    DemoStep("suggest", _suggest),
 )
 
 
@@ -229,8 +273,9 @@ def run_demo(
 
     ctx = DemoContext(cfg=cfg, out_dir=Path(out_dir), rerun_path=None if rerun is None else Path(rerun))
     check_output_dir(ctx.out_dir, "demo")
-    check_synth_output(ctx.out_dir / f"{DEMO_PRESET}.ifc")
-    for name, kind in (("prior", "prior"), ("sequence", "sequence"), ("localize", "run")):
+    for preset in (DEMO_PRESET, SUGGEST_PRESET):
+        check_synth_output(ctx.out_dir / f"{preset}.ifc")
+    for name, kind in (("prior", "prior"), ("sequence", "sequence"), ("localize", "run"), ("suggest", "run")):
         check_output_dir(ctx.out_dir / name, kind)
     with container_dir(ctx.out_dir, "demo"):
         write_text_atomic(ctx.out_dir / "config.yaml", cfg.dump_yaml())

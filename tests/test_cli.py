@@ -302,7 +302,8 @@ def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: 
     # the default variant: every stage, each one's account on its own line
     result = invoke("demo", "-o", out, *cli_config_args, "--set", "localization.variant=full")
     assert result.exit_code == 0, result.output
-    stages = [line.strip().split(":")[0] for line in result.stdout.splitlines() if line.startswith("      ")]
+    localize = result.stdout.split("[5/5]")[0]  # the suggestion's line is indented too
+    stages = [line.strip().split(":")[0] for line in localize.splitlines() if line.startswith("      ")]
     assert stages == ["S-MCL (the paper's filter)", "+ per-mode GTSAM pose graphs", "+ Open3D ICP"]
     assert "ICP accepted on " in result.stdout
     assert json.loads((out / "localize" / "metrics.json").read_text())["icp"]["steps_registered"] > 0
@@ -310,10 +311,11 @@ def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: 
     for name in PRIOR_FILES:
         assert (out / "prior" / name).is_file(), name
     assert load_config(out / "config.yaml") == load_config(out / "prior" / "config.yaml")
-    assert result.stdout.startswith("[1/4] synth: ")
-    assert "[2/4] prior: " in result.stdout
-    assert "[3/4] simulate: wrote" in result.stdout
-    assert "[4/4] localize: wrote" in result.stdout and (out / "localize" / "metrics.json").is_file()
+    assert result.stdout.startswith("[1/5] synth: ")
+    assert "[2/5] prior: " in result.stdout
+    assert "[3/5] simulate: wrote" in result.stdout
+    assert "[4/5] localize: wrote" in result.stdout and (out / "localize" / "metrics.json").is_file()
+    assert "[5/5] suggest: wrote" in result.stdout and "      next: drive to (" in result.stdout
     assert f"figure: {out / 'prior' / 'floorplan_0.png'}" in result.stdout
     assert f"figure: {out / 'sequence' / 'preview.png'}" in result.stdout
     sequence = read_sequence(out / "sequence")
@@ -325,6 +327,30 @@ def test_demo_writes_building_prior_and_config(tmp_path: Path, cli_config_args: 
     args = ("localize", out / "prior", out / "sequence", "-o", again, "-c", out / "localize" / "config.yaml")
     assert invoke(*args).exit_code == 0
     assert (again / "estimate.txt").read_text() == (out / "localize" / "estimate.txt").read_text()
+
+
+def test_the_demo_suggests_a_reachable_goal_and_draws_it(tmp_path: Path, test_config) -> None:
+    """The demo's suggestion part: on the alike offices the belief is split after a few keyframes, and the goal it
+    suggests lies on navigable space in every place the belief holds; suggestion.png is written."""
+    from bimfactor.bim.prior import build_prior
+    from bimfactor.demo import STEPS, SUGGEST_PRESET, DemoContext
+    from bimfactor.types import se2_compose, se2_inverse
+
+    ctx = DemoContext(cfg=test_config, out_dir=tmp_path)
+    message = next(step for step in STEPS if step.name == "suggest").run(ctx)
+    suggestion = ctx.suggestion
+    assert suggestion is not None and suggestion.goal_odom is not None, message
+    assert len(suggestion.hypotheses) >= 2 and suggestion.gain_nats > 0 and "next: drive to (" in message
+    assert (tmp_path / "suggest" / "suggestion.png").stat().st_size > 10_000
+    assert json.loads((tmp_path / "suggest" / "suggestion.json").read_text())["goal"]["frame"] == "odom"
+    prior = build_prior(tmp_path / f"{SUGGEST_PRESET}.ifc", test_config)
+    relative = se2_compose(se2_inverse(suggestion.odom_pose), suggestion.goal_odom)
+    for h in suggestion.hypotheses:
+        goal = se2_compose(h.pose, relative)
+        row, col = prior.grid.world_to_cell(goal[None, :2])[0]
+        around = prior.storeys[h.storey].navigable[row - 2 : row + 3, col - 2 : col + 3]  # within 0.1 m
+        assert around.any(), (h, goal)
+    np.testing.assert_allclose(suggestion.path_world[-1], se2_compose(suggestion.hypotheses[0].pose, relative)[:2])
 
 
 def test_prior_refuses_to_replace_a_folder_that_is_not_a_prior(tmp_path: Path) -> None:

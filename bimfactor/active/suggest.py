@@ -66,7 +66,7 @@ class Suggestion:
     frame; `path_odom` / `path_world` (P, 2) the path to it in the odometry frame and in the most probable place's
     world frame (on `storey`); `gain_nats` the expected information gain of
     its view, `travel_m` the expected path length. `candidates_odom` (C, 3) and `gains_nats` (C,) are every
-    candidate scored, for figures."""
+    candidate scored, `seen_odom` (V, 3) the views already weighed (the route so far), for figures."""
 
     hypotheses: list[Hypothesis]
     odom_pose: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -78,8 +78,20 @@ class Suggestion:
     path_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     candidates_odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     gains_nats: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    seen_odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     entropy_nats: float = 0.0
     reason: str = ""
+
+    def describe(self) -> str:
+        """One line on where to look next: the goal in the odometry frame and its gain, or why there is none."""
+        if self.goal_odom is None:
+            return f"nothing to suggest: {self.reason}"
+        x, y, yaw = (float(v) for v in self.goal_odom)
+        return (
+            f"next: drive to ({x:.2f} m, {y:.2f} m, {math.degrees(yaw):.0f}°) in the odometry frame, "
+            f"{self.travel_m:.1f} m away; its view is expected to tell the {len(self.hypotheses)} places apart by "
+            f"{self.gain_nats:.2f} of {self.entropy_nats:.2f} nats"
+        )
 
     def to_dict(self) -> dict:
         """JSON-ready: the goal (x, y in metres, yaw in degrees, odometry frame), gain, path and the hypotheses."""
@@ -186,6 +198,7 @@ class Suggester:
         hyps = distinct_places(hypotheses)
         odom_pose = np.asarray(odom_pose, float)
         out = Suggestion(hyps, odom_pose, entropy_nats=float(entropy([h.probability for h in hyps])))
+        out.seen_odom = np.zeros((0, 3)) if seen_odom is None else np.asarray(seen_odom, float).reshape(-1, 3)
         if not hyps:
             out.reason = "the belief has no modes"
             return out

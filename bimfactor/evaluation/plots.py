@@ -409,49 +409,80 @@ def save_error_by_step_plot(report: dict, path: str | Path) -> Path | None:
     return save_figure(fig, path)
 
 
-def save_suggestion_figure(prior: BimPrior, suggestion: Suggestion, path: str | Path, title: str = "") -> Path:
+def save_suggestion_figure(
+    prior: BimPrior, suggestion: Suggestion, path: str | Path, title: str = "", truth: np.ndarray | None = None
+) -> Path:
     """Where to look next (`active.Suggestion`): a panel per hypothesis (the four most probable), each its place over
-    the floor plan with the candidate viewpoints there coloured by expected gain, and the suggested path and goal."""
+    the floor plan with the route so far (the views already weighed) carried there, the candidate viewpoints coloured
+    by expected gain, and the suggested path and goal; `truth` (3,), where known, marks the true pose."""
     from bimfactor.types import se2_compose, se2_inverse
 
     hyps = suggestion.hypotheses[:4]
     n = max(len(hyps), 1)
-    fig, axes = plt.subplots(1, n, figsize=(4.8 * n, 4.8), squeeze=False)
+    cols = n if n <= 2 else 2
+    fig, axes = plt.subplots(-(-n // cols), cols, figsize=(5.2 * cols, 5.2 * -(-n // cols)), squeeze=False)
     to_robot = se2_inverse(np.asarray(suggestion.odom_pose, float))
     relative = se2_compose(to_robot, suggestion.candidates_odom) if len(suggestion.candidates_odom) else None
+    seen = se2_compose(to_robot, suggestion.seen_odom) if len(suggestion.seen_odom) else np.zeros((1, 3))
     scale = max(float(suggestion.gains_nats.max(initial=0.0)), 1e-6)
-    for ax, h in zip(axes.ravel(), hyps, strict=False):
+    points = None
+    for k, (ax, h) in enumerate(zip(axes.ravel(), hyps, strict=False)):
         draw_floorplan(ax, prior, h.storey, label_objects=False)
         if relative is not None:
             c = se2_compose(h.pose, relative)
             order = np.argsort(suggestion.gains_nats)
             points = ax.scatter(c[order, 0], c[order, 1], c=suggestion.gains_nats[order], cmap="viridis", vmin=0,
-                                vmax=scale, s=14, zorder=4)  # fmt: skip
-            if h is hyps[0]:
-                fig.colorbar(points, ax=ax, fraction=0.046, label="expected gain [nats]")
+                                vmax=scale, s=10, zorder=4)  # fmt: skip
+        route = se2_compose(h.pose, seen)
+        ax.plot(route[:, 0], route[:, 1], "o-", color="tab:purple", ms=5, lw=2.5, zorder=5)
         if suggestion.goal_odom is not None:
             path_odom = np.column_stack([suggestion.path_odom, np.zeros(len(suggestion.path_odom))])
-            route = se2_compose(h.pose, se2_compose(to_robot, path_odom))
+            way = se2_compose(h.pose, se2_compose(to_robot, path_odom))
             goal = se2_compose(h.pose, se2_compose(to_robot, suggestion.goal_odom))
-            ax.plot(route[:, 0], route[:, 1], color="tab:red", lw=1.6, zorder=5, label="path")
-            ax.quiver(*goal[:2], np.cos(goal[2]), np.sin(goal[2]), color="tab:red", scale=12, width=0.012, zorder=6)
-        ax.quiver(*h.pose[:2], np.cos(h.pose[2]), np.sin(h.pose[2]), color="black", scale=12, width=0.012, zorder=6)
+            ax.plot(way[:, 0], way[:, 1], color="tab:red", lw=2, zorder=5)
+            ax.plot(*goal[:2], "o", color="tab:red", ms=9, mfc="white", mew=2, zorder=6)
+            ax.quiver(*goal[:2], np.cos(goal[2]), np.sin(goal[2]), color="tab:red", scale=9, width=0.014, zorder=7)
+        ax.quiver(*h.pose[:2], np.cos(h.pose[2]), np.sin(h.pose[2]), color="black", scale=12, width=0.012, zorder=7)
+        if truth is not None:
+            ax.plot(*truth[:2], "*", color="tab:green", mec="black", ms=15, zorder=8)
         reach = 2.0 + (suggestion.travel_m if suggestion.goal_odom is not None else 4.0) + 4.0
         ax.set_xlim(h.pose[0] - reach, h.pose[0] + reach)
         ax.set_ylim(h.pose[1] - reach, h.pose[1] + reach)
-        ax.set_title(f"p = {h.probability:.2f}, storey {h.storey}", fontsize=9)
+        here = truth is not None and np.hypot(*(np.asarray(truth[:2]) - h.pose[:2])) < 2.0
+        storey = f", storey {h.storey}" if len(prior.storeys) > 1 else ""
+        ax.set_title(f"place {k + 1}: p = {h.probability:.2f}{storey}{' (the true one)' if here else ''}", fontsize=10)
         ax.set_xticks([])
         ax.set_yticks([])
+        ax.set_xlabel("")
+        ax.set_ylabel("")
+        _scale_bar(ax, (*ax.get_xlim(), *ax.get_ylim()))
     for ax in axes.ravel()[len(hyps) :]:
         ax.axis("off")
+    if points is not None:
+        fig.colorbar(points, ax=list(axes.ravel()), fraction=0.03, pad=0.02, label="expected gain of a view [nats]")
+    key = [
+        plt.Line2D([], [], marker=">", ls="", color="black", ms=9, label="robot, if here"),
+        plt.Line2D([], [], marker="o", color="tab:purple", ms=5, lw=2.5, label="route so far"),
+        plt.Line2D([], [], marker="o", ls="", color=plt.get_cmap("viridis")(0.8), ms=4, label="candidate views"),
+        *(
+            [plt.Line2D([], [], marker="o", color="tab:red", mfc="white", mew=2, lw=2, label="suggested path, goal")]
+            if suggestion.goal_odom is not None
+            else []
+        ),
+        *([plt.Line2D([], [], marker="*", ls="", color="tab:green", mec="black", ms=12, label="truth")] if truth
+           is not None else []),
+    ]  # fmt: skip
+    fig.legend(handles=key, loc="upper center", ncol=len(key), fontsize=9, frameon=False, bbox_to_anchor=(0.45, 0.08))
     what = (
-        f"goal: expected gain {suggestion.gain_nats:.2f} of {suggestion.entropy_nats:.2f} nats, "
-        f"{suggestion.travel_m:.1f} m away"
+        f"suggested goal {suggestion.travel_m:.1f} m away: its view is expected to tell the places apart by "
+        f"{suggestion.gain_nats:.2f} of {suggestion.entropy_nats:.2f} nats"
         if suggestion.goal_odom is not None
-        else f"nothing to suggest: {suggestion.reason}"
+        else suggestion.describe()
     )
-    fig.suptitle(f"{title}\n{what}" if title else what, fontsize=10)
-    return save_figure(fig, path, dpi=110)
+    shown = f" ({len(hyps)} most probable shown)" if len(suggestion.hypotheses) > len(hyps) else ""
+    split = f"the belief is split between {len(suggestion.hypotheses)} places{shown}"
+    fig.suptitle("\n".join(filter(None, (title, split, what))), fontsize=11)
+    return save_figure(fig, path, dpi=100)
 
 
 def save_scene_graph_figure(record: dict, cloud: np.ndarray, up: np.ndarray, path: str | Path, title: str = "") -> Path:
