@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 DEMO_PRESET = "paper-floor"
 # The suggestion's building and route: eight alike offices, where route 2 starts in one and the belief is split
 # between them after a few keyframes; the route is driven until the localizer suggests where to look, at most this far.
-SUGGEST_PRESET, SUGGEST_ROUTE, SUGGEST_MAX_KEYFRAMES = "office", 2, 12
+SUGGEST_PRESET, SUGGEST_ROUTE, SUGGEST_MAX_KEYFRAMES = "office", 2, 20
 
 
 @dataclass
