@@ -453,6 +453,10 @@ class MotionConfig(_Strict):
         le=1.0,
         description="Weight factor for a particle outside navigable space after a prediction (1: none).",
     )
+    # a particle at a portal's end goes through with this probability per step when no event says the robot did
+    portal_share: ClassVar[float] = 0.05
+    # told the robot changed storey, a particle at no portal to that floor keeps this share of its weight
+    event_miss_weight: ClassVar[float] = 1e-3
 
 
 class ResamplerConfig(_Strict):

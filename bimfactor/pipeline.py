@@ -63,6 +63,7 @@ from bimfactor.io.sequence import Sequence as SequenceFolder
 from bimfactor.localization.filter import SemanticMCL, StepResult
 from bimfactor.localization.measurements.scan import DepthPoints, frame_endpoints
 from bimfactor.localization.modes import extract_modes
+from bimfactor.localization.motion import STOREY_CHANGE
 from bimfactor.localization.stats import (
     local_mean_yaw,
     mixture_pose_covariance,
@@ -500,7 +501,8 @@ class Localizer:
         check, the submap). An implausible frame (`FrameSkip`: unusable depth, an odometry jump) is skipped: the
         filter only predicts, by the odometry increment or, across a jump, the previous step's."""
         key = self.keyframe(frame)
-        filtered = self.filter.step(key.increment, key.seen, key.scan)
+        change = int(frame.extras.get(STOREY_CHANGE, 0))
+        filtered = self.filter.step(key.increment, key.seen, key.scan, change)
         self._converged, self._suggestion = filtered.converged, None
         out = LocalizerStep.of(key, filtered)
         for stage in self._stages:

@@ -6,6 +6,11 @@ one node per `PLANNING_CELL_M` block, at the block's cell farthest from obstacle
 checked at full resolution, cost grown near obstacles closer than `inflation_m`; then shortcut at full resolution.
 The simulator drives its routes on it (`sim.trajectory`), and active localization plans where to look next
 (`active`).
+
+Floors are joined by the prior's portals (`BimPrior.portals`: lifts and stairs). A portal's end on a floor is reached
+from that floor's traversable cells within `PORTAL_REACH_M` of its footprint (`portal_zones`): the lift's doorway,
+the foot or the head of a stair. The simulator rides through them (`sim.trajectory`), and the filter's motion model
+carries particles through them (`localization.motion.PortalMotion`).
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from bimfactor.bim.rooms import OUTSIDE
 PLANNING_CELL_M = 0.2  # side of a coarse planning block
 LOW_CLEARANCE_COST = 10.0  # extra cost per metre at zero clearance margin below inflation_m (linear in deficit)
 DOOR_APPROACH_M = 0.5  # a doorway's free cells reach this far beyond the door on both sides
+PORTAL_REACH_M = 1.0  # a portal's end takes in the floor cells within this distance of its footprint there
 
 
 @dataclass
@@ -179,3 +185,20 @@ def build_nav_graph(
     return NavGraph(
         storey_index, spec, traversable, clearance, node_xy, node_clearance, node_room, component, graph, inflation_m
     )
+
+
+def portal_zones(prior: BimPrior, cells: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """(S, rows, cols) int32: at each of the (S, rows, cols) bool `cells` (navigable or traversable space) within
+    `PORTAL_REACH_M` of a portal's footprint on that storey, the index of that portal end, else -1; and the ends as
+    (portal id, storey) in index order."""
+    spec = prior.grid
+    zones = np.full(cells.shape, -1, np.int32)
+    ends = []
+    for portal in prior.portals:
+        for end in portal.ends:
+            x0, y0, x1, y1 = end.box_xy
+            box = rasterise_polygons([np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])], spec).astype(bool)
+            near = distance_transform(~box) * spec.resolution_m <= PORTAL_REACH_M
+            zones[end.storey_index][near & cells[end.storey_index]] = len(ends)
+            ends.append((portal.id, end.storey_index))
+    return zones, ends
