@@ -773,6 +773,12 @@ class RosbagConfig(_Strict):
     detections_topic: str = Field(
         "", description="vision_msgs/Detection2DArray topic of a detector's output (docs/perception.md); '' finds it."
     )
+    # std_msgs/Int32 storey-change events (a barometer's, an IMU's or a lift's); "": the bag has none
+    storey_topic: str = Field(
+        "",
+        description="std_msgs/Int32 topic of storey changes: floors up (+) or down (−), each at the next frame "
+        "(frames.csv's extra.storey_change); '' reads none.",
+    )
     max_sync_dt_s: float = Field(
         0.05, gt=0.0, description="Largest time offset between a colour image and its depth image."
     )

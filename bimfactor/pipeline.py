@@ -63,7 +63,6 @@ from bimfactor.io.sequence import Sequence as SequenceFolder
 from bimfactor.localization.filter import SemanticMCL, StepResult
 from bimfactor.localization.measurements.scan import DepthPoints, frame_endpoints
 from bimfactor.localization.modes import extract_modes
-from bimfactor.localization.motion import STOREY_CHANGE
 from bimfactor.localization.stats import (
     local_mean_yaw,
     mixture_pose_covariance,
@@ -77,7 +76,15 @@ from bimfactor.perception.ocr import plate_columns
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
 from bimfactor.registration.fine import FineRegistration, FineResult
-from bimfactor.types import Frame, Observations, SequenceMeta, se2_between, se2_compose, se2_inverse
+from bimfactor.types import (
+    STOREY_CHANGE,
+    Frame,
+    Observations,
+    SequenceMeta,
+    se2_between,
+    se2_compose,
+    se2_inverse,
+)
 
 log = logging.getLogger(__name__)
 

@@ -9,8 +9,8 @@ back end share with the localizer).
 Between floors (`PortalMotion`): a particle at a portal's end (`bim.navigation.portal_zones`) may have taken it.
 Without word of it, each such particle goes through with the small probability `portal_share` per step, to another
 floor of its portal, and the observations decide; told that the robot changed storey (a barometer, an IMU, a lift's
-interface: `STOREY_CHANGE`), every particle at a portal reaching that floor goes through, and the others keep only
-`event_miss_weight` of their weight (the belief may have been wrong about where the robot stood).
+interface: `types.STOREY_CHANGE`), every particle at a portal reaching that floor goes through, and the others keep
+only `event_miss_weight` of their weight (the belief may have been wrong about where the robot stood).
 """
 
 from __future__ import annotations
@@ -28,9 +28,6 @@ from bimfactor.odometry import keyframe_due as keyframe_due
 from bimfactor.types import se2_compose, wrap_angle
 
 _MIN_TURN_RATE = 1e-9  # rad/s: below this a velocity command is a straight line
-STOREY_CHANGE = "storey_change"
-"""The frame extra (`Frame.extras`, frames.csv's `extra.storey_change`) of a storey-change event: the signed number
-of floors the robot went up (+) or down (−) since the frame before."""
 
 
 def velocity_increment(v_mps: float, omega_rps: float, dt_s: float) -> np.ndarray:
