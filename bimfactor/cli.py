@@ -167,7 +167,8 @@ ScenarioOption = Annotated[
         metavar="NAME",
         help="global (the paper: from the uniform belief), guess (from a pose guess off the truth), kidnap "
         "(carried to another route mid-run) or active (following the localizer's suggestions, beside the passive "
-        "route: variants +active); default: the config's evaluation.scenario.",
+        "route: variants +active) or storeys (routes that change floor, without and with the storey-change event: "
+        "variants +event); default: the config's evaluation.scenario.",
     ),
 ]
 VerboseOption = Annotated[bool, typer.Option("--verbose", "-v", help="Log progress (INFO); default is WARNING.")]

@@ -1082,15 +1082,17 @@ class EvaluationConfig(_Strict):
         30, ge=0, description="filter_converged: the most unscored steps before the T scored."
     )
     # global: from the uniform belief (the paper) | guess: from a pose guess (AMCL's initial pose) | kidnap | active:
-    # the localizer's suggestions after the first one, beside the passive route
-    scenario: Literal["global", "guess", "kidnap", "active"] = Field(
+    # the localizer's suggestions after the first one, beside the passive route | storeys: routes through a portal
+    scenario: Literal["global", "guess", "kidnap", "active", "storeys"] = Field(
         "global",
         description="How a run starts: global (the paper: from the uniform belief over the building), guess (from a "
         "pose guess `guess_offset_m` / `guess_offset_deg` off the first frame's truth, AMCL's initial pose), or "
         "kidnap (from the uniform belief; after `kidnap_at` keyframes the robot is carried, unseen by odometry, to "
         "keyframe `kidnap_resume_at` of the route three further on, and the T steps from there are scored), or "
         "active (from the uniform belief, the route until the localizer first suggests where to look, then its "
-        "suggestions (`active`), T keyframes in all; the passive route from the same start runs beside it).",
+        "suggestions (`active`), T keyframes in all; the passive route from the same start runs beside it), or "
+        "storeys (from the uniform belief, routes that change floor through a lift or a stair, each run localized "
+        "without and with the storey-change event: variants +event).",
     )
     # global, kidnap: the start covers only the storey the robot starts on (it knows its floor)
     known_storey: bool = Field(

@@ -8,9 +8,9 @@ The simulator drives its routes on it (`sim.trajectory`), and active localizatio
 (`active`).
 
 Floors are joined by the prior's portals (`BimPrior.portals`: lifts and stairs). A portal's end on a floor is reached
-from that floor's traversable cells within `PORTAL_REACH_M` of its footprint (`portal_zones`): the lift's doorway,
-the foot or the head of a stair. The simulator rides through them (`sim.trajectory`), and the filter's motion model
-carries particles through them (`localization.motion.PortalMotion`).
+from within `PORTAL_REACH_M` of its footprint there (`box_distance`): the lift's doorway, the foot or the head of a
+stair. The simulator rides through them (`sim.trajectory`), and the filter's motion model carries particles through
+them (`localization.motion.PortalMotion`).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from bimfactor.bim.rooms import OUTSIDE
 PLANNING_CELL_M = 0.2  # side of a coarse planning block
 LOW_CLEARANCE_COST = 10.0  # extra cost per metre at zero clearance margin below inflation_m (linear in deficit)
 DOOR_APPROACH_M = 0.5  # a doorway's free cells reach this far beyond the door on both sides
-PORTAL_REACH_M = 1.0  # a portal's end takes in the floor cells within this distance of its footprint there
+PORTAL_REACH_M = 1.0  # a portal's end is reached from within this distance of its footprint on a floor
 
 
 @dataclass
@@ -187,18 +187,9 @@ def build_nav_graph(
     )
 
 
-def portal_zones(prior: BimPrior, cells: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """(S, rows, cols) int32: at each of the (S, rows, cols) bool `cells` (navigable or traversable space) within
-    `PORTAL_REACH_M` of a portal's footprint on that storey, the index of that portal end, else -1; and the ends as
-    (portal id, storey) in index order."""
-    spec = prior.grid
-    zones = np.full(cells.shape, -1, np.int32)
-    ends = []
-    for portal in prior.portals:
-        for end in portal.ends:
-            x0, y0, x1, y1 = end.box_xy
-            box = rasterise_polygons([np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])], spec).astype(bool)
-            near = distance_transform(~box) * spec.resolution_m <= PORTAL_REACH_M
-            zones[end.storey_index][near & cells[end.storey_index]] = len(ends)
-            ends.append((portal.id, end.storey_index))
-    return zones, ends
+def box_distance(xy: np.ndarray, box: tuple[float, float, float, float] | np.ndarray) -> np.ndarray:
+    """(...) distance from (..., 2) world points to an (x_min, y_min, x_max, y_max) box; 0 inside it."""
+    x0, y0, x1, y1 = box
+    gap_x = np.maximum(np.maximum(x0 - xy[..., 0], xy[..., 0] - x1), 0.0)
+    gap_y = np.maximum(np.maximum(y0 - xy[..., 1], xy[..., 1] - y1), 0.0)
+    return np.hypot(gap_x, gap_y)

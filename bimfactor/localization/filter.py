@@ -1,9 +1,9 @@
 """Semantic Monte Carlo localization (paper Sec. II.C): a particle filter over (x, y, yaw, storey) in the BIM.
 
 One step (`SemanticMCL.step`) is the paper's loop:
-1. predict:  carry the particles at a portal's end to another floor (`motion.PortalMotion`: rarely, or all of them
-             when an event says the robot changed storey), then move every particle by the odometry increment plus
-             Gaussian noise (`motion.propagate`); a particle that leaves navigable space keeps
+1. predict:  move every particle by the odometry increment plus Gaussian noise (`motion.propagate`); one whose
+             step passed a portal's end may go to another floor (`motion.PortalMotion`: rarely, or every one when an
+             event says the robot changed storey); a particle that leaves navigable space keeps
              `motion.off_map_weight` of its weight;
 2. update:   weight ×= Π_m p_m(z | x), the measurement models' terms summed in log (`measurements`: the paper's
              semantic Hungarian score, and beyond it door plates read and the depth scan); normalise;
@@ -129,7 +129,7 @@ class FilterModels:
             by_kind[PlateLikelihood],
             by_kind.get(ScanLikelihood),
             measurements,
-            PortalMotion.of_prior(prior, free.navigable),
+            PortalMotion.of_prior(prior),
         )
 
 
@@ -189,7 +189,7 @@ class SemanticMCL:
             self.initialize()
         frame = FrameData(observations, scan, storey_change)
         lap = Laps(per_second=1e3)
-        # 1. Predict: through the portals, the odometry increment and the motion noise.
+        # 1. Predict: the odometry increment, the motion noise and the portals.
         if odom_increment is not None:
             self.predict(odom_increment, storey_change)
         lap("predict")
@@ -248,21 +248,23 @@ class SemanticMCL:
         return sum(term.log_likelihood for term in terms.values()) if terms else None
 
     def predict(self, odom_increment: np.ndarray, storey_change: int = 0) -> None:
-        """Carry particles through the portals (`motion.PortalMotion`; `storey_change` floors up or down when told,
-        0: no word), then move them by a (3,) robot-frame odometry increment (dx, dy, dyaw) with the motion noise."""
+        """Move the particles by a (3,) robot-frame odometry increment (dx, dy, dyaw) with the motion noise, and carry
+        those that passed a portal to another floor (`motion.PortalMotion`; `storey_change` floors up or down when
+        told, 0: no word)."""
         self._require_initialized()
         motion = self.cfg.motion
+        before = self.particles
+        self.particles = propagate(
+            self.particles, odom_increment, motion.sigma_trans_m, np.deg2rad(motion.sigma_rot_deg), self.rng
+        )
         portals = self.models.portals
         if portals is not None:
-            self.particles, self.storeys, could = portals.carry(
-                self.particles, self.storeys, motion.portal_share, storey_change, self.rng
+            self.storeys, could = portals.carry(
+                before[:, :2], self.particles[:, :2], self.storeys, motion.portal_share, storey_change, self.rng
             )
             if not could.all():
                 self.weights[~could] *= motion.event_miss_weight
                 self._normalise("after a storey change no particle could make")
-        self.particles = propagate(
-            self.particles, odom_increment, motion.sigma_trans_m, np.deg2rad(motion.sigma_rot_deg), self.rng
-        )
         off_map = ~self.on_navigable(self.particles, self.storeys)
         if off_map.any():
             self.weights[off_map] *= motion.off_map_weight

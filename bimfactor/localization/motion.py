@@ -6,8 +6,8 @@ and per step, as the paper does; the noise does not scale with the length of the
 keyframe (`bimfactor.odometry`, which also holds the increments and the odometry noise model the simulator and the
 back end share with the localizer).
 
-Between floors (`PortalMotion`): a particle at a portal's end (`bim.navigation.portal_zones`) may have taken it.
-Without word of it, each such particle goes through with the small probability `portal_share` per step, to another
+Between floors (`PortalMotion`): a particle whose step passed a portal's end on its floor may have taken it. Without
+word of it, each such particle goes through with the small probability `portal_share` per step, to another
 floor of its portal, and the observations decide; told that the robot changed storey (a barometer, an IMU, a lift's
 interface: `types.STOREY_CHANGE`), every particle at a portal reaching that floor goes through, and the others keep
 only `event_miss_weight` of their weight (the belief may have been wrong about where the robot stood).
@@ -19,8 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bimfactor.bim.grid import GridSpec
-from bimfactor.bim.navigation import portal_zones
+from bimfactor.bim.navigation import PORTAL_REACH_M, box_distance
 from bimfactor.bim.prior import BimPrior
 
 # Re-exported: the README's live-robot snippet imports the keyframe gate from here.
@@ -28,6 +27,7 @@ from bimfactor.odometry import keyframe_due as keyframe_due
 from bimfactor.types import se2_compose, wrap_angle
 
 _MIN_TURN_RATE = 1e-9  # rad/s: below this a velocity command is a straight line
+PATH_SAMPLES = 8  # points along a particle's step that are checked for passing a portal
 
 
 def velocity_increment(v_mps: float, omega_rps: float, dt_s: float) -> np.ndarray:
@@ -72,60 +72,58 @@ def propagate_velocity(
 class PortalMotion:
     """Carries particles between floors through the prior's portals (module docstring); built once per prior."""
 
-    grid: GridSpec
-    zones: np.ndarray  # (S, rows, cols) the portal end whose zone holds each navigable cell, -1: none
+    boxes: np.ndarray  # (E, 4) x_min, y_min, x_max, y_max of each portal end
     end_portal: np.ndarray  # (E,) portal id of each end
     end_storey: np.ndarray  # (E,) storey of each end
-    end_cells: list[np.ndarray]  # per end, its zone's flat (row, col) cell indices
     floor_rank: np.ndarray  # (S,) each storey's place among the floors (0: lowest), -1: not a floor
 
     @classmethod
-    def of_prior(cls, prior: BimPrior, navigable: np.ndarray) -> PortalMotion | None:
-        """Over the (S, rows, cols) navigable cells; None when the prior has no portal with navigable ends."""
-        zones, ends = portal_zones(prior, navigable)
-        end_cells = [np.flatnonzero(zones[storey] == e) for e, (_, storey) in enumerate(ends)]
-        if not any(len(c) for c in end_cells):
+    def of_prior(cls, prior: BimPrior) -> PortalMotion | None:
+        """None when the prior has no portal."""
+        ends = [(p.id, e.storey_index, e.box_xy) for p in prior.portals for e in p.ends]
+        if not ends:
             return None
         rank = np.full(len(prior.storeys), -1, np.int64)
         floors = [layers.storey.index for layers in prior.storeys if layers.storey.is_floor]
         rank[floors] = np.arange(len(floors))
-        portal = np.asarray([p for p, _ in ends], np.int64)
-        storey = np.asarray([s for _, s in ends], np.int64)
-        return cls(prior.grid, zones, portal, storey, end_cells, rank)
+        portal, storey, boxes = zip(*ends, strict=True)
+        return cls(np.asarray(boxes, float), np.asarray(portal, np.int64), np.asarray(storey, np.int64), rank)
 
     def carry(
-        self, particles: np.ndarray, storeys: np.ndarray, share: float, change: int, rng: np.random.Generator
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The (M, 3) particles on their (M,) storeys after the portals: with `change` 0 (no event) each at a portal
-        end goes through with probability `share`; with a change of floors, each at an end of a portal that reaches
-        that floor goes there. Returns new particles, new storeys and the (M,) bool mask of those that could have
-        made the change (all True without an event)."""
-        particles, storeys = particles.copy(), storeys.copy()
-        rc = self.grid.world_to_cell(particles[:, :2])
-        inside = self.grid.contains(rc)
-        end = np.full(len(particles), -1, np.int64)
-        end[inside] = self.zones[storeys[inside], rc[inside, 0], rc[inside, 1]]
-        target = np.full(len(particles), -1, np.int64)
-        for e in np.unique(end[end >= 0]):
-            at = np.flatnonzero(end == e)
-            others = np.flatnonzero((self.end_portal == self.end_portal[e]) & (np.arange(len(self.end_portal)) != e))
-            others = others[[len(self.end_cells[o]) > 0 for o in others]]
+        self,
+        before_xy: np.ndarray,
+        after_xy: np.ndarray,
+        storeys: np.ndarray,
+        share: float,
+        change: int,
+        rng: np.random.Generator,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The (M,) storeys of particles that moved from (M, 2) `before_xy` to `after_xy` in a step, after the
+        portals: a particle whose path passed within `PORTAL_REACH_M` of a portal's end on its storey may have gone
+        through, keeping its place (a lift's floors share their x, y; a stair's climb is in the odometry). With
+        `change` 0 (no event) each goes with probability `share`, to another floor of the portal; with a change of
+        floors, each whose portal reaches that floor goes there. Returns the new storeys and the (M,) bool mask of
+        the particles that could have made the change (all True without an event)."""
+        path = (
+            before_xy[:, None, :]
+            + np.linspace(0.0, 1.0, PATH_SAMPLES)[None, :, None] * (after_xy - before_xy)[:, None, :]
+        )  # (M, P, 2)
+        storeys = storeys.copy()
+        target = np.full(len(storeys), -1, np.int64)
+        for e in range(len(self.boxes)):
+            at = np.flatnonzero((storeys == self.end_storey[e]) & (target < 0))
+            if not len(at):
+                continue
+            at = at[box_distance(path[at], self.boxes[e]).min(axis=1) <= PORTAL_REACH_M]
+            others = np.flatnonzero((self.end_portal == self.end_portal[e]) & (np.arange(len(self.boxes)) != e))
             if change:
-                rank = self.floor_rank[self.end_storey[e]] + change
-                others = others[self.floor_rank[self.end_storey[others]] == rank]
-                if len(others):
-                    target[at] = others[0]
+                floor = self.floor_rank[self.end_storey[e]] + change
+                reached = others[self.floor_rank[self.end_storey[others]] == floor]
+                if len(reached):
+                    target[at] = reached[0]
             elif len(others):
                 go = at[rng.random(len(at)) < share]
                 target[go] = others[rng.integers(len(others), size=len(go))]
-        for t in np.unique(target[target >= 0]):
-            moving = np.flatnonzero(target == t)
-            storey = int(self.end_storey[t])
-            # A lift keeps the particle's place where it is the target's zone too; else a cell of the target's zone.
-            same = self.zones[storey, rc[moving, 0], rc[moving, 1]] == t
-            cells = self.end_cells[t][rng.integers(len(self.end_cells[t]), size=int((~same).sum()))]
-            drawn = self.grid.cell_to_world(np.stack(np.unravel_index(cells, self.zones.shape[1:]), axis=1))
-            jitter = rng.uniform(-0.5, 0.5, drawn.shape) * self.grid.resolution_m
-            particles[moving[~same], :2] = drawn + jitter
-            storeys[moving] = storey
-        return particles, storeys, target >= 0 if change else np.ones(len(particles), bool)
+        moving = target >= 0
+        storeys[moving] = self.end_storey[target[moving]]
+        return storeys, moving if change else np.ones(len(storeys), bool)
