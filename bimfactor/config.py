@@ -455,6 +455,8 @@ class MotionConfig(_Strict):
     )
     # a particle at a portal's end goes through with this probability per step when no event says the robot did
     portal_share: ClassVar[float] = 0.05
+    # ... and with this probability when its step crossed the portal's footprint (a stair's steps): it climbed
+    portal_cross_share: ClassVar[float] = 0.5
     # told the robot changed storey, a particle at no portal to that floor keeps this share of its weight
     event_miss_weight: ClassVar[float] = 1e-3
 

@@ -20,10 +20,10 @@ k + 3 (odometry sees nothing, `sim.simulate.kidnap`), scoring the T steps from t
 steps to recover, and each run also says whether it was tracking when carried off; `storeys` starts uniform on routes
 that change floor through a portal (`sim.trajectory.TrajectorySimulator.storey_route`), localizes each run twice,
 without the storey-change event and with it (variants named with `EVENT_SUFFIX`), and scores as `global` does, adding
-`storey_acc_after_change`, the storey accuracy over the `AFTER_CHANGE_KEYFRAMES` keyframes after each change. With
-`evaluation.known_storey` the uniform start of `global` and `kidnap` covers only the storey the route starts on (a
-robot told its floor); a relocalization still spreads over the whole building. On a building of several storeys
-the translation error is the planar one, and `storey_acc` says how often the estimate was on the true storey.
+`storey_acc_after_change`, the storey accuracy over the `sim.trajectory.AFTER_CHANGE_KEYFRAMES` keyframes after each
+change. With `evaluation.known_storey` the uniform start of `global` and `kidnap` covers only the storey the route
+starts on (a robot told its floor); a relocalization still spreads over the whole building. On a building of several
+storeys the translation error is the planar one, and `storey_acc` says how often the estimate was on the true storey.
 
 Variants (`evaluation.variants`): `smcl` (the paper's filter), `smcl+graph` (the best mode of the per-mode pose
 graphs), `refine` (smcl+graph, then offline batch smoothing) and `full` (smcl+graph with ICP against the BIM walls
@@ -123,7 +123,6 @@ class RunResult:
 
 ACTIVE_SUFFIX = "+active"  # the active scenario's closed-loop runs of a variant (`evaluation.active`)
 EVENT_SUFFIX = "+event"  # the storeys scenario's runs of a variant given the storey-change event
-AFTER_CHANGE_KEYFRAMES = 10  # storeys: the keyframes after a storey change its accuracy is scored over
 
 
 def reported_variants(ev: EvaluationConfig) -> list[str]:
@@ -336,6 +335,7 @@ def score_runs(
     from bimfactor.evaluation.metrics import errors_up_to_twin, inside_ellipse, route_outcome, steps_to_converge
     from bimfactor.evaluation.report import track_metrics
     from bimfactor.refine import refine_run
+    from bimfactor.sim.trajectory import AFTER_CHANGE_KEYFRAMES
 
     ev = cfg.evaluation
     variants = ev.variants

@@ -260,7 +260,12 @@ class SemanticMCL:
         portals = self.models.portals
         if portals is not None:
             self.storeys, could = portals.carry(
-                before[:, :2], self.particles[:, :2], self.storeys, motion.portal_share, storey_change, self.rng
+                before[:, :2],
+                self.particles[:, :2],
+                self.storeys,
+                (motion.portal_share, motion.portal_cross_share),
+                storey_change,
+                self.rng,
             )
             if not could.all():
                 self.weights[~could] *= motion.event_miss_weight

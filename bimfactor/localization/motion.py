@@ -7,10 +7,11 @@ keyframe (`bimfactor.odometry`, which also holds the increments and the odometry
 back end share with the localizer).
 
 Between floors (`PortalMotion`): a particle whose step passed a portal's end on its floor may have taken it. Without
-word of it, each such particle goes through with the small probability `portal_share` per step, to another
-floor of its portal, and the observations decide; told that the robot changed storey (a barometer, an IMU, a lift's
-interface: `types.STOREY_CHANGE`), every particle at a portal reaching that floor goes through, and the others keep
-only `event_miss_weight` of their weight (the belief may have been wrong about where the robot stood).
+word of it, each such particle goes through with the small probability `portal_share` per step, to another floor of
+its portal, or with `portal_cross_share` when its step crossed the portal's footprint (a stair's steps, where a robot
+on the floor cannot drive), and the observations decide; told that the robot changed storey (a barometer, an IMU, a
+lift's interface: `types.STOREY_CHANGE`), every particle at a portal reaching that floor goes through, and the others
+keep only `event_miss_weight` of their weight (the belief may have been wrong about where the robot stood).
 """
 
 from __future__ import annotations
@@ -94,16 +95,17 @@ class PortalMotion:
         before_xy: np.ndarray,
         after_xy: np.ndarray,
         storeys: np.ndarray,
-        share: float,
+        shares: tuple[float, float],
         change: int,
         rng: np.random.Generator,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The (M,) storeys of particles that moved from (M, 2) `before_xy` to `after_xy` in a step, after the
         portals: a particle whose path passed within `PORTAL_REACH_M` of a portal's end on its storey may have gone
         through, keeping its place (a lift's floors share their x, y; a stair's climb is in the odometry). With
-        `change` 0 (no event) each goes with probability `share`, to another floor of the portal; with a change of
-        floors, each whose portal reaches that floor goes there. Returns the new storeys and the (M,) bool mask of
-        the particles that could have made the change (all True without an event)."""
+        `change` 0 (no event) each goes to another floor of the portal with probability `shares[0]`, or `shares[1]`
+        where its path crossed a footprint of the portal (a stair's steps, where a robot on the floor cannot drive);
+        with a change of floors, each whose portal reaches that floor goes there. Returns the new storeys and the
+        (M,) bool mask of the particles that could have made the change (all True without an event)."""
         path = (
             before_xy[:, None, :]
             + np.linspace(0.0, 1.0, PATH_SAMPLES)[None, :, None] * (after_xy - before_xy)[:, None, :]
@@ -122,7 +124,9 @@ class PortalMotion:
                 if len(reached):
                     target[at] = reached[0]
             elif len(others):
-                go = at[rng.random(len(at)) < share]
+                ends = np.flatnonzero(self.end_portal == self.end_portal[e])
+                crossed = np.min([box_distance(path[at], self.boxes[o]).min(axis=1) for o in ends], axis=0) <= 0.0
+                go = at[rng.random(len(at)) < np.where(crossed, shares[1], shares[0])]
                 target[go] = others[rng.integers(len(others), size=len(go))]
         moving = target >= 0
         storeys[moving] = self.end_storey[target[moving]]

@@ -13,8 +13,9 @@ things; `rooms` starts and stops anywhere roomy. In a building as sparse as the 
 86 × 86 m), room-to-room routes see 0–2 objects per keyframe.
 
 Storey routes (`TrajectorySimulator.storey_route`) change floor through a portal of the prior (`BimPrior.portals`):
-the robot drives its route on one floor for a third of its keyframes, then to the portal's end, goes through and
-drives on on the other floor. A lift ride takes `LIFT_RIDE_S` per floor with the wheels still; a stair is climbed
+the robot drives its route on one floor for half of its keyframes, then to the portal's end, goes through and
+drives on on the other floor, at least `AFTER_CHANGE_KEYFRAMES` keyframes (the route is that much longer where the way
+to the portal took longer). A lift ride takes `LIFT_RIDE_S` per floor with the wheels still; a stair is climbed
 (the robot is one that can) at `STAIR_SPEED_MPS` from its foot to its head. No keyframe is taken in between.
 """
 
@@ -50,6 +51,7 @@ LEG_TIME_FACTOR = 4.0  # a leg that takes this many times its nominal duration i
 MAX_LEGS_PER_STEP = 5  # a trajectory needing more legs than this per keyframe is stuck
 LIFT_RIDE_S = 8.0  # a lift ride per floor, doors included
 STAIR_SPEED_MPS = 0.3  # a stair climbed, along the straight line from its foot to its head
+AFTER_CHANGE_KEYFRAMES = 10  # a storey route goes on at least this far on the other floor
 _START_ORDER_STREAM = 0x57A7
 _TRAJECTORY_STREAM = 0x7A1
 
@@ -254,12 +256,12 @@ class TrajectorySimulator:
         near = near if len(near) else np.flatnonzero(roomy)
         near = self.viewpoints(storey, near)
         start_node = int(near[rng.integers(len(near))])
-        driver = _Driver(self, graph, rng, steps // 3)
+        driver = _Driver(self, graph, rng, steps // 2)
         driver.run(start_node, self._rooms_about(graph, start_node))
-        driver.steps = steps
         pose = driver.drive_to(driver.last_pose, node)
         kind = self.prior.portals[portal].kind
         driver.go_through(pose, self.graphs[other], other_node, kind, abs(self._floors_between(storey, other)))
+        driver.steps = max(steps, len(driver.keyframes) + AFTER_CHANGE_KEYFRAMES)
         driver.run(other_node, self._rooms_about(self.graphs[other], other_node), pose=driver.last_pose)
         return driver.trajectory(index, seed, storey)
 

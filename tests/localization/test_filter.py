@@ -224,6 +224,10 @@ def test_a_portal_carries_particles_between_floors(smcl_cfg: SmclConfig, test_co
     mcl.set_particles(np.repeat([[8.0, 1.2, 0.0]], 4000, axis=0), start)
     mcl.predict(np.array([3.0, 0.0, 0.0]))
     assert (mcl.storeys == 1).mean() == pytest.approx(mcl.cfg.motion.portal_share, abs=0.015)
+    # A step across the stair's steps (where no robot on the floor can drive) climbed it, likely.
+    mcl.set_particles(np.repeat([[9.5, 1.5, -np.pi / 2]], 4000, axis=0), start)
+    mcl.predict(np.array([1.4, 0.0, 0.0]))
+    assert (mcl.storeys == 1).mean() == pytest.approx(mcl.cfg.motion.portal_cross_share, abs=0.03)
 
     # Told the robot went up a floor: every particle at a portal goes, the rest keep a thousandth of their weight.
     mcl.set_particles(poses, start)
