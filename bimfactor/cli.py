@@ -165,7 +165,8 @@ ScenarioOption = Annotated[
         metavar="NAME",
         help="global (the paper: from the uniform belief), guess (from a pose guess off the truth), kidnap "
         "(carried to another route mid-run) or active (following the localizer's suggestions, beside the passive "
-        "route: variants +active); default: the config's evaluation.scenario.",
+        "route: variants +active) or storeys (routes that change floor, without and with the storey-change event: "
+        "variants +event); default: the config's evaluation.scenario.",
     ),
 ]
 VerboseOption = Annotated[bool, typer.Option("--verbose", "-v", help="Log progress (INFO); default is WARNING.")]
@@ -590,6 +591,8 @@ def _format_prior_summary(built: BimPrior, summary: dict[str, Any]) -> str:
         )
     passages = f"; leafless passages: {summary['passages']}" if "passages" in summary else ""
     lines.append(f"doors: {summary['doors']}, {summary['doors_connecting']} connect two places{passages}")
+    portals = [f"{p['kind']} ({p['ifc_class']}) storeys {'-'.join(map(str, p['storeys']))}" for p in summary["portals"]]
+    lines.append(f"portals between floors: {'; '.join(portals) if portals else 'none'}")
     lines.append(f"objects: {summary['objects']}  ({_counts(summary['objects_per_category'])})")
     if summary["ifcspace_match"]:
         threshold = built.room_matches[0].threshold if built.room_matches else float("nan")

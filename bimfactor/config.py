@@ -453,6 +453,12 @@ class MotionConfig(_Strict):
         le=1.0,
         description="Weight factor for a particle outside navigable space after a prediction (1: none).",
     )
+    # a particle at a portal's end goes through with this probability per step when no event says the robot did
+    portal_share: ClassVar[float] = 0.05
+    # ... and with this probability when its step crossed the portal's footprint (a stair's steps): it climbed
+    portal_cross_share: ClassVar[float] = 0.5
+    # told the robot changed storey, a particle at no portal to that floor keeps this share of its weight
+    event_miss_weight: ClassVar[float] = 1e-3
 
 
 class ResamplerConfig(_Strict):
@@ -769,6 +775,12 @@ class RosbagConfig(_Strict):
     detections_topic: str = Field(
         "", description="vision_msgs/Detection2DArray topic of a detector's output (docs/perception.md); '' finds it."
     )
+    # std_msgs/Int32 storey-change events (a barometer's, an IMU's or a lift's); "": the bag has none
+    storey_topic: str = Field(
+        "",
+        description="std_msgs/Int32 topic of storey changes: floors up (+) or down (−), each at the next frame "
+        "(frames.csv's extra.storey_change); '' reads none.",
+    )
     max_sync_dt_s: float = Field(
         0.05, gt=0.0, description="Largest time offset between a colour image and its depth image."
     )
@@ -1071,15 +1083,17 @@ class EvaluationConfig(_Strict):
         30, ge=0, description="filter_converged: the most unscored steps before the T scored."
     )
     # global: from the uniform belief (the paper) | guess: from a pose guess (AMCL's initial pose) | kidnap | active:
-    # the localizer's suggestions after the first one, beside the passive route
-    scenario: Literal["global", "guess", "kidnap", "active"] = Field(
+    # the localizer's suggestions after the first one, beside the passive route | storeys: routes through a portal
+    scenario: Literal["global", "guess", "kidnap", "active", "storeys"] = Field(
         "global",
         description="How a run starts: global (the paper: from the uniform belief over the building), guess (from a "
         "pose guess `guess_offset_m` / `guess_offset_deg` off the first frame's truth, AMCL's initial pose), or "
         "kidnap (from the uniform belief; after `kidnap_at` keyframes the robot is carried, unseen by odometry, to "
         "keyframe `kidnap_resume_at` of the route three further on, and the T steps from there are scored), or "
         "active (from the uniform belief, the route until the localizer first suggests where to look, then its "
-        "suggestions (`active`), T keyframes in all; the passive route from the same start runs beside it).",
+        "suggestions (`active`), T keyframes in all; the passive route from the same start runs beside it), or "
+        "storeys (from the uniform belief, routes that change floor through a lift or a stair, each run localized "
+        "without and with the storey-change event: variants +event).",
     )
     # global, kidnap: the start covers only the storey the robot starts on (it knows its floor)
     known_storey: bool = Field(

@@ -76,7 +76,15 @@ from bimfactor.perception.ocr import plate_columns
 from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
 from bimfactor.registration.fine import FineRegistration, FineResult
-from bimfactor.types import Frame, Observations, SequenceMeta, se2_between, se2_compose, se2_inverse
+from bimfactor.types import (
+    STOREY_CHANGE,
+    Frame,
+    Observations,
+    SequenceMeta,
+    se2_between,
+    se2_compose,
+    se2_inverse,
+)
 
 log = logging.getLogger(__name__)
 
@@ -503,7 +511,8 @@ class Localizer:
         if not self.due(frame):
             return None
         key = self.keyframe(frame)
-        filtered = self.filter.step(key.increment, key.seen, key.scan)
+        change = int(frame.extras.get(STOREY_CHANGE, 0))
+        filtered = self.filter.step(key.increment, key.seen, key.scan, change)
         self._converged, self._suggestion = filtered.converged, None
         out = LocalizerStep.of(key, filtered)
         for stage in self._stages:
@@ -514,10 +523,11 @@ class Localizer:
         """Whether `frame` is a keyframe: the first, or one whose odometry has moved `localization.keyframe_distance_m`
         or turned `keyframe_angle_deg` since the last keyframe (`odometry.keyframe_due`; AMCL's update_min_d and
         update_min_a). The motion model's noise is per step, so a step at every camera frame would pile it up; the
-        frames between keyframes bring nothing the next keyframe's increment does not carry. A frame without a
-        finite odometry pose is due, for `keyframe` to refuse."""
+        frames between keyframes bring nothing the next keyframe's increment does not carry. A frame with a
+        storey-change event (`types.STOREY_CHANGE`: after a lift ride the wheels have not moved) is due, and so is one
+        without a finite odometry pose, for `keyframe` to refuse."""
         raw = np.asarray(frame.odom_pose, float)
-        if self._last_odom is None or not np.all(np.isfinite(raw)):
+        if self._last_odom is None or not np.all(np.isfinite(raw)) or frame.extras.get(STOREY_CHANGE, 0):
             return True
         odom = raw if self._odom_offset is None else se2_compose(self._odom_offset, raw)
         steps = self.cfg.localization

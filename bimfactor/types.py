@@ -120,6 +120,11 @@ class Frame:
     extras: dict[str, float] = field(default_factory=dict)
 
 
+STOREY_CHANGE = "storey_change"
+"""The `Frame.extras` key (frames.csv's `extra.storey_change`) of a storey-change event, as a barometer, an IMU or a
+lift's interface tells it: the signed number of floors the robot went up (+) or down (−) since the frame before."""
+
+
 @dataclass
 class SequenceMeta:
     """What a sequence of frames shares: camera model, camera mount, where it came from.

@@ -6,6 +6,11 @@ one node per `PLANNING_CELL_M` block, at the block's cell farthest from obstacle
 checked at full resolution, cost grown near obstacles closer than `inflation_m`; then shortcut at full resolution.
 The simulator drives its routes on it (`sim.trajectory`), and active localization plans where to look next
 (`active`).
+
+Floors are joined by the prior's portals (`BimPrior.portals`: lifts and stairs). A portal's end on a floor is reached
+from within `PORTAL_REACH_M` of its footprint there (`box_distance`): the lift's doorway, the foot or the head of a
+stair. The simulator rides through them (`sim.trajectory`), and the filter's motion model carries particles through
+them (`localization.motion.PortalMotion`).
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from bimfactor.bim.rooms import OUTSIDE
 PLANNING_CELL_M = 0.2  # side of a coarse planning block
 LOW_CLEARANCE_COST = 10.0  # extra cost per metre at zero clearance margin below inflation_m (linear in deficit)
 DOOR_APPROACH_M = 0.5  # a doorway's free cells reach this far beyond the door on both sides
+PORTAL_REACH_M = 1.0  # a portal's end is reached from within this distance of its footprint on a floor
 
 
 @dataclass
@@ -179,3 +185,11 @@ def build_nav_graph(
     return NavGraph(
         storey_index, spec, traversable, clearance, node_xy, node_clearance, node_room, component, graph, inflation_m
     )
+
+
+def box_distance(xy: np.ndarray, box: tuple[float, float, float, float] | np.ndarray) -> np.ndarray:
+    """(...) distance from (..., 2) world points to an (x_min, y_min, x_max, y_max) box; 0 inside it."""
+    x0, y0, x1, y1 = box
+    gap_x = np.maximum(np.maximum(x0 - xy[..., 0], xy[..., 0] - x1), 0.0)
+    gap_y = np.maximum(np.maximum(y0 - xy[..., 1], xy[..., 1] - y1), 0.0)
+    return np.hypot(gap_x, gap_y)

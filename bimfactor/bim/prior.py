@@ -46,7 +46,8 @@ from bimfactor.textfile import read_utf8
 log = logging.getLogger(__name__)
 
 PRIOR_FORMAT = "bimfactor-prior"
-PRIOR_VERSION = 4  # 3: storeys say whether they are floors (`floor_levels`); 4: the wall meshes (`bim.surfaces`)
+PRIOR_VERSION = 5  # 3: storeys say whether they are floors (`floor_levels`); 4: the wall meshes (`bim.surfaces`);
+# 5: the portals between floors (`find_portals`)
 _LAYERS = ("structure", "furniture", "clearance_m", "room_labels", "navigable")
 
 
@@ -125,6 +126,26 @@ class Door:
 
 
 @dataclass
+class PortalEnd:
+    """Where a portal meets one floor: the (x_min, y_min, x_max, y_max) world box of its footprint there."""
+
+    storey_index: int
+    box_xy: tuple[float, float, float, float]
+
+
+@dataclass
+class Portal:
+    """A way between floors (`find_portals`): a lift stops at every floor its shaft spans, in the same footprint; a
+    stair (a flight, a ramp, an escalator) joins its bottom floor at its foot and its top floor at its head."""
+
+    id: int
+    kind: str  # "lift" or "stair"
+    guid: str
+    ifc_class: str
+    ends: list[PortalEnd]  # one per floor it joins, lowest first
+
+
+@dataclass
 class StoreyLayers(StoreyGrid):
     """A storey's grid layers plus its room labels (int32 room id, OUTSIDE, NO_ROOM) and navigable cells."""
 
@@ -167,6 +188,7 @@ class BimPrior:
     visibility: VisibilityTable | None = None
     walls: WallMeshes | None = None
     """The structural elements' meshes the fine registrar samples (`bim.surfaces`); None: a prior built without."""
+    portals: list[Portal] = field(default_factory=list)
 
     # -------------------------------------------------------------------------------- queries
 
@@ -204,6 +226,10 @@ class BimPrior:
                 for s in self.storeys
             ],
             "rooms": len(self.rooms),
+            "portals": [
+                {"kind": p.kind, "ifc_class": p.ifc_class, "storeys": [e.storey_index for e in p.ends]}
+                for p in self.portals
+            ],
             "doors": sum(d.kind == "door" for d in self.doors),
             "doors_connecting": sum(d.connects for d in self.doors if d.kind == "door"),
             "passages": sum(d.kind == "passage" for d in self.doors),
@@ -248,6 +274,7 @@ class BimPrior:
             "room_edges": self.room_edges,
             "object_edges": self.object_edges,
             "room_matches": [asdict(m) for m in self.room_matches],
+            "portals": [asdict(p) for p in self.portals],
             "timings_s": self.timings_s,
         }
         arrays = {"object_embeddings": self.object_embeddings.astype(np.float32)}
@@ -317,6 +344,9 @@ class BimPrior:
         for i, door in enumerate(doors):
             if not -1 <= door.object_id < n_objects:
                 fail(f"doors[{i}].object_id", f"{door.object_id} is no object (the prior has {n_objects})")
+        for i, portal in enumerate(fields["portals"]):
+            if any(not 0 <= end.storey_index < n_storeys for end in portal.ends):
+                fail(f"portals[{i}].ends", f"names a storey that does not exist (the prior has {n_storeys})")
         for i, edge in enumerate(fields["object_edges"]):
             if any(not 0 <= o < n_objects for o in edge):
                 fail(f"object_edges[{i}]", f"names an object that does not exist (the prior has {n_objects})")
@@ -338,6 +368,7 @@ class BimPrior:
             timings_s=fields.get("timings_s", {}),
             visibility=visibility,
             walls=walls,
+            portals=fields["portals"],
         )
 
 
@@ -363,7 +394,8 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
     storeys, rooms, doors, matches = [], [], [], []
     door_elements = model.of_class("IfcDoor")
     spaces = model.of_class("IfcSpace")
-    for storey in progress(floor_levels(model, furniture_classes), desc="storeys", unit="storey"):
+    levels = floor_levels(model, furniture_classes)
+    for storey in progress(levels, desc="storeys", unit="storey"):
         grid = build_storey_grid(storey, model.elements, spec, bim.grid, furniture_classes)
         z_lo, z_hi = storey.elevation_m + bim.grid.band_min_m, storey.elevation_m + bim.grid.band_max_m
         storey_doors = [(d, g) for d in door_elements if (g := room_ops.door_geometry(d, z_lo, z_hi)) is not None]
@@ -430,6 +462,7 @@ def build_prior(ifc_path: str | Path, cfg: Config, embedder: TextEmbedder | None
         object_edges=object_edges,
         room_matches=matches,
         timings_s=lap.times,
+        portals=find_portals(model, levels),
     )
     prior.visibility = VisibilityTable.build(prior, cfg.bim.visibility)
     lap("visibility")
@@ -467,6 +500,41 @@ def floor_levels(model: IfcModel, furniture_classes: list[str]) -> list[Storey]:
         dataclasses.replace(storey, is_floor=is_floor, floor_note=note)
         for storey, (is_floor, note) in zip(model.storeys, notes, strict=True)
     ]
+
+
+PORTAL_CLASSES = ("IfcStair", "IfcStairFlight", "IfcRamp", "IfcTransportElement")
+MOVING_STAIRS = ("ESCALATOR", "MOVINGWALKWAY")  # transport elements a robot crosses as it does a stair
+LEVEL_SLACK_M = 0.35  # a portal reaches a floor whose elevation lies this close to its extent; its end there is
+# its footprint within this height of the floor
+
+
+def find_portals(model: IfcModel, storeys: list[Storey]) -> list[Portal]:
+    """The model's ways between floors: each stair, flight, ramp or lift whose height reaches two floors or more. A
+    stair whose flights are modelled too leaves the portals to its flights (each flight its own floors)."""
+    floors = [s for s in storeys if s.is_floor]
+    elements = [e for e in model.of_class(*PORTAL_CLASSES) if e.mesh is not None]
+    parts = [e.mesh.bounds.mean(axis=0) for e in elements if not e.is_a("IfcStair") and e.mesh is not None]
+    portals: list[Portal] = []
+    for element in elements:
+        assert element.mesh is not None
+        lo, hi = element.mesh.bounds
+        if element.is_a("IfcStair") and any(np.all((lo <= c) & (c <= hi)) for c in parts):
+            continue
+        reached = [s for s in floors if lo[2] - LEVEL_SLACK_M <= s.elevation_m <= hi[2] + LEVEL_SLACK_M]
+        lift = element.is_a("IfcTransportElement") and element.predefined_type.upper() not in MOVING_STAIRS
+        if len(reached) < 2:
+            continue
+        reached = reached if lift else [reached[0], reached[-1]]
+        ends = []
+        for floor in reached:
+            vertices = element.mesh.vertices
+            near = vertices[np.abs(vertices[:, 2] - floor.elevation_m) <= LEVEL_SLACK_M]
+            xy = vertices[:, :2] if lift or len(near) == 0 else near[:, :2]
+            box = (*xy.min(axis=0), *xy.max(axis=0))
+            ends.append(PortalEnd(floor.index, typing.cast(tuple[float, float, float, float], tuple(map(float, box)))))
+        kind = "lift" if lift else "stair"
+        portals.append(Portal(len(portals), kind, element.guid, element.ifc_class, ends))
+    return portals
 
 
 def _check_rooms(
@@ -661,6 +729,7 @@ class _PriorJson(typing_extensions.TypedDict):  # pydantic needs typing_extensio
     room_edges: list[tuple[int, int, int]]
     object_edges: list[tuple[int, int]]
     room_matches: list[RoomMatch]
+    portals: list[Portal]
     timings_s: typing_extensions.NotRequired[dict[str, float]]
 
 

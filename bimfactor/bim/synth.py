@@ -9,6 +9,8 @@ Presets:
 - "paper-floor": the CoarseBIMLoc evaluation floor: 86 x 86 m, 7 rooms, 43 objects in 14 categories.
 - "office": a corridor with 8 identical offices, a kitchen and a bathroom (the ambiguity stress case).
 - "multi-storey": three storeys (0, 3 and 6 m) with different layouts.
+- "lift-house": two small storeys (0 and 3 m) joined by a lift (an IfcTransportElement through both) at the west end
+  of their corridors.
 """
 
 from __future__ import annotations
@@ -583,8 +585,10 @@ def _corridor_storey(
     first_room: int = 1,
     first_door: int = 1,
     first_window: int = 1,
+    fixtures: Sequence[ObjectSpec] = (),
 ) -> StoreySpec:
-    """Rooms along the south and north exterior walls, a hallway between them reaching every room's door.
+    """Rooms along the south and north exterior walls, a hallway between them reaching every room's door; `fixtures`
+    (in the hallway) stand where they are given, kept clear of by everything placed.
 
     `width` is the outer width in x; depths are centreline distances. The outer wall faces lie at x = 0,
     x = width, y = 0 and y = the sum of the depths plus a wall thickness.
@@ -690,7 +694,8 @@ def _corridor_storey(
         )
 
     keepouts = [_door_keepout(door, walls[door.wall_index]) for door in doors]
-    objects: list[ObjectSpec] = []
+    keepouts += [_grow(_footprint(f.center, f.yaw, f.size[0], f.size[1]), DOOR_KEEPOUT_DEPTH_M) for f in fixtures]
+    objects: list[ObjectSpec] = [dataclasses.replace(f, room=hallway.name) for f in fixtures]
     for (plan, _, _), room, frame in zip(plans, rooms, room_frames, strict=True):
         contents = plan.contents if plan.contents is not None else ROOM_CONTENTS[plan.room_type]
         objects += _place_groups(contents, room, frame, keepouts, rng)
@@ -912,31 +917,62 @@ def multi_storey(rng: np.random.Generator) -> BuildingSpec:
             False,
         ),
     )
+    levels = [dict(name=n, south=s, north=no, entrance=e) for n, s, no, e in layouts]
+    storeys = _stacked(rng, levels, width=24.0, south_depth=6.9, corridor_width=2.4, north_depth=6.5)
+    return BuildingSpec(name="Multi-storey house", preset="multi-storey", seed=0, storeys=storeys)
+
+
+def _stacked(rng: np.random.Generator, levels: Sequence[dict], **shared: float) -> tuple[StoreySpec, ...]:
+    """Corridor storeys one above the other, `STOREY_HEIGHT_M` apart, numbered on from the storeys below; each level
+    its own `_corridor_storey` arguments, `shared` those of all."""
     storeys: list[StoreySpec] = []
-    for level, (name, south, north, entrance) in enumerate(layouts):
+    for level, own in enumerate(levels):
         storey = _corridor_storey(
             rng,
-            name=name,
             elevation=level * STOREY_HEIGHT_M,
-            width=24.0,
-            south_depth=6.9,
-            corridor_width=2.4,
-            north_depth=6.5,
-            south=south,
-            north=north,
-            entrance=entrance,
             first_room=1 + sum(len(s.rooms) for s in storeys),
             first_door=1 + sum(len(s.doors) for s in storeys),
             first_window=1 + sum(len(s.windows) for s in storeys),
+            **own,
+            **shared,
         )
         storeys.append(storey)
-    return BuildingSpec(name="Multi-storey house", preset="multi-storey", seed=0, storeys=tuple(storeys))
+    return tuple(storeys)
+
+
+LIFT_SIZE_M = 1.3  # the lift shaft's side
+
+
+def lift_house(rng: np.random.Generator) -> BuildingSpec:
+    """Two 12 x 12.6 m storeys at 0 and 3 m around a corridor, a lift at its west end stopping at both."""
+    shaft = ObjectSpec(
+        "IfcTransportElement", "Lift", "ELEVATOR", "elevator", "", (0.2 + MIN_WALL_GAP_M + LIFT_SIZE_M / 2, 6.3), 0.0,
+        (LIFT_SIZE_M, LIFT_SIZE_M, STOREY_HEIGHT_M + WALL_HEIGHT_M),
+    )  # fmt: skip
+    layouts = (
+        ("Level 0", ("living room", "kitchen"), ("bathroom", "study room")),
+        ("Level 1", ("bedroom", "bathroom"), ("office", "bedroom")),
+    )
+    # the west rooms' doors open well east of the lift
+    levels = [
+        dict(
+            name=name,
+            south=(_RoomPlan(south[0], 6.0, end_window=True, door_offset=1.5), _RoomPlan(south[1], end_window=True)),
+            north=(_RoomPlan(north[0], 6.0, end_window=True, door_offset=4.0), _RoomPlan(north[1], end_window=True)),
+            entrance=False,
+            fixtures=(shaft,) if level == 0 else (),
+        )
+        for level, (name, south, north) in enumerate(layouts)
+    ]
+    storeys = _stacked(rng, levels, width=12.0, south_depth=5.0, corridor_width=2.4, north_depth=5.0)
+    return BuildingSpec(name="Lift house", preset="lift-house", seed=0, storeys=storeys)
 
 
 PRESETS: dict[str, Callable[[np.random.Generator], BuildingSpec]] = {
     "paper-floor": paper_floor,
     "office": office,
     "multi-storey": multi_storey,
+    "lift-house": lift_house,
 }
 
 

@@ -16,11 +16,16 @@ import json
 import logging
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from bimfactor.config import Config
+from bimfactor.errors import InputError
 from bimfactor.io.atomic import write_text_atomic
+
+if TYPE_CHECKING:
+    from bimfactor.bim.prior import BimPrior
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +131,10 @@ def run_buildings_bench(
     out = Path(out_dir)
     priors = build_priors(buildings, cfg, out)
     loaded = {name: BimPrior.load(prior_dir) for name, prior_dir in priors.items()}
+    if cfg.evaluation.scenario == "storeys":
+        priors = {name: path for name, path in priors.items() if changes_storey(loaded[name], cfg)}
+        if not priors:
+            raise InputError("--scenario storeys: no building has a lift or stair between two floors the robot drives")
     twins = {name: twin_motions(prior) for name, prior in loaded.items()}
     jobs, owners = [], []
     for name, prior_dir in priors.items():
@@ -168,6 +177,18 @@ def run_buildings_bench(
     return report
 
 
+def changes_storey(prior: BimPrior, cfg: Config) -> bool:
+    """Whether the robot can drive from one floor of the building to another (`TrajectorySimulator.portal_ways`);
+    the storeys scenario leaves a building out, and says so, where not."""
+    from bimfactor.sim.trajectory import TrajectorySimulator
+
+    if prior.portals and TrajectorySimulator(prior, cfg).portal_ways():
+        return True
+    kinds = f"its portals ({len(prior.portals)}) join no two floors it drives on" if prior.portals else "no portal"
+    log.warning("%s: left out of the storeys scenario: %s", Path(prior.source_file).name, kinds)
+    return False
+
+
 def worst_building(report: dict) -> dict | None:
     """The building and route with the largest mean translation error of the last variant (the one the others build
     up to), over its scored steps."""
@@ -189,6 +210,7 @@ ROW_KEYS = (
     ("orient_err_deg", "orientation [°]", "{:.1f}"),
     ("room_acc", "room", "{:.0%}"),
     ("storey_acc", "storey", "{:.0%}"),
+    ("storey_acc_after_change", "storey after change", "{:.0%}"),
     ("success_rate", "success", "{:.0%}"),
     ("wrong_convergence_rate", "wrong conv.", "{:.0%}"),
     ("distance_to_convergence_m", "dist. to conv. [m]", "{:.1f}"),

@@ -17,10 +17,13 @@ Scenarios (`evaluation.scenario`): `global` is the paper's, every run from the u
 and sign drawn from the run's seed (AMCL's initial pose; the filter's Gaussian is `smcl.start.sigma_*`); `kidnap`
 starts uniform, and after `kidnap_at` keyframes of route k carries the robot to keyframe `kidnap_resume_at` of route
 k + 3 (odometry sees nothing, `sim.simulate.kidnap`), scoring the T steps from there: `steps_to_converge` is then the
-steps to recover, and each run also says whether it was tracking when carried off. With
-`evaluation.known_storey` the uniform start of `global` and `kidnap` covers only the storey the route starts on (a
-robot told its floor); a relocalization still spreads over the whole building. On a building of several storeys
-the translation error is the planar one, and `storey_acc` says how often the estimate was on the true storey.
+steps to recover, and each run also says whether it was tracking when carried off; `storeys` starts uniform on routes
+that change floor through a portal (`sim.trajectory.TrajectorySimulator.storey_route`), localizes each run twice,
+without the storey-change event and with it (variants named with `EVENT_SUFFIX`), and scores as `global` does, adding
+`storey_acc_after_change`, the storey accuracy over the `sim.trajectory.AFTER_CHANGE_KEYFRAMES` keyframes after each
+change. With `evaluation.known_storey` the uniform start of `global` and `kidnap` covers only the storey the route
+starts on (a robot told its floor); a relocalization still spreads over the whole building. On a building of several
+storeys the translation error is the planar one, and `storey_acc` says how often the estimate was on the true storey.
 
 Variants (`evaluation.variants`): `smcl` (the paper's filter), `smcl+graph` (the best mode of the per-mode pose
 graphs), `refine` (smcl+graph, then offline batch smoothing) and `full` (smcl+graph with ICP against the BIM walls
@@ -41,7 +44,7 @@ import sys
 from collections import Counter
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -58,7 +61,7 @@ from bimfactor.evaluation.metrics import (
 )
 from bimfactor.io.atomic import write_text_atomic
 from bimfactor.progress import progress
-from bimfactor.types import wrap_angle
+from bimfactor.types import STOREY_CHANGE, wrap_angle
 
 if TYPE_CHECKING:
     from bimfactor.backend.scan_factor import CorrelativeMatcher
@@ -111,6 +114,7 @@ class RunResult:
     orient_err_twin_deg: np.ndarray | None = None
     trans_err_before_m: float | None = None  # kidnap: the mean translation error over the steps before it
     storey_hit: np.ndarray | None = None  # (T,) the estimate on the true storey
+    storey_hit_after_change: np.ndarray | None = None  # the same over the keyframes after each storey change
     challenges: int = 0  # steps at which the belief took a challenger's particles
     from_start: StepErrors | None = None  # scored from the filter's convergence: the first T steps, for comparison
     outcome: RouteOutcome | None = None  # the whole route from its first frame (`route_outcome`)
@@ -118,12 +122,14 @@ class RunResult:
 
 
 ACTIVE_SUFFIX = "+active"  # the active scenario's closed-loop runs of a variant (`evaluation.active`)
+EVENT_SUFFIX = "+event"  # the storeys scenario's runs of a variant given the storey-change event
 
 
 def reported_variants(ev: EvaluationConfig) -> list[str]:
     """The variants a report holds: `evaluation.variants`, and in the active scenario each again as its closed-loop
-    run, named with `ACTIVE_SUFFIX`."""
-    return [*ev.variants, *(v + ACTIVE_SUFFIX for v in ev.variants)] if ev.scenario == "active" else list(ev.variants)
+    run, named with `ACTIVE_SUFFIX`; in the storeys scenario each again given the event, named with `EVENT_SUFFIX`."""
+    suffix = {"active": ACTIVE_SUFFIX, "storeys": EVENT_SUFFIX}.get(ev.scenario)
+    return [*ev.variants, *(v + suffix for v in ev.variants)] if suffix else list(ev.variants)
 
 
 SERVED_BY = {"smcl+graph": {"smcl+graph", "refine"}, "full": {"full"}}  # online variant → the variants its run yields
@@ -148,11 +154,12 @@ def scoring_window(converged: np.ndarray, steps: int, score_from: str, warmup_ma
 
 
 def simulate_routes(
-    prior_dir: str | Path, cfg: Config, routes: list[tuple[int, int | None]]
+    prior_dir: str | Path, cfg: Config, routes: list[tuple[int, int | None]], change_storey: bool = False
 ) -> tuple[list[SimResult], BimPrior]:
     """Trajectories of the config seed on the prior's building, each (trajectory, length in keyframes; None: as the
     protocol simulates it, with `filter_converged` `warmup_max_steps` keyframes longer), in one world: the prior,
-    the IFC model and the world are loaded and built once. Returns them with the loaded prior."""
+    the IFC model and the world are loaded and built once; `change_storey`: routes through a portal to another floor.
+    Returns them with the loaded prior."""
     from bimfactor.sim.simulate import build_world, load_world_inputs, simulate_sequence
 
     ev = cfg.evaluation
@@ -162,7 +169,9 @@ def simulate_routes(
     for trajectory, length in routes:
         steps = ev.trajectory_length + ev.warmup_steps if length is None else length
         sim_cfg = cfg.model_copy(update={"evaluation": ev.model_copy(update={"trajectory_length": steps})})
-        sims.append(simulate_sequence(prior, model, sim_cfg, trajectory, cfg.seed, progress=False, world=world))
+        sims.append(
+            simulate_sequence(prior, model, sim_cfg, trajectory, cfg.seed, False, world, change_storey=change_storey)
+        )
     return sims, prior
 
 
@@ -198,7 +207,7 @@ def scenario_run(
         frames = kidnap(sim.frames, other.frames, ev.kidnap_at, ev.kidnap_resume_at)
         scored = slice(ev.kidnap_at, ev.kidnap_at + ev.trajectory_length)
         return prior, sim.meta, frames, _known_storey(cfg, frames), scored
-    (sim,), prior = simulate_routes(prior_dir, cfg, [(trajectory, None)])
+    (sim,), prior = simulate_routes(prior_dir, cfg, [(trajectory, None)], change_storey=ev.scenario == "storeys")
     if ev.scenario == "guess":
         first = sim.frames[0]
         rng = np.random.default_rng([run_seed(cfg.seed, trajectory, repeat), GUESS_STREAM])
@@ -268,6 +277,19 @@ def _run_one_pinned(
     prior, meta, frames, cfg, window = scenario_run(prior_dir, cfg, trajectory, repeat)
     online_variants = forward_variants(cfg.evaluation.variants)
     matcher = scan_matcher(prior, cfg) if any(v in GRAPH_VARIANTS for v in online_variants) else None
+    if cfg.evaluation.scenario == "storeys":  # without the event, then with it
+        unaware = [replace(f, extras={k: v for k, v in f.extras.items() if k != STOREY_CHANGE}) for f in frames]
+        runs = []
+        for suffix, given in (("", unaware), (EVENT_SUFFIX, frames)):
+            forward = {
+                online: localize_sequence(
+                    prior, meta, given, online_config(cfg, online), seed=run_seed(cfg.seed, trajectory, repeat),
+                    show_progress=False, matcher=matcher, twins=twins,
+                )
+                for online in online_variants
+            }  # fmt: skip
+            runs += score_runs(cfg, prior, given, forward, window, trajectory, repeat, twins, matcher, suffix)
+        return runs
     forward = {}
     for online in online_variants:
         recording = None if rerun_dir is None else run_recording_path(rerun_dir, prior_dir, trajectory, repeat, online)
@@ -313,6 +335,7 @@ def score_runs(
     from bimfactor.evaluation.metrics import errors_up_to_twin, inside_ellipse, route_outcome, steps_to_converge
     from bimfactor.evaluation.report import track_metrics
     from bimfactor.refine import refine_run
+    from bimfactor.sim.trajectory import AFTER_CHANGE_KEYFRAMES
 
     ev = cfg.evaluation
     variants = ev.variants
@@ -330,6 +353,8 @@ def score_runs(
     gt_poses, gt_rooms = run.gt_poses[scored], run.gt_rooms[scored]
     all_storeys = np.asarray([f.gt_storey or 0 for f in frames])
     gt_storeys = all_storeys[scored]
+    changes = np.flatnonzero(np.diff(all_storeys)) + 1
+    after_change = [np.arange(c, min(c + AFTER_CHANGE_KEYFRAMES, len(frames))) for c in changes]
     first = slice(0, ev.trajectory_length)  # the uniform cloud's steps included
     results = []
     for variant in variants:
@@ -370,6 +395,11 @@ def score_runs(
                 *twin_errors,
                 trans_err_before_m=trans_before,
                 storey_hit=(track.storeys == gt_storeys).astype(float),
+                storey_hit_after_change=np.concatenate(
+                    [(tracks[variant].storeys[k] == all_storeys[k]).astype(float) for k in after_change]
+                )
+                if after_change
+                else None,
                 challenges=int(forward.get(variant, run).challenged.sum()),
                 from_start=StepErrors.of(tracks[variant].window(first), run.gt_poses[first], run.gt_rooms[first])
                 if ev.scores_from_convergence
@@ -393,6 +423,7 @@ def _pooled(runs: list[RunResult]) -> dict:
     orient = np.concatenate([r.orient_err_deg for r in runs])
     room = np.concatenate([r.room_hit for r in runs])
     storey = [r.storey_hit for r in runs if r.storey_hit is not None]
+    after_change = [r.storey_hit_after_change for r in runs if r.storey_hit_after_change is not None]
     converged = [r.metrics["steps_to_converge"] for r in runs]
     # After convergence: the steps after each run's convergence step, pooled as every other cell pools its steps
     # (a run that converged on its last scored step counts for that step, not as much as a run of 45 such steps).
@@ -423,6 +454,7 @@ def _pooled(runs: list[RunResult]) -> dict:
         "room_acc": float(room.mean()),
         "room_acc_std": float(room.std()),
         **({"storey_acc": float(np.concatenate(storey).mean())} if storey else {}),
+        **({"storey_acc_after_change": float(np.concatenate(after_change).mean())} if after_change else {}),
         "step_ms_median": float(np.median(np.concatenate([r.step_ms for r in runs]))),
         "steps_to_converge": converged,
         "scored_from_steps": [r.scored_from for r in runs],

@@ -19,6 +19,9 @@ What is read (the topic keys of `RosbagConfig`, io.rosbag; a key left "" is foun
 - /tf_static and /tf (tf2_msgs/TFMessage): the camera mount T_base_camera is the chain `base_frame` → the colour
   image's frame_id (an optical frame: x right, y down, z forward, as bimfactor's camera frame); a chain with moving
   links is taken at the sample nearest the first colour image;
+- storey changes (only when `storey_topic` names them): std_msgs/Int32, the floors the robot went up (+) or down (−),
+  as a barometer, an IMU or a lift's interface says; each goes to the first frame at or after its stamp (its log
+  time: Int32 has no header) as the frame extra `storey_change` (frames.csv's `extra.storey_change`);
 - odometry: nav_msgs/Odometry (pose.pose is T_odom_child; a child frame other than base_frame is moved onto it
   through tf), or without such a topic the `odom_frame` → `base_frame` chain on /tf. Its planar poses are
   interpolated at every colour stamp (x, y linear, yaw along the shorter arc).
@@ -61,7 +64,7 @@ from bimfactor.io.sequence import (
 from bimfactor.io.tf import TfChain, TfTree, describe_chain, frame_name, stamp_ns, transform_matrix
 from bimfactor.io.tum import MAX_TILT_DEG, planar_from_matrices
 from bimfactor.progress import progress
-from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta, wrap_angle
+from bimfactor.types import STOREY_CHANGE, CameraIntrinsics, Frame, SequenceMeta, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +75,7 @@ IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
+STOREY_TYPE = "std_msgs/msg/Int32"
 # vision_msgs 4 (ROS 2 Humble and later), for ROS 2 bags that carry no message definitions (ROS 1 bags and MCAP files
 # carry their own, so vision_msgs 1-3 read from them too).
 VISION_MSGS = {
@@ -299,13 +303,18 @@ def _read(
         raise InputError(f"{path}: {problem}")
     odom_topic = _odometry_topic(path, config.odom_topic, topics, found)
     detections_topic = _detections_topic(path, config.detections_topic, topics, found)
+    storey_topic = config.storey_topic or None
+    if storey_topic is not None and topics.get(storey_topic) != STOREY_TYPE:
+        carries = "is not in the bag" if storey_topic not in topics else f"carries {topics[storey_topic]}"
+        raise InputError(f"{path}: topic {storey_topic} (io.rosbag.storey_topic) {carries}, expected {STOREY_TYPE}")
     tf_topics = sorted(t for t, m in topics.items() if m in TF_TYPES)
 
     # 3. tf, odometry and a detector's detections: one pass over their messages
     tree = TfTree()
     odom_msgs: list[tuple[int, Any]] = []
     detection_msgs: list[tuple[int, Any]] = []
-    streams = [*tf_topics, *([odom_topic] if odom_topic else []), *([detections_topic] if detections_topic else [])]
+    storey_msgs: list[tuple[int, int]] = []
+    streams = [*tf_topics, *(t for t in (odom_topic, detections_topic, storey_topic) if t)]
     wanted = [c for t in streams for c in connections[t]]
     for connection, log_ns, raw in reader.messages(connections=wanted) if wanted else ():
         msg = reader.deserialize(raw, connection.msgtype)
@@ -313,6 +322,8 @@ def _read(
             odom_msgs.append((log_ns, msg))
         elif connection.topic == detections_topic:
             detection_msgs.append((_stamp_or_log(msg, log_ns), msg))
+        elif connection.topic == storey_topic:
+            storey_msgs.append((log_ns, int(msg.data)))
         else:
             tree.add(msg, static=connection.topic.rstrip("/").endswith("tf_static"))
     t_first_ns = _stamp_or_log(rgb_first, 0)
@@ -364,9 +375,13 @@ def _read(
         detections, extras["detections"] = _detections_at_frames(
             detection_msgs, frame_rgb, config.max_sync_dt_s, intrinsics, lens
         )
+    frame_extras = _storey_changes_at_frames(storey_msgs, frame_rgb)
+    if storey_topic is not None:
+        extras["storey_changes"] = {"messages": len(storey_msgs), "frames": sum(bool(e) for e in frame_extras)}
     extras["topics"] = {
         "rgb": rgb_topic,
         "detections": detections_topic,
+        "storey": storey_topic,
         "depth": depth_topic,
         "camera_info": None if colour_info is None else colour_info.topic,
         "depth_camera_info": None if depth_info is None else depth_info.topic,
@@ -392,7 +407,20 @@ def _read(
         odom_poses=odom_poses,
         rectifier=rectifier,
         detections=detections,
+        frame_extras=frame_extras,
     )
+
+
+def _storey_changes_at_frames(messages: list[tuple[int, int]], frames: list[_MessageRef]) -> list[dict[str, float]]:
+    """Each frame's extras: the storey changes stamped after the frame before and at or before it, summed (none
+    after the last frame is kept)."""
+    extras: list[dict[str, float]] = [{} for _ in frames]
+    stamps = np.array([r.stamp_ns for r in frames], np.int64)
+    for stamp, floors in messages:
+        k = int(np.searchsorted(stamps, stamp, side="left"))
+        if k < len(frames) and floors:
+            extras[k][STOREY_CHANGE] = extras[k].get(STOREY_CHANGE, 0.0) + floors
+    return extras
 
 
 class RosbagSequence(Sequence):
@@ -408,9 +436,10 @@ class RosbagSequence(Sequence):
         odom_poses: np.ndarray | None,
         rectifier: _Rectifier | None = None,
         detections: list[dict[str, Any]] | None = None,
+        frame_extras: list[dict[str, float]] | None = None,
     ) -> None:
         timestamps = np.array([r.stamp_ns / 1e9 for r in rgb_refs])  # Python int / float: correctly rounded
-        super().__init__(meta, timestamps, self._load_frame_images, odom_poses=odom_poses)
+        super().__init__(meta, timestamps, self._load_frame_images, odom_poses=odom_poses, frame_extras=frame_extras)
         self.detections = detections
         """A detector's detections on the bag (vision_msgs/Detection2DArray): one line of the detections file
         (docs/perception.md: timestamp, detections of label, score, box) per frame that has a message within

@@ -51,6 +51,8 @@ line and one row per frame::
 - `gt_x, gt_y, gt_yaw`: T_world_base, all three given or all three empty, per row (ground truth may have
   gaps). `gt_storey`: integer storey index or empty.
 - `extra.<key>`: optional further columns, one per key of `Frame.extras`; empty = key absent in that frame.
+  `extra.storey_change` is a storey-change event (`types.STOREY_CHANGE`): the floors the robot went up (+) or down
+  (−) since the row before, as a barometer, an IMU or a lift's interface says; the localizer's filter reads it.
 - Numbers are written with Python's `repr` (the shortest text that reads back to the same float64), so a
   round trip is exact.
 
@@ -106,7 +108,7 @@ from bimfactor.errors import FormatError, InputError
 from bimfactor.io.atomic import output_dir
 from bimfactor.io.tum import format_tum_trajectory
 from bimfactor.progress import progress
-from bimfactor.types import CameraIntrinsics, Frame, SequenceMeta
+from bimfactor.types import STOREY_CHANGE, CameraIntrinsics, Frame, SequenceMeta
 
 log = logging.getLogger(__name__)
 
@@ -222,10 +224,17 @@ class Sequence:
 
     def subset(self, rows: np.ndarray) -> Sequence:
         """The frames at increasing `rows` of this sequence (e.g. its keyframes), keeping their frame indices;
-        images are still loaded on access."""
+        images are still loaded on access. A storey change (`STOREY_CHANGE`) on a frame left out goes to the next
+        frame kept."""
         rows = np.asarray(rows, np.int64).reshape(-1)
         if len(rows) and (rows[0] < 0 or rows[-1] >= len(self) or np.any(np.diff(rows) <= 0)):
             raise ValueError(f"rows must increase within 0 … {len(self) - 1}")
+        extras = [dict(self._extras[r]) for r in rows]
+        changes = np.cumsum([0.0] + [e.get(STOREY_CHANGE, 0.0) for e in self._extras])
+        for k, (before, row) in enumerate(zip([-1, *rows[:-1]], rows, strict=True)):
+            change = changes[row + 1] - changes[before + 1]
+            if change:
+                extras[k][STOREY_CHANGE] = float(change)
         return Sequence(
             self.meta,
             self._timestamps[rows],
@@ -234,7 +243,7 @@ class Sequence:
             odom_poses=None if self._odom is None else self._odom[rows],
             gt_poses=None if self._gt is None else self._gt[rows],
             gt_storeys=[self._gt_storeys[r] for r in rows],
-            frame_extras=[self._extras[r] for r in rows],
+            frame_extras=extras,
         )
 
     def __len__(self) -> int:

@@ -1,8 +1,10 @@
 """Semantic Monte Carlo localization (paper Sec. II.C): a particle filter over (x, y, yaw, storey) in the BIM.
 
 One step (`SemanticMCL.step`) is the paper's loop:
-1. predict:  move every particle by the odometry increment plus Gaussian noise (`motion.propagate`); a particle
-             that leaves navigable space keeps `motion.off_map_weight` of its weight;
+1. predict:  move every particle by the odometry increment plus Gaussian noise (`motion.propagate`); one whose
+             step passed a portal's end may go to another floor (`motion.PortalMotion`: rarely, or every one when an
+             event says the robot changed storey); a particle that leaves navigable space keeps
+             `motion.off_map_weight` of its weight;
 2. update:   weight ×= Π_m p_m(z | x), the measurement models' terms summed in log (`measurements`: the paper's
              semantic Hungarian score, and beyond it door plates read and the depth scan); normalise;
 3. resample: when ESS < δ_ess·M, draw the particles anew (`resampling`: systematic as the paper, or KLD-sized);
@@ -16,7 +18,8 @@ Recoveries act at their points of the loop: after the update (the belief is lost
 and after the estimate (a challenger explains the frames better: take its particles).
 
 The storey is part of the state: a global start spreads the particles over the navigable space of all storeys in
-proportion to area, and the motion model keeps a particle on its storey, so the observations decide the storey.
+proportion to area, and the motion model moves a particle to another storey only through a portal (a lift, a stair),
+so the observations decide the storey, helped by a storey-change event where the robot has one.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from bimfactor.localization.measurements.base import Term, Update
 from bimfactor.localization.measurements.scan import ScanLikelihood
 from bimfactor.localization.measurements.semantic import SemanticLikelihood
 from bimfactor.localization.measurements.text import PlateLikelihood
-from bimfactor.localization.motion import propagate
+from bimfactor.localization.motion import PortalMotion, propagate
 from bimfactor.localization.particles import FreeSpace, ParticleSampler
 from bimfactor.localization.recovery import Recoveries, make_recoveries
 from bimfactor.localization.resampling import make_resampler, systematic_resample
@@ -112,18 +115,21 @@ class FilterModels:
     plates: PlateLikelihood
     scan: ScanLikelihood | None
     measurements: list[MeasurementModel]
+    portals: PortalMotion | None = None
 
     @classmethod
     def build(cls, prior: BimPrior, visibility: VisibilityTable, cfg: SmclConfig) -> FilterModels:
         measurements = make_measurements(prior, visibility, cfg)
         by_kind = {type(m): m for m in measurements}
+        free = FreeSpace(prior)
         return cls(
             prior,
-            FreeSpace(prior),
+            free,
             by_kind[SemanticLikelihood],
             by_kind[PlateLikelihood],
             by_kind.get(ScanLikelihood),
             measurements,
+            PortalMotion.of_prior(prior),
         )
 
 
@@ -171,16 +177,21 @@ class SemanticMCL:
     # -------------------------------------------------------------------------------- the loop
 
     def step(
-        self, odom_increment: np.ndarray | None, observations: Observations | None, scan: np.ndarray | None = None
+        self,
+        odom_increment: np.ndarray | None,
+        observations: Observations | None,
+        scan: np.ndarray | None = None,
+        storey_change: int = 0,
     ) -> StepResult:
-        """predict (when an increment is given) → update → recover → resample → estimate → recover."""
+        """predict (when an increment is given) → update → recover → resample → estimate → recover. `storey_change`:
+        the floors the robot went up (+) or down (−) since the last step, when it was told (0: no word)."""
         if not self._initialized:
             self.initialize()
-        frame = FrameData(observations, scan)
+        frame = FrameData(observations, scan, storey_change)
         lap = Laps(per_second=1e3)
-        # 1. Predict: the odometry increment and the motion noise.
+        # 1. Predict: the odometry increment, the motion noise and the portals.
         if odom_increment is not None:
-            self.predict(odom_increment)
+            self.predict(odom_increment, storey_change)
         lap("predict")
         # 2. Update: weight ×= P(z | x), every measurement model's term.
         update = self.update(frame)
@@ -236,13 +247,29 @@ class SemanticMCL:
         terms = self._terms(particles, storeys, frame)
         return sum(term.log_likelihood for term in terms.values()) if terms else None
 
-    def predict(self, odom_increment: np.ndarray) -> None:
-        """Move the particles by a (3,) robot-frame odometry increment (dx, dy, dyaw) with the motion noise."""
+    def predict(self, odom_increment: np.ndarray, storey_change: int = 0) -> None:
+        """Move the particles by a (3,) robot-frame odometry increment (dx, dy, dyaw) with the motion noise, and carry
+        those that passed a portal to another floor (`motion.PortalMotion`; `storey_change` floors up or down when
+        told, 0: no word)."""
         self._require_initialized()
         motion = self.cfg.motion
+        before = self.particles
         self.particles = propagate(
             self.particles, odom_increment, motion.sigma_trans_m, np.deg2rad(motion.sigma_rot_deg), self.rng
         )
+        portals = self.models.portals
+        if portals is not None:
+            self.storeys, could = portals.carry(
+                before[:, :2],
+                self.particles[:, :2],
+                self.storeys,
+                (motion.portal_share, motion.portal_cross_share),
+                storey_change,
+                self.rng,
+            )
+            if not could.all():
+                self.weights[~could] *= motion.event_miss_weight
+                self._normalise("after a storey change no particle could make")
         off_map = ~self.on_navigable(self.particles, self.storeys)
         if off_map.any():
             self.weights[off_map] *= motion.off_map_weight

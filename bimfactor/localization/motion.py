@@ -5,15 +5,27 @@ isotropic, so the frame does not matter) and ε_rot ~ N(0, σ_rot²) (radians), 
 and per step, as the paper does; the noise does not scale with the length of the increment. A step is therefore a
 keyframe (`bimfactor.odometry`, which also holds the increments and the odometry noise model the simulator and the
 back end share with the localizer).
+
+Between floors (`PortalMotion`): a particle whose step passed a portal's end on its floor may have taken it. Without
+word of it, each such particle goes through with the small probability `portal_share` per step, to another floor of
+its portal, or with `portal_cross_share` when its step crossed the portal's footprint (a stair's steps, where a robot
+on the floor cannot drive), and the observations decide; told that the robot changed storey (a barometer, an IMU, a
+lift's interface: `types.STOREY_CHANGE`), every particle at a portal reaching that floor goes through, and the others
+keep only `event_miss_weight` of their weight (the belief may have been wrong about where the robot stood).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from bimfactor.bim.navigation import PORTAL_REACH_M, box_distance
+from bimfactor.bim.prior import BimPrior
 from bimfactor.types import se2_compose, wrap_angle
 
 _MIN_TURN_RATE = 1e-9  # rad/s: below this a velocity command is a straight line
+PATH_SAMPLES = 8  # points along a particle's step that are checked for passing a portal
 
 
 def velocity_increment(v_mps: float, omega_rps: float, dt_s: float) -> np.ndarray:
@@ -52,3 +64,67 @@ def propagate_velocity(
 ) -> np.ndarray:
     """(M, 3) particles moved by the control u = (v, ω) over dt (the paper's form of the motion model)."""
     return propagate(particles, velocity_increment(v_mps, omega_rps, dt_s), sigma_trans_m, sigma_rot_rad, rng)
+
+
+@dataclass(frozen=True)
+class PortalMotion:
+    """Carries particles between floors through the prior's portals (module docstring); built once per prior."""
+
+    boxes: np.ndarray  # (E, 4) x_min, y_min, x_max, y_max of each portal end
+    end_portal: np.ndarray  # (E,) portal id of each end
+    end_storey: np.ndarray  # (E,) storey of each end
+    floor_rank: np.ndarray  # (S,) each storey's place among the floors (0: lowest), -1: not a floor
+
+    @classmethod
+    def of_prior(cls, prior: BimPrior) -> PortalMotion | None:
+        """None when the prior has no portal."""
+        ends = [(p.id, e.storey_index, e.box_xy) for p in prior.portals for e in p.ends]
+        if not ends:
+            return None
+        rank = np.full(len(prior.storeys), -1, np.int64)
+        floors = [layers.storey.index for layers in prior.storeys if layers.storey.is_floor]
+        rank[floors] = np.arange(len(floors))
+        portal, storey, boxes = zip(*ends, strict=True)
+        return cls(np.asarray(boxes, float), np.asarray(portal, np.int64), np.asarray(storey, np.int64), rank)
+
+    def carry(
+        self,
+        before_xy: np.ndarray,
+        after_xy: np.ndarray,
+        storeys: np.ndarray,
+        shares: tuple[float, float],
+        change: int,
+        rng: np.random.Generator,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The (M,) storeys of particles that moved from (M, 2) `before_xy` to `after_xy` in a step, after the
+        portals: a particle whose path passed within `PORTAL_REACH_M` of a portal's end on its storey may have gone
+        through, keeping its place (a lift's floors share their x, y; a stair's climb is in the odometry). With
+        `change` 0 (no event) each goes to another floor of the portal with probability `shares[0]`, or `shares[1]`
+        where its path crossed a footprint of the portal (a stair's steps, where a robot on the floor cannot drive);
+        with a change of floors, each whose portal reaches that floor goes there. Returns the new storeys and the
+        (M,) bool mask of the particles that could have made the change (all True without an event)."""
+        path = (
+            before_xy[:, None, :]
+            + np.linspace(0.0, 1.0, PATH_SAMPLES)[None, :, None] * (after_xy - before_xy)[:, None, :]
+        )  # (M, P, 2)
+        storeys = storeys.copy()
+        target = np.full(len(storeys), -1, np.int64)
+        for e in range(len(self.boxes)):
+            at = np.flatnonzero((storeys == self.end_storey[e]) & (target < 0))
+            if not len(at):
+                continue
+            at = at[box_distance(path[at], self.boxes[e]).min(axis=1) <= PORTAL_REACH_M]
+            others = np.flatnonzero((self.end_portal == self.end_portal[e]) & (np.arange(len(self.boxes)) != e))
+            if change:
+                floor = self.floor_rank[self.end_storey[e]] + change
+                reached = others[self.floor_rank[self.end_storey[others]] == floor]
+                if len(reached):
+                    target[at] = reached[0]
+            elif len(others):
+                ends = np.flatnonzero(self.end_portal == self.end_portal[e])
+                crossed = np.min([box_distance(path[at], self.boxes[o]).min(axis=1) for o in ends], axis=0) <= 0.0
+                go = at[rng.random(len(at)) < np.where(crossed, shares[1], shares[0])]
+                target[go] = others[rng.integers(len(others), size=len(go))]
+        moving = target >= 0
+        storeys[moving] = self.end_storey[target[moving]]
+        return storeys, moving if change else np.ones(len(storeys), bool)

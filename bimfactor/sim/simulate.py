@@ -21,7 +21,7 @@ from bimfactor.progress import progress as progress_bar
 from bimfactor.sim.sensors import RgbdCamera
 from bimfactor.sim.trajectory import SimTrajectory, TrajectorySimulator
 from bimfactor.sim.world import SimWorld
-from bimfactor.types import Frame, SequenceMeta, se2_between, se2_compose
+from bimfactor.types import STOREY_CHANGE, Frame, SequenceMeta, se2_between, se2_compose
 
 log = logging.getLogger(__name__)
 
@@ -62,24 +62,33 @@ def simulate_sequence(
     seed: int,
     progress: bool = True,
     world: SimWorld | None = None,
+    change_storey: bool = False,
 ) -> SimResult:
     """Simulate trajectory `trajectory_index` of `seed`: T keyframes of RGB-D, ground truth and wheel odometry.
 
     Reproducible bit for bit from (prior, model, cfg, trajectory_index, seed). Pass `world` (from `build_world`
-    with the same seed) to reuse one world across trajectories.
+    with the same seed) to reuse one world across trajectories. With `change_storey` the route goes through a
+    portal to another floor (`TrajectorySimulator.storey_route`), and the first keyframe after it carries the
+    storey-change event (`types.STOREY_CHANGE`) a robot's barometer or lift would give.
     """
     world = world if world is not None else build_world(prior, model, cfg, seed)
-    trajectory = TrajectorySimulator(prior, cfg, world_obstacles(prior, world, cfg)).trajectory(trajectory_index, seed)
+    simulator = TrajectorySimulator(prior, cfg, world_obstacles(prior, world, cfg))
+    route = simulator.storey_route if change_storey else simulator.trajectory
+    trajectory = route(trajectory_index, seed)
     gt, odom = trajectory.keyframe_poses, trajectory.odometry
     camera = RgbdCamera.from_config(world, cfg)
     sensor_rng = np.random.default_rng([seed, trajectory_index, SENSOR_STREAM])
     storey = trajectory.storey_index
-    elevation = prior.storeys[storey].storey.elevation_m
+    storeys = trajectory.keyframe_storeys
+    floor = {layers.storey.index: k for k, layers in enumerate(s for s in prior.storeys if s.storey.is_floor)}
     frames = []
     times = trajectory.keyframe_times_s
     steps = range(len(gt))
     for i in progress_bar(steps, desc="simulating frames", unit="frame") if progress else steps:
-        frames.append(render_frame(camera, i, float(times[i]), gt[i], odom[i], storey, elevation, sensor_rng))
+        elevation = prior.storeys[storeys[i]].storey.elevation_m
+        frames.append(render_frame(camera, i, float(times[i]), gt[i], odom[i], int(storeys[i]), elevation, sensor_rng))
+        if i and storeys[i] != storeys[i - 1]:
+            frames[-1].extras[STOREY_CHANGE] = float(floor[int(storeys[i])] - floor[int(storeys[i - 1])])
     meta = sim_sequence_meta(
         f"sim-{Path(prior.source_file).stem}-t{trajectory_index}-s{seed}",
         prior,
@@ -95,7 +104,7 @@ def simulate_sequence(
             "as_built_changes": world.changes,
         },
     )
-    log.info("simulated %s: %d frames on storey %d", meta.name, len(frames), storey)
+    log.info("simulated %s: %d frames on storeys %s", meta.name, len(frames), sorted(set(storeys.tolist())))
     return SimResult(meta, frames, trajectory)
 
 

@@ -12,6 +12,12 @@ Routes (`sim.trajectory.route`): `viewpoints` (the default) starts and stops whe
 them at the start and turns to them on arrival, the way a robot that has to relocalize looks around at
 things; `rooms` starts and stops anywhere roomy. In a building as sparse as the paper floor (43 objects over
 86 × 86 m), room-to-room routes see 0–2 objects per keyframe.
+
+Storey routes (`TrajectorySimulator.storey_route`) change floor through a portal of the prior (`BimPrior.portals`):
+the robot drives its route on one floor for half of its keyframes, then to the portal's end, goes through and
+drives on on the other floor, at least `AFTER_CHANGE_KEYFRAMES` keyframes (the route is that much longer where the way
+to the portal took longer). A lift ride takes `LIFT_RIDE_S` per floor with the wheels still; a stair is climbed
+(the robot is one that can) at `STAIR_SPEED_MPS` from its foot to its head. No keyframe is taken in between.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ from typing import Protocol
 
 import numpy as np
 
-from bimfactor.bim.navigation import NavGraph, build_nav_graph
+from bimfactor.bim.navigation import PORTAL_REACH_M, NavGraph, box_distance, build_nav_graph
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config, load_config
@@ -45,6 +51,9 @@ MIN_LOOKAHEAD_M = 0.2
 START_HEADING_STD_RAD = math.radians(20.0)
 LEG_TIME_FACTOR = 4.0  # a leg that takes this many times its nominal duration is abandoned
 MAX_LEGS_PER_STEP = 5  # a trajectory needing more legs than this per keyframe is stuck
+LIFT_RIDE_S = 8.0  # a lift ride per floor, doors included
+STAIR_SPEED_MPS = 0.3  # a stair climbed, along the straight line from its foot to its head
+AFTER_CHANGE_KEYFRAMES = 10  # a storey route goes on at least this far on the other floor
 _START_ORDER_STREAM = 0x57A7
 _TRAJECTORY_STREAM = 0x7A1
 ODOMETRY_STREAM = 0x0D0
@@ -56,11 +65,12 @@ class SimulationError(BimfactorError):
 
 @dataclass
 class SimTrajectory:
-    """Ground truth of one simulated drive on one storey.
+    """Ground truth of one simulated drive, starting on `storey_index`.
 
     `poses` (K, 3) T_world_base at `times_s` (K,), every control step; `commands` (K, 2) the (v, ω) commanded
     from times_s[i] to times_s[i+1] (the last is zero); `keyframe_indices` (T,) the steps where frames are taken;
-    `odometry` (T, 3) the wheel odometry's T_odom_base at them (`sim.sensors.WheelOdometry`).
+    `odometry` (T, 3) the wheel odometry's T_odom_base at them (`sim.sensors.WheelOdometry`); `storeys` (K,) the
+    storey of each step (None: all on `storey_index`).
     """
 
     index: int
@@ -72,6 +82,14 @@ class SimTrajectory:
     keyframe_indices: np.ndarray
     odometry: np.ndarray
     goals: list[dict] = field(default_factory=list)
+    storeys: np.ndarray | None = None
+
+    @property
+    def keyframe_storeys(self) -> np.ndarray:
+        """(T,) the storey of each keyframe."""
+        if self.storeys is None:
+            return np.full(len(self.keyframe_indices), self.storey_index, np.int64)
+        return self.storeys[self.keyframe_indices]
 
     @property
     def keyframe_poses(self) -> np.ndarray:
@@ -202,17 +220,71 @@ class TrajectorySimulator:
         wheels = WheelOdometry(self.cfg.odometry.alpha, np.random.default_rng([seed, index, ODOMETRY_STREAM]))
         driver = _Driver(self, graph, rng, wheels, steps, steer)
         driver.run(start_node, rooms)
-        return SimTrajectory(
-            index=index,
-            seed=seed,
-            storey_index=storey,
-            times_s=np.asarray(driver.times),
-            poses=np.asarray(driver.poses),
-            commands=np.asarray(driver.commands),
-            keyframe_indices=np.asarray(driver.keyframes, np.int64),
-            odometry=np.asarray(driver.odometry),
-            goals=driver.goals,
-        )
+        return driver.trajectory(index, seed, storey)
+
+    def portal_ways(self) -> list[tuple[int, int, int, int]]:
+        """Every way between two floors the robot can take, in both directions: (portal id, from storey, its planning
+        node there, to storey, its node there) for each two consecutive ends of a portal with a node within
+        `PORTAL_REACH_M` of each."""
+        nodes = {}
+        for portal in self.prior.portals:
+            for end in portal.ends:
+                graph = self.graphs.get(end.storey_index)
+                if graph is None:
+                    continue
+                gap = box_distance(graph.node_xy, end.box_xy)
+                node = int(np.argmin(gap))
+                if gap[node] <= PORTAL_REACH_M:
+                    nodes[(portal.id, end.storey_index)] = node
+        ways = []
+        for portal in self.prior.portals:
+            for a, b in zip(portal.ends, portal.ends[1:], strict=False):
+                ka, kb = (portal.id, a.storey_index), (portal.id, b.storey_index)
+                if ka in nodes and kb in nodes:
+                    ways += [(portal.id, a.storey_index, nodes[ka], b.storey_index, nodes[kb])]
+                    ways += [(portal.id, b.storey_index, nodes[kb], a.storey_index, nodes[ka])]
+        return ways
+
+    def storey_route(self, index: int, seed: int) -> SimTrajectory:
+        """Trajectory `index` for `seed` that changes floor (module docstring): through the index-th way of
+        `portal_ways`. SimulationError when the building has no way between floors the robot can take."""
+        ways = self.portal_ways()
+        if not ways:
+            raise SimulationError(f"{self.prior.source_file}: no portal joins two floors the robot drives on")
+        portal, storey, node, other, other_node = ways[index % len(ways)]
+        rng = np.random.default_rng([seed, index, _TRAJECTORY_STREAM])
+        graph, steps = self.graphs[storey], self.cfg.evaluation.trajectory_length
+        # Start: a viewpoint in a room within the first goal's budget of the portal, at least a few metres off.
+        budget = max(FIRST_GOAL_BUDGET * steps * self.cfg.localization.keyframe_distance_m, MIN_GOAL_BUDGET_M)
+        dist, _ = graph.shortest_paths(node)
+        roomy = (graph.node_room >= 0) & (graph.node_clearance >= graph.inflation_m) & np.isfinite(dist)
+        near = np.flatnonzero(roomy & (dist <= budget / 2) & (dist >= MIN_GOAL_BUDGET_M))
+        near = near if len(near) else np.flatnonzero(roomy)
+        near = self.viewpoints(storey, near)
+        start_node = int(near[rng.integers(len(near))])
+        wheels = WheelOdometry(self.cfg.odometry.alpha, np.random.default_rng([seed, index, ODOMETRY_STREAM]))
+        driver = _Driver(self, graph, rng, wheels, steps // 2)
+        driver.run(start_node, self._rooms_about(graph, start_node))
+        pose = driver.drive_to(driver.last_pose, node)
+        kind = self.prior.portals[portal].kind
+        driver.go_through(pose, self.graphs[other], other_node, kind, abs(self._floors_between(storey, other)))
+        driver.steps = max(steps, len(driver.keyframes) + AFTER_CHANGE_KEYFRAMES)
+        driver.run(other_node, self._rooms_about(self.graphs[other], other_node), pose=driver.last_pose)
+        return driver.trajectory(index, seed, storey)
+
+    def _rooms_about(self, graph: NavGraph, node: int) -> list[int]:
+        """The usable rooms of the node's component (its rooms where none is usable)."""
+        comp = int(graph.node_component[node])
+        rooms = self.rooms.get((graph.storey_index, comp))
+        if rooms:
+            return rooms
+        in_comp = (graph.node_component == comp) & (graph.node_room >= 0)
+        return [int(r) for r in np.unique(graph.node_room[in_comp])]
+
+    def _floors_between(self, storey: int, other: int) -> int:
+        """Floors up (+) or down (−) from `storey` to `other`."""
+        floors = [layers.storey.index for layers in self.prior.storeys if layers.storey.is_floor]
+        return floors.index(other) - floors.index(storey)
 
 
 class _Driver:
@@ -243,11 +315,55 @@ class _Driver:
         self.keyframes: list[int] = []
         self.odometry: list[np.ndarray] = []  # the wheel odometry's pose at each keyframe
         self.goals: list[dict] = []
+        self.storeys: list[int] = []
 
-    def run(self, start_node: int, rooms: list[int]) -> None:
-        """Drive from `start_node` to goals in `rooms` (other than the current one) until T keyframes are taken."""
+    @property
+    def last_pose(self) -> tuple[float, float, float]:
+        return self.poses[-1]
+
+    def trajectory(self, index: int, seed: int, storey: int) -> SimTrajectory:
+        """What was driven, as a trajectory starting on `storey`."""
+        return SimTrajectory(
+            index=index,
+            seed=seed,
+            storey_index=storey,
+            times_s=np.asarray(self.times),
+            poses=np.asarray(self.poses),
+            commands=np.asarray(self.commands),
+            keyframe_indices=np.asarray(self.keyframes, np.int64),
+            odometry=np.asarray(self.odometry),
+            goals=self.goals,
+            storeys=np.asarray(self.storeys, np.int64) if len(set(self.storeys)) > 1 else None,
+        )
+
+    def drive_to(self, pose: tuple[float, float, float], node: int) -> tuple[float, float, float]:
+        """Drive from `pose` to a node (however many keyframes it takes)."""
+        steps, self.steps = self.steps, 10**9
+        dist, pred = self.graph.shortest_paths(self.graph.nearest_node(pose[:2]))
+        if not np.isfinite(dist[node]):
+            raise SimulationError(f"the portal on storey {self.graph.storey_index} cannot be reached from the route")
+        pose = self._follow(pose, self.graph.plan(np.array(pose[:2]), pred, node))
+        self.steps = steps
+        return pose
+
+    def go_through(self, pose: tuple[float, float, float], graph: NavGraph, node: int, kind: str, floors: int) -> None:
+        """Through a portal to `node` of another floor's graph: a lift ride (the wheels still) or a stair climbed,
+        time passing, no keyframe taken; the driver drives on on that floor."""
+        start, end = np.array(pose[:2]), graph.node_xy[node]
+        duration = LIFT_RIDE_S * floors if kind == "lift" else float(np.hypot(*(end - start))) / STAIR_SPEED_MPS
+        n = max(1, math.ceil(duration / self.dt))
+        for t in np.linspace(0.0, 1.0, n + 1)[1:]:
+            xy = start if kind == "lift" else start + t * (end - start)
+            self._log((float(xy[0]), float(xy[1]), pose[2]), keyframe=False)
+        self.graph = graph
+        self.storeys[-1] = graph.storey_index
+        end_pose = (float(end[0]), float(end[1]), pose[2])
+        self._log(end_pose, keyframe=False)
+
+    def run(self, start_node: int, rooms: list[int], pose: tuple[float, float, float] | None = None) -> None:
+        """Drive from `start_node` (from `pose` there, or a first keyframe of its own) to goals in `rooms` (other
+        than the current one) until T keyframes are taken."""
         graph, node = self.graph, start_node
-        pose = None
         for _ in range(MAX_LEGS_PER_STEP * self.steps):
             if len(self.keyframes) >= self.steps:
                 return
@@ -302,7 +418,7 @@ class _Driver:
         remaining = self.steps - len(self.keyframes)
         budget = max(FIRST_GOAL_BUDGET * remaining * self.kf_distance, MIN_GOAL_BUDGET_M)
         if self.sim.cfg.sim.trajectory.route == "rooms":
-            rooms = [r for r in rooms if r != current_room]
+            rooms = [r for r in rooms if r != current_room] or rooms
         nodes = np.flatnonzero(np.isin(graph.node_room, rooms) & np.isfinite(dist))
         roomy = nodes[graph.node_clearance[nodes] >= graph.inflation_m]
         nodes = self.sim.viewpoints(graph.storey_index, roomy if len(roomy) else nodes)
@@ -405,6 +521,7 @@ class _Driver:
 
     def _log(self, pose, keyframe: bool) -> None:
         self.times.append(len(self.times) * self.dt)
+        self.storeys.append(self.graph.storey_index)
         self.poses.append(pose)
         self.commands.append((0.0, 0.0))
         if keyframe:

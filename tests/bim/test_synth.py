@@ -18,14 +18,15 @@ from bimfactor.bim import synth
 from bimfactor.errors import InputError
 
 OBJECT_CLASSES = ("IfcFurniture", "IfcSanitaryTerminal", "IfcFireSuppressionTerminal")
-MESHED_CLASSES = ("IfcWall", "IfcDoor", "IfcWindow", "IfcSpace", *OBJECT_CLASSES)
-PRESETS = ("paper-floor", "office", "multi-storey")
+MESHED_CLASSES = ("IfcWall", "IfcDoor", "IfcWindow", "IfcSpace", "IfcTransportElement", *OBJECT_CLASSES)
+PRESETS = ("paper-floor", "office", "multi-storey", "lift-house")
 
 # preset: (storeys, IfcSpace, IfcDoor, IfcWindow, furniture and terminals)
 EXPECTED_COUNTS = {
     "paper-floor": (1, 7, 7, 8, 28),
     "office": (1, 11, 11, 12, 44),
     "multi-storey": (3, 17, 15, 24, 64),
+    "lift-house": (2, 10, 8, 16, 34),
 }
 PAPER_FLOOR_CATEGORIES = {
     "bed": 1,
@@ -287,7 +288,7 @@ def test_windows_sit_in_exterior_walls_above_the_sill(built: Built) -> None:
 
 
 def test_objects_lie_inside_their_room_clear_of_walls(built: Built) -> None:
-    specs = [(storey, obj) for storey in built.spec.storeys for obj in storey.objects]
+    specs = [(s, obj) for s in built.spec.storeys for obj in s.objects if obj.ifc_class in OBJECT_CLASSES]
     centres = np.array([obj.center for _, obj in specs])
     elements = _objects(built.model)
     assert len(elements) == len(specs)

@@ -22,7 +22,7 @@ from bimfactor.io.rosbag import (
     rgb_image,
 )
 from bimfactor.io.sequence import read_sequence, write_sequence
-from bimfactor.types import CameraIntrinsics, wrap_angle
+from bimfactor.types import STOREY_CHANGE, CameraIntrinsics, wrap_angle
 from tests.io.bags import R_LINK_OPTICAL, TestBag, rigid
 
 pytest.importorskip("rosbags", reason="the optional 'rosbags' package is not installed")
@@ -51,10 +51,19 @@ def _odom_ns(k: int) -> int:
     return T0_NS - 20_000_000 + k * 10_000_000  # 100 Hz from 20 ms before the first colour image
 
 
-def _write_bag(path: Path, depth_encoding: str = "16UC1", topics: tuple[str, ...] = ALL, fmt: str = "sqlite3") -> dict:
+def _write_bag(
+    path: Path,
+    depth_encoding: str = "16UC1",
+    topics: tuple[str, ...] = ALL,
+    fmt: str = "sqlite3",
+    storey_changes: dict[int, int] | None = None,
+) -> dict:
     """Colour at 10 Hz (frame 3 has no depth), depth 3 ms later, odometry at 100 Hz, one CameraInfo; tf_static
-    puts the camera 0.2 m up, looking ahead."""
+    puts the camera 0.2 m up, looking ahead. `storey_changes`: colour frame → a std_msgs/Int32 on /storey_change
+    50 ms before it."""
     bag = TestBag(path, fmt)
+    for k, floors in (storey_changes or {}).items():
+        bag.add("/storey_change", "std_msgs/msg/Int32", bag.T["std_msgs/msg/Int32"](data=floors), T0_NS + k * FRAME_NS)
     rng = np.random.default_rng(3)
     truth: dict[str, list] = {"stamps": [], "rgb": [], "depth": []}
     if INFO in topics:
@@ -164,6 +173,26 @@ def test_convert_keeps_the_keyframes_of_the_odometry(tmp_path: Path) -> None:
     result = invoke("convert", "rosbag", tmp_path / "bag", "-o", tmp_path / "all", "--all-frames", *spacing)
     assert result.exit_code == 0, result.output
     np.testing.assert_array_equal(read_sequence(tmp_path / "all").timestamps(), stamps)
+
+
+def test_a_storey_change_on_a_bag_topic_is_carried_through_convert(tmp_path: Path) -> None:
+    from tests.cli import invoke
+
+    # up a floor before colour frame 1 (synchronised, left out as no keyframe), down two before frame 3 (no depth)
+    _write_bag(tmp_path / "bag", storey_changes={1: 1, 3: -2})
+    spacing = ("--set", "localization.keyframe_distance_m=0.4", "--set", "localization.keyframe_angle_deg=90")
+    topic = ("--set", "io.rosbag.storey_topic=/storey_change")
+    result = invoke("convert", "rosbag", tmp_path / "bag", "-o", tmp_path / "kf", *spacing, *topic)
+    assert result.exit_code == 0, result.output
+    kept = read_sequence(tmp_path / "kf")  # colour frames 0, 2 and 4
+    assert [f.extras.get(STOREY_CHANGE) for f in kept] == [None, 1.0, -2.0]
+    assert kept.meta.extras["storey_changes"] == {"messages": 2, "frames": 2}
+    result = invoke("convert", "rosbag", tmp_path / "bag", "-o", tmp_path / "no", *spacing)
+    assert result.exit_code == 0 and not any(f.extras for f in read_sequence(tmp_path / "no"))
+    result = invoke(
+        "convert", "rosbag", tmp_path / "bag", "-o", tmp_path / "odom", "--set", f"io.rosbag.storey_topic={ODOM}"
+    )
+    assert result.exit_code != 0 and "expected std_msgs/msg/Int32" in result.output
 
 
 def test_topics_named_in_the_config_are_checked(tmp_path: Path, config: RosbagConfig) -> None:

@@ -19,7 +19,7 @@ from bimfactor.io.sequence import (
     write_sequence,
 )
 from bimfactor.io.tum import read_tum_trajectory
-from bimfactor.types import wrap_angle
+from bimfactor.types import STOREY_CHANGE, wrap_angle
 from tests.io.synthetic import expected_depth, make_frames, make_meta
 
 
@@ -335,3 +335,17 @@ def test_a_full_disk_is_an_os_error_naming_the_file_and_libpng_says_nothing(capf
         _write_png(Path("/dev/full"), np.zeros((8, 8, 3), np.uint8), "frame 0")
     assert caught.value.errno == errno.ENOSPC and caught.value.filename == "/dev/full"
     assert capfd.readouterr().err == ""
+
+
+def test_a_storey_change_is_read_from_frames_csv_and_a_subset_keeps_it(tmp_path: Path) -> None:
+    frames = make_frames(5)
+    frames[1].extras = {STOREY_CHANGE: 1.0}  # the lift went up a floor before frame 1
+    frames[3].extras = {STOREY_CHANGE: -2.0}
+    write_sequence(tmp_path / "seq", make_meta(), frames)
+    header = (tmp_path / "seq" / "frames.csv").read_text().splitlines()[0]
+    assert header.endswith(f"extra.{STOREY_CHANGE}") or f"extra.{STOREY_CHANGE}," in header
+    seq = read_sequence(tmp_path / "seq")
+    assert [f.extras.get(STOREY_CHANGE) for f in seq] == [None, 1.0, None, -2.0, None]
+    # keyframes 0, 2, 4: a change on a frame left out goes to the next one kept
+    assert [f.extras.get(STOREY_CHANGE) for f in seq.subset(np.array([0, 2, 4]))] == [None, 1.0, -2.0]
+    assert [f.extras.get(STOREY_CHANGE) for f in seq.subset(np.array([0, 1, 3]))] == [None, 1.0, -2.0]

@@ -184,3 +184,58 @@ def test_benchmark_reports_one_row_per_particle_count(box_prior, box_visibility,
     rows = benchmark_step(box_prior, box_visibility, smcl_cfg, 6.0, n_particles_list=(50, 200), n_obs=4, repeats=2)
     assert [r["n_particles"] for r in rows] == [50, 200]
     assert all(r["n_obs"] == 4 and r["total_ms_median"] > 0 for r in rows)
+
+
+def _with_portals(test_config: Config) -> tuple:
+    """The two-room box on two storeys with a lift in the west room's south-west corner, stopping at both, and a
+    stair rising from the east room's south wall (storey 0) to its north wall (storey 1)."""
+    from bimfactor.bim.prior import Portal, PortalEnd
+
+    prior = make_prior(n_storeys=2)
+    lift_box = (0.2, 0.2, 1.0, 1.0)
+    prior.portals = [
+        Portal(0, "lift", "lift", "IfcTransportElement", [PortalEnd(0, lift_box), PortalEnd(1, lift_box)]),
+        Portal(
+            1, "stair", "stair", "IfcStairFlight", [PortalEnd(0, (9, 0.2, 10, 0.5)), PortalEnd(1, (9, 5.5, 10, 5.8))]
+        ),
+    ]
+    return prior, VisibilityTable.build(prior, test_config.bim.visibility, progress=False)
+
+
+def test_a_portal_carries_particles_between_floors(smcl_cfg: SmclConfig, test_config: Config):
+    prior, table = _with_portals(test_config)
+    mcl = SemanticMCL(prior, table, noise_free(smcl_cfg), np.random.default_rng(0), num_particles=4000)
+    at_lift, far = np.array([1.5, 1.5, 0.3]), np.array([4.0, 4.0, 0.0])
+    at_foot = np.array([9.5, 1.0, 1.0])
+    poses = np.repeat([at_lift, far, at_foot], [2000, 1000, 1000], axis=0)
+    start = np.zeros(4000, np.int64)
+
+    # Without an event: a few particles at each portal go through, keeping their place (a stair's climb is in the
+    # odometry increment).
+    mcl.set_particles(poses, start)
+    mcl.predict(np.zeros(3))
+    went = mcl.storeys == 1
+    assert not went[2000:3000].any()
+    for part in (slice(0, 2000), slice(3000, 4000)):
+        assert went[part].mean() == pytest.approx(mcl.cfg.motion.portal_share, abs=0.02)
+    np.testing.assert_allclose(mcl.particles, poses)
+    np.testing.assert_allclose(mcl.weights, 1 / 4000)
+    # A step that passes the stair's foot counts, though it starts and ends 1.2 m from it.
+    mcl.set_particles(np.repeat([[8.0, 1.2, 0.0]], 4000, axis=0), start)
+    mcl.predict(np.array([3.0, 0.0, 0.0]))
+    assert (mcl.storeys == 1).mean() == pytest.approx(mcl.cfg.motion.portal_share, abs=0.015)
+    # A step across the stair's steps (where no robot on the floor can drive) climbed it, likely.
+    mcl.set_particles(np.repeat([[9.5, 1.5, -np.pi / 2]], 4000, axis=0), start)
+    mcl.predict(np.array([1.4, 0.0, 0.0]))
+    assert (mcl.storeys == 1).mean() == pytest.approx(mcl.cfg.motion.portal_cross_share, abs=0.03)
+
+    # Told the robot went up a floor: every particle at a portal goes, the rest keep a thousandth of their weight.
+    mcl.set_particles(poses, start)
+    mcl.predict(np.zeros(3), storey_change=1)
+    assert np.all(mcl.storeys[:2000] == 1) and np.all(mcl.storeys[3000:] == 1) and np.all(mcl.storeys[2000:3000] == 0)
+    assert mcl.weights[2000:3000].sum() == pytest.approx(1e-3 * 1000 / (3000 + 1e-3 * 1000))
+    # Down from the lowest floor: no particle can, so all keep equal weights.
+    mcl.set_particles(poses, start)
+    mcl.predict(np.zeros(3), storey_change=-1)
+    assert np.all(mcl.storeys == 0)
+    np.testing.assert_allclose(mcl.weights, 1 / 4000)

@@ -53,6 +53,14 @@ def paper_floor(tmp_path_factory: pytest.TempPathFactory, test_config: Config, t
 
 
 @pytest.fixture(scope="session")
+def lift_house(tmp_path_factory: pytest.TempPathFactory, test_config: Config, text_embedder) -> Building:
+    """Two floors joined by a lift (`bim.synth`'s lift-house)."""
+    path = tmp_path_factory.mktemp("lift-house") / "lift-house.ifc"
+    write_building("lift-house", 0, path)
+    return _building("lift-house", path, test_config, text_embedder)
+
+
+@pytest.fixture(scope="session")
 def duplex(ifc_file, test_config: Config, text_embedder) -> Building:
     return _building("duplex", ifc_file("duplex.ifc"), test_config, text_embedder)
 

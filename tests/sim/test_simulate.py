@@ -157,3 +157,23 @@ def test_a_kidnapped_robot_jumps_in_truth_while_its_odometry_stands_still() -> N
     assert first[0].index == 0 and second[3].index == 3  # the inputs are left as they were
     with pytest.raises(ValueError, match="out of range"):
         kidnap(first, second, at=7, resume_at=0)
+
+
+def test_a_storey_route_rides_the_lift_and_tells_of_it(lift_house: Building, config_overrides: list[str]) -> None:
+    from bimfactor.sim.trajectory import LIFT_RIDE_S
+    from bimfactor.types import STOREY_CHANGE
+
+    cfg = config_with(config_overrides, *SMALL_CAMERA)
+    result = simulate_sequence(lift_house.prior, lift_house.model, cfg, 0, seed=0, progress=False, change_storey=True)
+    trajectory, frames = result.trajectory, result.frames
+    storeys = trajectory.keyframe_storeys
+    (change,) = np.flatnonzero(np.diff(storeys)) + 1  # one ride, up from the ground floor
+    assert storeys[0] == 0 and storeys[-1] == 1 and 0 < change < len(frames) - 10
+    assert [f.gt_storey for f in frames] == storeys.tolist()
+    assert [f.extras.get(STOREY_CHANGE) for f in frames] == [1.0 if i == change else None for i in range(len(frames))]
+    # the ride: no keyframe, the wheels still for LIFT_RIDE_S while time passes, then out on the other floor
+    (arrival,) = np.flatnonzero(np.diff(trajectory.storeys)) + 1
+    ride = round(LIFT_RIDE_S / cfg.sim.robot.control_dt_s)
+    assert trajectory.keyframe_indices[change - 1] < arrival - ride and trajectory.keyframe_indices[change] > arrival
+    np.testing.assert_array_equal(np.diff(trajectory.poses[arrival - ride : arrival], axis=0), 0.0)
+    np.testing.assert_array_equal(trajectory.commands[arrival - ride : arrival], 0.0)

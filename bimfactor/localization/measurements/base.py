@@ -13,10 +13,12 @@ from bimfactor.types import Observations
 @dataclass(frozen=True)
 class FrameData:
     """What one keyframe gives the filter to weigh by: the scene graph's observations (with any door-plate text
-    read) and the depth frame's (N, 2) base-frame scan endpoints; either may be None or empty."""
+    read) and the depth frame's (N, 2) base-frame scan endpoints; either may be None or empty. `storey_change`: the
+    floors the robot went up (+) or down (−) since the last keyframe, when it was told (0: no word)."""
 
     observations: Observations | None = None
     scan: np.ndarray | None = None
+    storey_change: int = 0
 
     @property
     def has_scan(self) -> bool:

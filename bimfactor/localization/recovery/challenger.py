@@ -80,7 +80,7 @@ class Challenger:
                 self.start(frame)
             return None
         if odom_increment is not None:
-            rival.predict(odom_increment)
+            rival.predict(odom_increment, frame.storey_change)
         theirs = rival.update(frame).log_evidence
         rival.resample(frame)
         self.frames += 1
