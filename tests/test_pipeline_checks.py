@@ -83,11 +83,13 @@ def perception(monkeypatch: pytest.MonkeyPatch) -> StubPerception:
 
 @pytest.fixture(scope="module")
 def cfg(config_overrides: list[str]) -> Config:
-    """A belief started tight about the true start; nothing but odometry moves it (no scan term, no injection)."""
+    """A belief started tight about the true start; nothing but odometry moves it (no scan term, no injection); every
+    frame of the drive (`STEP_M` apart) is a keyframe."""
     return load_config(
         None,
         [
             *config_overrides,
+            f"localization.keyframe_distance_m={STEP_M / 2}",
             "smcl.num_particles=300",
             "smcl.resampler.kind=systematic",
             "smcl.augmented.enabled=false",

@@ -37,7 +37,7 @@ def kidnapped(
     from bimfactor.sim.simulate import kidnap
 
     other = simulate_sequence(paper_floor.prior, paper_floor.model, paper_floor.cfg, 3, 0, progress=False)
-    frames = kidnap(drive.frames, other.frames, at=12, resume_at=10)[:30]
+    frames = kidnap(drive.frames, other.frames, at=12, resume_at=11)[:30]  # new place: from route 3's keyframe 12
     x, y, yaw = frames[0].gt_pose
     cfg = load_config(
         None,

@@ -201,7 +201,7 @@ def scenario_run(
     if ev.scenario == "kidnap":
         routes = [
             (trajectory, max(ev.kidnap_at, ev.trajectory_length)),
-            (kidnap_route(trajectory, ev.num_trajectories), ev.kidnap_resume_at + ev.trajectory_length),
+            (kidnap_route(trajectory, ev.num_trajectories), ev.kidnap_resume_at + 1 + ev.trajectory_length),
         ]
         (sim, other), prior = simulate_routes(prior_dir, cfg, routes)
         frames = kidnap(sim.frames, other.frames, ev.kidnap_at, ev.kidnap_resume_at)

@@ -150,17 +150,18 @@ def world_obstacles(prior: BimPrior, world: SimWorld, cfg: Config) -> dict[int, 
 
 
 def kidnap(first: list[Frame], second: list[Frame], at: int, resume_at: int) -> list[Frame]:
-    """The kidnapped robot: `first`'s frames up to keyframe `at`, then `second`'s from keyframe `resume_at` on.
+    """The kidnapped robot: `first`'s frames up to keyframe `at`, then `second`'s after keyframe `resume_at`.
 
-    The robot is carried, not driven, between the two: the odometry of the second part continues from the last
-    odometry pose of the first with `second`'s own increments, so the odometry says the robot stood still across
-    the seam while the ground truth jumps. Timestamps continue one keyframe interval later; frames are renumbered.
-    Both parts must come from one building and one world (the same instance table).
+    The robot is carried, not driven, to where `second` is at keyframe `resume_at`: the odometry says it stood still
+    there, so that pose is no keyframe (`Localizer.due`), and the frames go on from `second`'s next, the odometry
+    continuing from the last odometry pose of the first with `second`'s own increments while the ground truth jumps.
+    Timestamps continue one keyframe interval later; frames are renumbered. Both parts must come from one building
+    and one world (the same instance table).
     """
-    if not 0 < at <= len(first) or not 0 <= resume_at < len(second):
+    if not 0 < at <= len(first) or not 0 <= resume_at < len(second) - 1:
         raise ValueError(f"kidnap at {at} of {len(first)} frames, resume at {resume_at} of {len(second)}: out of range")
-    head, tail = first[:at], second[resume_at:]
-    odom_from, odom_to = np.asarray(tail[0].odom_pose, float), np.asarray(head[-1].odom_pose, float)
+    head, tail = first[:at], second[resume_at + 1 :]
+    odom_from, odom_to = np.asarray(second[resume_at].odom_pose, float), np.asarray(head[-1].odom_pose, float)
     interval = float(np.median(np.diff([f.timestamp_s for f in first]))) if len(first) > 1 else 1.0
     shift = head[-1].timestamp_s + interval - tail[0].timestamp_s
     frames = list(head)
