@@ -229,6 +229,11 @@ class Keyframe:
     readings: list[TextReading] = field(default_factory=list)
 
     @property
+    def storey_change(self) -> int:
+        """The floors the robot went up (+) or down (−) since the last keyframe, when the frame says so (0: no word)."""
+        return int(self.frame.extras.get(STOREY_CHANGE, 0))
+
+    @property
     def seen(self) -> Observations | None:
         """What the filter weighs: a skipped frame brings no observation, not an empty one."""
         return self.observations if self.skipped is None else None
@@ -511,8 +516,7 @@ class Localizer:
         if not self.due(frame):
             return None
         key = self.keyframe(frame)
-        change = int(frame.extras.get(STOREY_CHANGE, 0))
-        filtered = self.filter.step(key.increment, key.seen, key.scan, change)
+        filtered = self.filter.step(key.increment, key.seen, key.scan, key.storey_change)
         self._converged, self._suggestion = filtered.converged, None
         out = LocalizerStep.of(key, filtered)
         for stage in self._stages:

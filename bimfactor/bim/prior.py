@@ -200,6 +200,14 @@ class BimPrior:
         """(N, 3) object extents along the world axes (their axis-aligned boxes are centre ± size / 2)."""
         return np.asarray([o.size_m for o in self.objects], dtype=np.float64).reshape(-1, 3)
 
+    def floor_rank(self) -> np.ndarray:
+        """(S,) each storey's place among the floors a robot stands on (0: the lowest; -1: a level that is no floor),
+        what a storey-change event counts in."""
+        rank = np.full(len(self.storeys), -1, np.int64)
+        floors = [layers.storey.index for layers in self.storeys if layers.storey.is_floor]
+        rank[floors] = np.arange(len(floors))
+        return rank
+
     def room_at(self, xy: np.ndarray, storey_index: int = 0) -> np.ndarray:
         """(N,) room id at each world point of (N, 2) xy (OUTSIDE / NO_ROOM off the rooms)."""
         rc = self.grid.world_to_cell(xy)

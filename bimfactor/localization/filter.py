@@ -121,10 +121,9 @@ class FilterModels:
     def build(cls, prior: BimPrior, visibility: VisibilityTable, cfg: SmclConfig) -> FilterModels:
         measurements = make_measurements(prior, visibility, cfg)
         by_kind = {type(m): m for m in measurements}
-        free = FreeSpace(prior)
         return cls(
             prior,
-            free,
+            FreeSpace(prior),
             by_kind[SemanticLikelihood],
             by_kind[PlateLikelihood],
             by_kind.get(ScanLikelihood),

@@ -81,11 +81,10 @@ class PortalMotion:
         ends = [(p.id, e.storey_index, e.box_xy) for p in prior.portals for e in p.ends]
         if not ends:
             return None
-        rank = np.full(len(prior.storeys), -1, np.int64)
-        floors = [layers.storey.index for layers in prior.storeys if layers.storey.is_floor]
-        rank[floors] = np.arange(len(floors))
         portal, storey, boxes = zip(*ends, strict=True)
-        return cls(np.asarray(boxes, float), np.asarray(portal, np.int64), np.asarray(storey, np.int64), rank)
+        return cls(
+            np.asarray(boxes, float), np.asarray(portal, np.int64), np.asarray(storey, np.int64), prior.floor_rank()
+        )
 
     def carry(
         self,

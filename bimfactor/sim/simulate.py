@@ -80,7 +80,7 @@ def simulate_sequence(
     sensor_rng = np.random.default_rng([seed, trajectory_index, SENSOR_STREAM])
     storey = trajectory.storey_index
     storeys = trajectory.keyframe_storeys
-    floor = {layers.storey.index: k for k, layers in enumerate(s for s in prior.storeys if s.storey.is_floor)}
+    floor = prior.floor_rank()
     frames = []
     times = trajectory.keyframe_times_s
     steps = range(len(gt))

@@ -205,7 +205,7 @@ class TrajectorySimulator:
         steps = self.cfg.evaluation.trajectory_length
 
         # Start: a roomy node of the start room from which another room lies within the first goal's budget.
-        budget = max(FIRST_GOAL_BUDGET * steps * self.cfg.localization.keyframe_distance_m, MIN_GOAL_BUDGET_M)
+        budget = self._first_goal_budget_m(steps)
         in_comp = graph.node_component == comp
         others = np.flatnonzero(in_comp & np.isin(graph.node_room, [r for r in rooms if r != room]))
         to_other, _ = graph.shortest_paths(others)
@@ -217,8 +217,7 @@ class TrajectorySimulator:
             near = candidates[to_other[candidates] <= np.quantile(to_other[candidates], 0.1)]
         near = self.viewpoints(storey, near)
         start_node = int(near[rng.integers(len(near))])
-        wheels = WheelOdometry(self.cfg.odometry.alpha, np.random.default_rng([seed, index, ODOMETRY_STREAM]))
-        driver = _Driver(self, graph, rng, wheels, steps, steer)
+        driver = _Driver(self, graph, rng, self._wheels(index, seed), steps, steer)
         driver.run(start_node, rooms)
         return driver.trajectory(index, seed, storey)
 
@@ -255,22 +254,30 @@ class TrajectorySimulator:
         rng = np.random.default_rng([seed, index, _TRAJECTORY_STREAM])
         graph, steps = self.graphs[storey], self.cfg.evaluation.trajectory_length
         # Start: a viewpoint in a room within the first goal's budget of the portal, at least a few metres off.
-        budget = max(FIRST_GOAL_BUDGET * steps * self.cfg.localization.keyframe_distance_m, MIN_GOAL_BUDGET_M)
+        budget = self._first_goal_budget_m(steps)
         dist, _ = graph.shortest_paths(node)
         roomy = (graph.node_room >= 0) & (graph.node_clearance >= graph.inflation_m) & np.isfinite(dist)
         near = np.flatnonzero(roomy & (dist <= budget / 2) & (dist >= MIN_GOAL_BUDGET_M))
         near = near if len(near) else np.flatnonzero(roomy)
         near = self.viewpoints(storey, near)
         start_node = int(near[rng.integers(len(near))])
-        wheels = WheelOdometry(self.cfg.odometry.alpha, np.random.default_rng([seed, index, ODOMETRY_STREAM]))
-        driver = _Driver(self, graph, rng, wheels, steps // 2)
+        driver = _Driver(self, graph, rng, self._wheels(index, seed), steps // 2)
         driver.run(start_node, self._rooms_about(graph, start_node))
         pose = driver.drive_to(driver.last_pose, node)
         kind = self.prior.portals[portal].kind
-        driver.go_through(pose, self.graphs[other], other_node, kind, abs(self._floors_between(storey, other)))
+        rank = self.prior.floor_rank()
+        driver.go_through(pose, self.graphs[other], other_node, kind, abs(int(rank[other] - rank[storey])))
         driver.steps = max(steps, len(driver.keyframes) + AFTER_CHANGE_KEYFRAMES)
         driver.run(other_node, self._rooms_about(self.graphs[other], other_node), pose=driver.last_pose)
         return driver.trajectory(index, seed, storey)
+
+    def _first_goal_budget_m(self, steps: int) -> float:
+        """How far the first goal may lie: a share of the travel `steps` keyframes allow, at least a few metres."""
+        return max(FIRST_GOAL_BUDGET * steps * self.cfg.localization.keyframe_distance_m, MIN_GOAL_BUDGET_M)
+
+    def _wheels(self, index: int, seed: int) -> WheelOdometry:
+        """The wheel odometry of route `index` for `seed` (its own random stream)."""
+        return WheelOdometry(self.cfg.odometry.alpha, np.random.default_rng([seed, index, ODOMETRY_STREAM]))
 
     def _rooms_about(self, graph: NavGraph, node: int) -> list[int]:
         """The usable rooms of the node's component (its rooms where none is usable)."""
@@ -280,11 +287,6 @@ class TrajectorySimulator:
             return rooms
         in_comp = (graph.node_component == comp) & (graph.node_room >= 0)
         return [int(r) for r in np.unique(graph.node_room[in_comp])]
-
-    def _floors_between(self, storey: int, other: int) -> int:
-        """Floors up (+) or down (−) from `storey` to `other`."""
-        floors = [layers.storey.index for layers in self.prior.storeys if layers.storey.is_floor]
-        return floors.index(other) - floors.index(storey)
 
 
 class _Driver:
