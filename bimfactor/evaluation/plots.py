@@ -14,7 +14,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from bimfactor.io.atomic import atomic_path
-from bimfactor.io.preview import missing_glyphs_quiet
+from bimfactor.io.preview import PNG_COMPRESSION, missing_glyphs_quiet
 
 if TYPE_CHECKING:
     from bimfactor.active import Suggestion
@@ -51,7 +51,13 @@ def save_figure(fig: Figure, path: str | Path, dpi: int = 120, tight: bool = Tru
     path = Path(path)
     drop_colliding_labels(fig)
     with missing_glyphs_quiet(), atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format="png")
+        fig.savefig(
+            tmp,
+            dpi=dpi,
+            bbox_inches="tight" if tight else None,
+            format="png",
+            pil_kwargs={"compress_level": PNG_COMPRESSION},
+        )
     plt.close(fig)
     return path
 

@@ -20,7 +20,10 @@ from bimfactor.types import Frame
 log = logging.getLogger(__name__)
 
 PANEL_WIDTH_IN = 3.2
+CAPTION_IN = 0.35  # room for a panel's caption
 DPI = 100
+PNG_COMPRESSION = 1
+"""zlib level of the figures' PNGs: 1 writes a large sheet in a third of the time of matplotlib's 6, 20 % larger."""
 
 
 def preview_indices(n_frames: int, max_frames: int) -> np.ndarray:
@@ -70,18 +73,25 @@ def write_preview(sequence: Sequence, path_png: str | Path, max_frames: int = 12
     depth_max = float(np.percentile(finite, 99)) if finite.size else 1.0
 
     K = sequence.meta.intrinsics
-    panel_h = PANEL_WIDTH_IN * K.height / K.width + 0.35  # room for the title
-    fig = Figure(figsize=(PANEL_WIDTH_IN * columns, panel_h * len(rows) + 0.9), dpi=DPI, layout="constrained")
+    title_in, bar_in = 0.45, 0.75  # the sheet's title above the panels, the depth colour bar and its label below
+    panel_h = PANEL_WIDTH_IN * K.height / K.width + CAPTION_IN
+    height = panel_h * len(rows) + title_in + bar_in
+    fig = Figure(figsize=(PANEL_WIDTH_IN * columns, height), dpi=DPI)
     FigureCanvasAgg(fig)
-    axes = fig.subplots(len(rows), columns, squeeze=False)
+    # A fixed grid, not a constrained layout: solving one for 36 panels took two thirds of the sheet's time.
+    grid = {"left": 0.01, "right": 0.99, "top": 1 - title_in / height, "bottom": bar_in / height, "wspace": 0.04}
+    grid["hspace"] = CAPTION_IN / (panel_h - CAPTION_IN)
+    axes = fig.subplots(len(rows), columns, squeeze=False, gridspec_kw=grid)
     for row, frame in zip(axes, rows, strict=True):
         depth = _draw_row(row, frame, depth_max, with_instances)
-    bar = fig.colorbar(depth, ax=axes[:, 1], orientation="horizontal", fraction=0.4 / (panel_h * len(rows)), pad=0.01)
+    bar = fig.colorbar(depth, cax=fig.add_axes((0.3, 0.45 / height, 0.4, 0.12 / height)), orientation="horizontal")
     bar.set_label("depth (m); black: no return", fontsize=9)
     bar.ax.tick_params(labelsize=8)
-    fig.suptitle(f"{sequence.meta.name} ({sequence.meta.source}, {len(sequence)} frames)", fontsize=11)
+    fig.suptitle(
+        f"{sequence.meta.name} ({sequence.meta.source}, {len(sequence)} frames)", fontsize=11, y=1 - 0.1 / height
+    )
     with missing_glyphs_quiet(), atomic_path(path_png) as tmp:
-        fig.savefig(tmp, format="png", dpi=DPI)
+        fig.savefig(tmp, format="png", dpi=DPI, pil_kwargs={"compress_level": PNG_COMPRESSION})
     log.info("wrote preview %s (%d frames)", path_png, len(rows))
     return path_png
 
