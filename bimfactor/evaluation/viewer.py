@@ -212,6 +212,20 @@ class RunRecorder:
             self.shown.discard(entity)
 
 
+def blueprint(prior: BimPrior) -> Any:
+    """The layout a recording opens in: the world seen from above the building at an angle, beside the camera image
+    over one plot each of the error, the ESS and the number of modes."""
+    import rerun.blueprint as rrb
+
+    x0, x1, y0, y1 = (float(v) for v in prior.grid.extent)
+    centre, span = ((x0 + x1) / 2, (y0 + y1) / 2, 0.0), max(x1 - x0, y1 - y0)
+    eye = rrb.EyeControls3D(position=(centre[0], centre[1] - span, 1.2 * span), look_target=centre, eye_up=(0, 0, 1))
+    world = rrb.Spatial3DView(origin="world", name="world", eye_controls=eye)
+    plots = [rrb.TimeSeriesView(origin=f"plots/{name}", name=name) for name in ("error_m", "ess", "n_modes")]
+    side = rrb.Vertical(rrb.Spatial2DView(origin="camera", name="camera"), *plots, row_shares=[3, 1, 1, 1])
+    return rrb.Blueprint(rrb.Horizontal(world, side, column_shares=[3, 2]), collapse_panels=True)
+
+
 @contextmanager
 def record(path: str | Path, prior: BimPrior, name: str) -> Iterator[RunRecorder]:
     """A recorder writing the Rerun recording `path` (application "bimfactor", recording `name`); the file appears
@@ -219,7 +233,7 @@ def record(path: str | Path, prior: BimPrior, name: str) -> Iterator[RunRecorder
     rr = require_rerun()
     with atomic_path(path) as tmp:
         rec = rr.RecordingStream("bimfactor")
-        rec.save(tmp)
+        rec.save(tmp, default_blueprint=blueprint(prior))
         rec.send_recording_name(name)
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         try:

@@ -49,6 +49,9 @@ from bimfactor.progress import Laps
 from bimfactor.types import Observations, wrap_angle
 
 log = logging.getLogger(__name__)
+EXIT_DRAWS = (
+    5  # a particle a storey-change event moves to a portal's end is drawn up to this often onto navigable space
+)
 
 
 @dataclass
@@ -266,7 +269,13 @@ class SemanticMCL:
                 storey_change,
                 self.rng,
             )
-            if not could.all():
+            if not could.all():  # they come out of a portal on the floor the event names (`PortalMotion.exits`)
+                missed = np.flatnonzero(~could)
+                xy, storeys = portals.exits(self.storeys[missed], storey_change, self.rng, self.on_navigable)
+                placed = np.all(np.isfinite(xy), axis=1)
+                yaw = self.rng.uniform(-np.pi, np.pi, int(placed.sum()))
+                self.particles[missed[placed]] = np.column_stack([xy[placed], yaw])
+                self.storeys[missed[placed]] = storeys[placed]
                 self.weights[~could] *= motion.event_miss_weight
                 self._normalise("after a storey change no particle could make")
         off_map = ~self.on_navigable(self.particles, self.storeys)

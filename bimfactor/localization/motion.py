@@ -11,12 +11,15 @@ word of it, each such particle goes through with the small probability `portal_s
 its portal, or with `portal_cross_share` when its step crossed the portal's footprint (a stair's steps, where a robot
 on the floor cannot drive), and the observations decide; told that the robot changed storey (a barometer, an IMU, a
 lift's interface: `types.STOREY_CHANGE`), every particle at a portal reaching that floor goes through, and the others
-keep only `event_miss_weight` of their weight (the belief may have been wrong about where the robot stood).
+come out of a portal on that floor (`PortalMotion.exits`) with `event_miss_weight` of their weight: a belief with a
+particle where the robot rode keeps it, and one without learns from the ride where the robot is (at a lift's or a
+stair's end on the floor the event names), for the frames to tell which.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -25,6 +28,7 @@ from bimfactor.bim.prior import BimPrior
 from bimfactor.types import se2_compose, wrap_angle
 
 _MIN_TURN_RATE = 1e-9  # rad/s: below this a velocity command is a straight line
+EXIT_SPACING_M = 0.1  # the lattice of places a storey-change event may put a particle at near a portal's end
 PATH_SAMPLES = 8  # points along a particle's step that are checked for passing a portal
 
 
@@ -74,6 +78,7 @@ class PortalMotion:
     end_portal: np.ndarray  # (E,) portal id of each end
     end_storey: np.ndarray  # (E,) storey of each end
     floor_rank: np.ndarray  # (S,) each storey's place among the floors (0: lowest), -1: not a floor
+    _exit_places: dict[int, np.ndarray] = field(default_factory=dict)  # `_places` of each portal end, when first asked
 
     @classmethod
     def of_prior(cls, prior: BimPrior) -> PortalMotion | None:
@@ -127,3 +132,39 @@ class PortalMotion:
         moving = target >= 0
         storeys[moving] = self.end_storey[target[moving]]
         return storeys, moving if change else np.ones(len(storeys), bool)
+
+    def exits(
+        self, storeys: np.ndarray, change: int, rng: np.random.Generator, navigable: Callable
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(M, 2) random navigable places within `PORTAL_REACH_M` of a portal's end `change` floors above (below) each
+        of (M,) `storeys`, of a portal with an end on that storey where there is one, else of any reaching that far,
+        and their (M,) storeys; NaN places (and the storey kept) where no portal joins floors `change` apart.
+        `navigable((N, 3) poses, (N,) storeys)` says which places are on navigable space."""
+        rank = self.floor_rank[self.end_storey]
+        below = [
+            np.any((self.end_portal == p) & (rank == r - change)) for p, r in zip(self.end_portal, rank, strict=True)
+        ]
+        places = [self._places(e, navigable) for e in range(len(self.boxes))]
+        reach = np.asarray(below, bool) & (rank >= 0) & np.array([len(p) > 0 for p in places])
+        xy, out = np.full((len(storeys), 2), np.nan), np.array(storeys, np.int64)
+        for s in np.unique(out):
+            members = np.flatnonzero(out == s)
+            here = reach & np.isin(self.end_portal, self.end_portal[self.end_storey == s])
+            options = np.flatnonzero(here & (rank == self.floor_rank[s] + change))
+            options = options if len(options) else np.flatnonzero(reach)
+            if not len(options):
+                continue
+            for k, e in zip(members, options[rng.integers(len(options), size=len(members))], strict=True):
+                xy[k] = places[e][rng.integers(len(places[e]))]
+                out[k] = self.end_storey[e]
+        return xy, out
+
+    def _places(self, end: int, navigable: Callable) -> np.ndarray:
+        """(N, 2) the navigable points of a lattice `EXIT_SPACING_M` apart within `PORTAL_REACH_M` of a portal's end."""
+        if end not in self._exit_places:
+            x0, y0, x1, y1 = self.boxes[end] + np.array([-1, -1, 1, 1]) * PORTAL_REACH_M
+            grid = np.stack(np.meshgrid(np.arange(x0, x1, EXIT_SPACING_M), np.arange(y0, y1, EXIT_SPACING_M)), -1)
+            points = grid.reshape(-1, 2)
+            poses = np.column_stack([points, np.zeros(len(points))])
+            self._exit_places[end] = points[navigable(poses, np.full(len(points), self.end_storey[end]))]
+        return self._exit_places[end]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bimfactor.bim.navigation import PORTAL_REACH_M
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config, SmclConfig, updated
 from bimfactor.errors import InputError
@@ -229,11 +230,23 @@ def test_a_portal_carries_particles_between_floors(smcl_cfg: SmclConfig, test_co
     mcl.predict(np.array([1.4, 0.0, 0.0]))
     assert (mcl.storeys == 1).mean() == pytest.approx(mcl.cfg.motion.portal_cross_share, abs=0.03)
 
-    # Told the robot went up a floor: every particle at a portal goes, the rest keep a thousandth of their weight.
+    # Told the robot went up a floor: every particle at a portal goes; the rest come out of a portal's end on the floor
+    # above (on navigable space, within reach of the lift or the stair's head) with a thousandth of their weight.
     mcl.set_particles(poses, start)
     mcl.predict(np.zeros(3), storey_change=1)
-    assert np.all(mcl.storeys[:2000] == 1) and np.all(mcl.storeys[3000:] == 1) and np.all(mcl.storeys[2000:3000] == 0)
+    assert np.all(mcl.storeys == 1)
+    np.testing.assert_allclose(mcl.particles[:2000], poses[:2000])
+    moved = mcl.particles[2000:3000]
+    near_lift = np.all((moved[:, :2] >= 0.2 - PORTAL_REACH_M) & (moved[:, :2] <= 1.0 + PORTAL_REACH_M), axis=1)
+    near_head = np.all(moved[:, :2] >= (9 - PORTAL_REACH_M, 5.5 - PORTAL_REACH_M), axis=1)
+    assert np.all(near_lift | near_head) and near_lift.any() and near_head.any()
+    assert mcl.on_navigable(moved, mcl.storeys[2000:3000]).all()
     assert mcl.weights[2000:3000].sum() == pytest.approx(1e-3 * 1000 / (3000 + 1e-3 * 1000))
+    # A belief with no particle where the robot rode: it learns from the ride where the robot is, at the portals' ends.
+    mcl.set_particles(poses[2000:3000], start[2000:3000])
+    mcl.predict(np.zeros(3), storey_change=1)
+    assert np.all(mcl.storeys == 1)
+    np.testing.assert_allclose(mcl.weights, 1 / 1000)
     # Down from the lowest floor: no particle can, so all keep equal weights.
     mcl.set_particles(poses, start)
     mcl.predict(np.zeros(3), storey_change=-1)
