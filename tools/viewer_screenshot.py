@@ -4,8 +4,7 @@ Serves RRD with `rerun --web-viewer` on the loopback address, opens it in Debian
 WebGL), driven over its DevTools pipe (stdlib only: JSON messages ending in NUL on fds 3 and 4), waits until the
 viewer's WASM has loaded and drawn, and writes a PNG. A fixed --virtual-time-budget fired before the WASM loaded.
 
-    .venv/bin/python tools/viewer_screenshot.py runs/demo.rrd docs/figures/viewer.png --wait 120 \\
-        --do click:1281,408 --do click:1520,17 --do click:1575,17
+    .venv/bin/python tools/viewer_screenshot.py runs/demo.rrd docs/figures/viewer.png --wait 240
 """
 
 from __future__ import annotations
