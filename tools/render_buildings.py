@@ -28,6 +28,7 @@ RESULTS = {
         "buildings-paper-eyes",  # the same with the paper's open-vocabulary eyes (perception.sim_preset: paper)
         "buildings-150",  # the paper's eyes, 150-keyframe routes
         "buildings-active",  # the paper's eyes, --scenario active: each route passive and following the suggestions
+        "buildings-storeys",  # --scenario storeys: routes that change floor, without and with the storey-change event
     )
 }
 EYES = ("buildings", "buildings-paper-eyes")  # the side-by-side table: the shipped detector's eyes, the paper's
