@@ -1,31 +1,16 @@
 """The localizer: runs the stages frame by frame (perception → online scene graph → semantic MCL → pose graphs).
 
-`Localizer.step` reads like the method: perceive the frame and update the online graph at the odometry
-pose, take the odometry increment since the last frame, predict, weigh the particles by the semantic and
-spatial match of the nodes in view against the BIM, resample when the ESS is low, estimate. With the
-`smcl+graph` variant (`localization.variant`) the filter's modes then each update their own pose graph, and the
-output is a mode's graph pose (`localization.output`: the most probable mode near the particles' geometric median,
-or the most probable mode) with the whole belief's covariance about it. The `full` variant adds the coarse-to-fine
-loop: the keyframe's depth scan is registered against the BIM walls from the most probable mode's pose
-(`registration.fine`), and an accepted fit enters that mode's graph as a pose factor, before the output is chosen.
-Only the best mode is registered: a registration with its ambiguity probes costs about as much as the rest of the
-step (docs/speed.md), the output is mostly the best mode's, and a wrong mode seldom passes the gate anyway (fitness,
-probes), so registering every mode would multiply the step time by the number of modes for estimates nobody reads.
+`Localizer.step` reads like the method: perceive the frame and update the online graph at the odometry pose, take
+the odometry increment, predict, weigh, resample, estimate; with `smcl+graph` each of the filter's modes updates its
+own pose graph and the output is a mode's graph pose (`localization.output`); `full` also registers the keyframe's
+depth scan against the BIM walls from the most probable mode only (a registration costs about the rest of the step,
+docs/speed.md) and feeds an accepted fit into its graph. The offline pass is `bimfactor.refine.refine_run`.
 
-The offline pass over a localized sequence, every surviving mode's trajectory smoothed as a whole, is
-`bimfactor.refine.refine_run`.
-
-Implausible frames are skipped (`FrameSkip`): a depth image with no return, or with every return at one depth beyond
-the farthest the localizer reads (a saturated or stuck sensor), and an odometry pose that moved faster than a ground
-robot can between two frames (`MAX_ODOMETRY_SPEED_MPS`). A skipped frame still takes a step, the filter predicting
-without weighing (its "nothing seen" would count against the places that should see objects): the run keeps one
-row per frame. Across an odometry jump the motion is unknown, so the step carries the previous step's increment
-(keyframes come at a steady spacing: one keyframe's travel is the best guess, where applying the jump would move
-every particle off the building and zero motion would lag a keyframe behind). When the next frame's odometry
-agrees with the last trusted frame again (a glitch of one message), its increment makes up what the guess missed;
-when it agrees only with the jumped frame (the odometry was reset or re-based), the localizer continues from the
-guess and maps the new odometry frame onto the old one, so perception and the submaps see one continuous odometry.
-`check_sequence_against_prior` and `building_mismatch` compare a sequence with the prior before any work.
+Implausible frames are skipped (`FrameSkip`): depth with no return or all returns at one depth beyond the farthest
+read (a stuck sensor), and odometry that moved faster than `MAX_ODOMETRY_SPEED_MPS`. A skipped frame still steps,
+predicting without weighing. Across an odometry jump the step carries the previous increment; when the next frame
+agrees with the last trusted one again (a glitch) its increment makes up the difference, and when it agrees only
+with the jumped frame (a reset) the new odometry frame is mapped onto the old one.
 """
 
 from __future__ import annotations
