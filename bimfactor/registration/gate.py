@@ -1,17 +1,10 @@
 """Gating: accept a registration only when it fits well, moved plausibly, and the scene constrains every direction.
 
-A featureless corridor (or a single visible wall) leaves one horizontal direction unconstrained: ICP then
-"converges" wherever it started along that direction with a perfect fit, so fitness and RMSE cannot catch
-it. The degeneracy check looks at the translational information instead.
-
-A scene can constrain every direction and still hold more than one good fit nearby (a run of identical
-bays, mirrored rooms): ICP then settles in whichever basin it started in, well constrained and with a
-good fit. The ambiguity check (`gate_with_probes`) re-registers from probe starts around the result and
-rejects it when some probe ends at another place with a fit at least as good. Given the coarse pose's
-covariance, the correction must also be consistent with it (χ² test), and places the coarse pose rules
-out do not count as alternatives. Measured on the registrar comparison's sweep (10 keyframes x 12 starts
-per building), the consistency test alone does not catch the wrong fits that passed the old gate (their
-corrections lie well inside a calibrated coarse covariance); the probes do, and reject no correct fit.
+A corridor or a single wall leaves a horizontal direction unconstrained with a perfect fit, so the degeneracy check
+reads the translational information, not fitness or RMSE. A scene can also hold several good fits nearby (identical
+bays, mirrored rooms): `gate_with_probes` re-registers from probe starts around the result and rejects it when a probe
+ends elsewhere with a fit at least as good; with the coarse pose's covariance, the correction must pass a χ² test and
+places it rules out do not count as alternatives. docs/registration.md.
 """
 
 from __future__ import annotations

@@ -1,16 +1,9 @@
 """The scan term of the measurement model: the depth frame's horizontal scan against the BIM's likelihood field.
 
-Beyond the paper, whose measurement model is semantic only. The depth image is cut to the obstacle band of the
-occupancy grid and turned into a 2-D scan like a laser's: per bearing bin of `scan.beam_deg`, the nearest return
-(`scan_endpoints`). A particle's scan score is the likelihood-field model (Thrun et al., Probabilistic Robotics,
-Table 6.3) with the prior's clearance layer as the field: each endpoint, placed in the world by the particle's
-pose, scores exp(−d² / 2σ²) with d its distance to the nearest BIM obstacle (walls and furniture), and the
-particle's score is the mean over the endpoints, in [0, 1]. The mean, not the product, keeps clutter and moved
-furniture (endpoints far from any BIM obstacle) at a bounded cost and puts the term on the semantic score's
-scale: log P(z_scan|x) = score / `smcl.scan.temperature`.
-
-Walls constrain yaw and position wherever the robot looks, also when no object is in view; the semantic term
-tells places of the same shape apart.
+Beyond the paper. The depth image, cut to the grid's obstacle band, becomes a 2-D scan (the nearest return per
+`scan.beam_deg` bin, `scan_endpoints`); each endpoint placed by a particle's pose scores exp(−d² / 2σ²), d its
+distance to the nearest BIM obstacle (the likelihood field, Probabilistic Robotics Table 6.3), and the particle's
+score is the mean over endpoints, so clutter costs a bounded amount: log P(z_scan|x) = score / `smcl.scan.temperature`.
 """
 
 from __future__ import annotations
