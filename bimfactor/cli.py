@@ -988,6 +988,17 @@ def _start_overrides(text: str | None, storey: int | None) -> list[str]:
     return [f"smcl.start.pose={json.dumps(values[:3])}", *on, *known]
 
 
+def _localize_overrides(
+    overrides: list[str] | None, variant: str | None, initial_pose: str | None, storey: int | None
+) -> list[str]:
+    """`--set`, then `--variant` (localization.variant), `--initial-pose` and `--storey` as overrides."""
+    return [
+        *(overrides or []),
+        *_variant_overrides("localization.variant", variant),
+        *_start_overrides(initial_pose, storey),
+    ]
+
+
 def _protocol_config(
     config: str | None, overrides: list[str] | None, variants: list[str] | None, scenario: str | None, verbose: bool
 ) -> Config:
@@ -1091,15 +1102,7 @@ def localize(
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0 --rerun runs/loc0.rrd
     """
     with _cli_errors(debug):
-        cfg = _start(
-            config,
-            [
-                *(overrides or []),
-                *_variant_overrides("localization.variant", variant),
-                *_start_overrides(initial_pose, storey),
-            ],
-            verbose,
-        )
+        cfg = _start(config, _localize_overrides(overrides, variant, initial_pose, storey), verbose)
         from bimfactor.evaluation.report import run_metrics, twin_summary
         from bimfactor.pipeline import skipped_frames_note
         from bimfactor.workflows import localize_files
@@ -1217,15 +1220,7 @@ def refine(
       bimfactor refine runs/demo/prior runs/demo/sequence -o runs/refine0 --rerun runs/refine0.rrd
     """
     with _cli_errors(debug):
-        cfg = _start(
-            config,
-            [
-                *(overrides or []),
-                *_variant_overrides("localization.variant", variant),
-                *_start_overrides(initial_pose, storey),
-            ],
-            verbose,
-        )
+        cfg = _start(config, _localize_overrides(overrides, variant, initial_pose, storey), verbose)
         from bimfactor.evaluation.report import run_metrics, track_metrics
         from bimfactor.workflows import refine_files
 
