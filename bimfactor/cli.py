@@ -169,6 +169,13 @@ ScenarioOption = Annotated[
         "variants +event); default: the config's evaluation.scenario.",
     ),
 ]
+PriorDirArgument = Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")]
+SequenceDirArgument = Annotated[Path, typer.Argument(metavar="SEQ_DIR", help="A sequence folder.")]
+OutputOption = Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")]
+SequenceOutputOption = Annotated[
+    Path, typer.Option("--output", "-o", metavar="SEQ_DIR", help="Sequence folder to write.")
+]
+OverwriteOption = Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")]
 VerboseOption = Annotated[bool, typer.Option("--verbose", "-v", help="Log progress (INFO); default is WARNING.")]
 DebugOption = Annotated[
     bool,
@@ -622,7 +629,7 @@ def _counts(counts: dict[str, int]) -> str:
 
 @app.command(short_help="Run the demo: paper-floor building → prior → simulated drive → localization → a suggestion.")
 def demo(
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = DEFAULT_DEMO_OUT,
+    output: OutputOption = DEFAULT_DEMO_OUT,
     rerun: RerunOption = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
@@ -701,15 +708,15 @@ def view(
 
 @app.command(short_help="Simulate an RGB-D + odometry sequence in a prior's building.")
 def simulate(
-    prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="SEQ_DIR", help="Sequence folder to write.")],
+    prior_dir: PriorDirArgument,
+    output: SequenceOutputOption,
     trajectory: Annotated[
         int, typer.Option("--trajectory", "-k", min=0, metavar="K", help="Standard trajectory index (0-5).")
     ] = 0,
     all_trajectories: Annotated[
         bool, typer.Option("--all", help="All standard trajectories, into SEQ_DIR/k<K>/ (the paper's protocol).")
     ] = False,
-    seed: Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")] = None,
+    seed: SeedOption = None,
     kidnap_to: Annotated[
         int | None,
         typer.Option(
@@ -720,7 +727,7 @@ def simulate(
             "keyframe evaluation.kidnap_resume_at of trajectory J.",
         ),
     ] = None,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
+    overwrite: OverwriteOption = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -826,8 +833,8 @@ def convert(
             help="TUM RGB-D folder; ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap file; or bimfactor sequence.",
         ),
     ],
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="SEQ_DIR", help="Sequence folder to write.")],
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
+    output: SequenceOutputOption,
+    overwrite: OverwriteOption = False,
     all_frames: Annotated[
         bool, typer.Option("--all-frames", help="Keep every synchronised frame, not only the keyframes.")
     ] = False,
@@ -1044,8 +1051,8 @@ def _metrics_line(metrics: Any) -> str:
 
 @app.command(short_help="Localize a sequence against a prior: semantic MCL, per-mode pose graphs, ICP (by default).")
 def localize(
-    prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
-    sequence_dir: Annotated[Path, typer.Argument(metavar="SEQ_DIR", help="A sequence folder.")],
+    prior_dir: PriorDirArgument,
+    sequence_dir: SequenceDirArgument,
     output: Annotated[Path, typer.Option("--output", "-o", metavar="RUN_DIR", help="Run folder to write.")],
     variant: Annotated[
         str | None,
@@ -1186,8 +1193,8 @@ def scene_graph(
 
 @app.command(short_help="Localize with pose graphs, then smooth each surviving mode's whole trajectory (offline).")
 def refine(
-    prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
-    sequence_dir: Annotated[Path, typer.Argument(metavar="SEQ_DIR", help="A sequence folder.")],
+    prior_dir: PriorDirArgument,
+    sequence_dir: SequenceDirArgument,
     output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Run folder to write.")],
     variant: Annotated[
         str, typer.Option("--variant", metavar="NAME", help="The forward pass: smcl+graph or full.")
@@ -1251,8 +1258,8 @@ def refine(
 
 @app.command("compare-registrars", short_help="Compare fine registrars against the BIM walls (basin of convergence).")
 def compare_registrars_cmd(
-    prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")],
+    prior_dir: PriorDirArgument,
+    output: OutputOption,
     sequence_dir: Annotated[
         Path | None,
         typer.Argument(
@@ -1296,9 +1303,7 @@ def compare_registrars_cmd(
 
 @bench_app.command("paper", short_help="The paper's protocol: 6 trajectories x 3 repeats, Table I per variant.")
 def bench_paper(
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-paper"
-    ),
+    output: OutputOption = Path("runs/bench-paper"),
     ifc: Annotated[
         Path | None, typer.Option("--ifc", metavar="PATH", help="Another building (default: the paper-floor preset).")
     ] = None,
@@ -1373,9 +1378,7 @@ def bench_buildings(
             show_default=False,
         ),
     ] = None,
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-buildings"
-    ),
+    output: OutputOption = Path("runs/bench-buildings"),
     variants: BenchVariantsOption = None,
     scenario: ScenarioOption = None,
     runner: Annotated[
@@ -1483,9 +1486,7 @@ def bench_graph(
     building: Annotated[
         str, typer.Option("--building", metavar="PRESET_OR_IFC", help="Synth preset name or IFC path.")
     ] = "paper-floor",
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-graph"
-    ),
+    output: OutputOption = Path("runs/bench-graph"),
     preset: Annotated[str | None, typer.Option("--preset", help="Sim perception preset: clean, paper, harsh.")] = None,
     tour: Annotated[int, typer.Option("--tour", min=0, help="Orbit every furniture group with N frames instead.")] = 0,
     true_odometry: Annotated[bool, typer.Option("--true-odometry", help="Drift-free odometry (a diagnostic).")] = False,
@@ -1553,9 +1554,7 @@ def bench_speed(
             help="IFC building timed beside the paper floor (repeatable; default: duplex.ifc from ../shared).",
         ),
     ] = None,
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-speed"
-    ),
+    output: OutputOption = Path("runs/bench-speed"),
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -1642,9 +1641,7 @@ def bench_speed(
 @bench_app.command("scanmatch", short_help="Scan matching against the BIM: accuracy, covariance honesty, time.")
 def bench_scanmatch(
     prior_dir: BenchPriorOption = None,
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-scanmatch"
-    ),
+    output: OutputOption = Path("runs/bench-scanmatch"),
     every: Annotated[int, typer.Option("--every", min=1, help="Match every N-th simulated keyframe.")] = 2,
     config: ConfigOption = None,
     overrides: SetOption = None,
