@@ -375,13 +375,9 @@ class StepObserver(Protocol):
 
 
 class Localizer:
-    """Global localization of one sequence against one prior, in the configured variant.
-
-    The full variant samples its surface models from the prior's wall meshes (once per building and seed). Graph
-    variants use `matcher` for the scan factors, or build
-    their own (`scan_matcher`). `twins` are the building's twin motions (`bim.symmetry.twin_motions`, found here
-    when not given): each step reports the belief's weight at the output pose's twin. `detections` (a checked
-    detections file) feeds the detections perception backend.
+    """Global localization of one sequence against one prior, in the configured variant. `matcher` (graph variants'
+    scan factors), `twins` (`bim.symmetry.twin_motions`) and `detections` (for the detections backend) are built or
+    found when not given.
     """
 
     def __init__(
@@ -509,12 +505,9 @@ class Localizer:
         return out
 
     def due(self, frame: Frame) -> bool:
-        """Whether `frame` is a keyframe: the first, or one whose odometry has moved `localization.keyframe_distance_m`
-        or turned `keyframe_angle_deg` since the last keyframe (`odometry.keyframe_due`; AMCL's update_min_d and
-        update_min_a). The motion model's noise is per step, so a step at every camera frame would pile it up; the
-        frames between keyframes bring nothing the next keyframe's increment does not carry. A frame with a
-        storey-change event (`types.STOREY_CHANGE`: after a lift ride the wheels have not moved) is due, and so is one
-        without a finite odometry pose, for `keyframe` to refuse."""
+        """Whether `frame` is a keyframe: the first, one whose odometry has moved `localization.keyframe_distance_m` or
+        turned `keyframe_angle_deg` since the last keyframe (`odometry.keyframe_due`), one with a storey-change event,
+        or one without a finite odometry pose (for `keyframe` to refuse)."""
         raw = np.asarray(frame.odom_pose, float)
         if self._last_odom is None or not np.all(np.isfinite(raw)) or frame.extras.get(STOREY_CHANGE, 0):
             return True
@@ -699,14 +692,8 @@ class Localizer:
 
     def _odometry_step(self, frame: Frame) -> tuple[np.ndarray | None, Frame, FrameSkip | None]:
         """The odometry increment of this step (None: the first), the frame with its odometry pose continuous with the
-        earlier frames' (itself unless the odometry was re-based), and an odometry jump's `FrameSkip`.
-
-        The increment is checked against the last trusted frame (`plausible_odometry_step`). One that is implausible
-        is an odometry jump: the step carries the last trusted step's increment, and the frame is skipped. The next
-        frames are checked against the last trusted frame: one that agrees with it again (a glitch of one message)
-        takes the increment from it, less what the guesses covered; one that agrees only with the previous frame
-        (the odometry was reset or re-based at the jump) takes the increment from that frame, and later odometry
-        poses are mapped onto the filter's odometry frame."""
+        earlier frames' (itself unless the odometry was re-based), and an odometry jump's `FrameSkip`; the jump handling
+        is the module docstring's."""
         raw = np.asarray(frame.odom_pose, float)
         t = float(frame.timestamp_s)
         skipped = None
@@ -832,15 +819,9 @@ def localize_sequence(
     suggest: bool = False,
     observer: StepObserver | None = None,
 ) -> LocalizationRun:
-    """Localize every frame of a sequence; ground truth, when the frames have it, is carried along; with `suggest`,
-    the run ends with where to look next (`Localizer.suggest`); `observer` watches every step (`Localizer.watch`).
-
-    `matcher` is the graph variants' scan matcher (`scan_matcher`; built when not given); `twins` the building's
-    twin motions (`bim.symmetry.twin_motions`; found when not given); `detections` a detector's detections of the
-    frames (`perception.detections.read_detections`) for the detections backend. The frames are checked against the
-    prior first
-    (`check_sequence_against_prior`: InputError); implausible frames are skipped (`LocalizationRun.skipped`), and a
-    sequence whose every frame is skipped is an InputError.
+    """Localize every frame of a sequence (`Localizer`; ground truth carried along); with `suggest` the run ends with
+    where to look next, and `observer` watches every step. The frames are checked against the prior first
+    (InputError); a sequence whose every frame is skipped is an InputError.
     """
     if not isinstance(frames, SequenceFolder):  # a sequence folder answers without loading its images
         frames = list(frames)

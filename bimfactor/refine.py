@@ -286,17 +286,10 @@ class _Refiner:
 
 
 def _offline_split(steps: range, refined: list[RefinedMode], fits: list[np.ndarray], cfg: BackendConfig) -> int | None:
-    """Where a stretch parts again in hindsight (None: nowhere): the step s at which one refined candidate, born
-    before s, explaining the keyframes before s and another, born at s or later, explaining those from s on gain the
-    most measurement log-likelihood (`fits`, per keyframe) over the stretch's best fit (the first): at least
-    `cfg.refine_split_min_log_ratio`, with each mode explaining its own part better than the other by
-    `cfg.refine_split_min_keyframe_log_ratio` per keyframe on average, and each part at least
-    `cfg.refine_split_min_keyframes` keyframes long.
-
-    A robot carried off while the filter kept its belief leaves no relocalization; but the mode born at the new
-    place, tracked back across the jump, fits every frame before it badly, as the old place's mode fits those after.
-    Within one continuous stretch the true mode explains both parts; a wrong mode may still fit a part better than
-    a true one tracked a little off, but by little per keyframe."""
+    """Where a stretch parts again in hindsight (None: nowhere): the step s at which one refined candidate born before s
+    explaining the keyframes before it, and another born at s or later explaining those from it, gain the most
+    measurement log-likelihood over the stretch's best fit, within the `cfg.refine_split_*` bounds (docs/refine.md).
+    """
     if len(refined) < 2:
         return None
     n, shortest = len(steps), cfg.refine_split_min_keyframes

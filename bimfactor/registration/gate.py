@@ -130,15 +130,9 @@ def probe_starts(
     T_world_base_init: np.ndarray | None = None,
     covariance_world: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(P, 3) probe starts along the eigenvectors of the result's translational information (the least
-    constrained direction first) and in yaw.
-
-    Six probes test the result's own basin: `result.pose` ± `ambiguity_probe_m` along each axis and
-    ± `ambiguity_probe_deg` in yaw. Given the coarse pose and its covariance, the region it allows is sampled
-    too where it reaches farther: the initial pose ± the coarse σ along each axis (and in yaw) whose σ
-    exceeds the probe step. That catches a run of identical bays farther apart than the probe step when the
-    coarse pose cannot tell them apart (measured on a corridor of 3 m bays: each fit's basin is only about
-    ±0.5 m wide, so probes around the wrong bay's fit never reach the true one).
+    """(P, 3) probe starts: `result.pose` ± `ambiguity_probe_m` along each eigenvector of its translational information
+    (the least constrained first) and ± `ambiguity_probe_deg` in yaw; given the coarse covariance, also the initial
+    pose ± the coarse σ along each axis whose σ exceeds the probe step (identical bays farther apart than a probe).
     """
     info_xy = translational_information(result.information)
     axes = np.linalg.eigh(info_xy)[1].T if np.all(np.isfinite(info_xy)) else np.eye(2)

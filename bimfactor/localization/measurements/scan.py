@@ -57,16 +57,11 @@ def scan_endpoints(
     sensor: SensorConfig,
     max_z_m: float,
 ) -> np.ndarray:
-    """(N, 2) base-frame x, y of one endpoint per bearing bin: the nearest surface's median return.
+    """(N, 2) base-frame x, y of one endpoint per `beam_deg` bearing bin: the nearest surface's median return.
 
-    Points are kept between `sensor.min_z_m` and `max_z_m` (the top of the grid's obstacle band) above the floor
-    and within `sensor.max_range_m` (horizontal); bins are `beam_deg` wide. NaN depth is no return. In each bin
-    the returns within w of the nearest one form the nearest surface, and the endpoint is their median by range:
-    the nearest return alone is the minimum of hundreds of noisy samples of a wall, biased short by about 3σ of the
-    depth noise (15 cm at 5 m for a RealSense-like camera). w = `surface_sigmas` (6) σ(r) of the noise
-    (`sensor.depth_noise`) at the nearest return's range r, within `surface_min_m` … `surface_m`: it holds
-    a wall's ±3σ spread, and no more. A fixed 0.3 m took in the top of a low table seen from above, whose returns
-    lie behind its edge, and put the endpoint 0.15–0.2 m inside the table (`bimfactor bench scanmatch`).
+    Returns between `sensor.min_z_m` and `max_z_m` above the floor and within `sensor.max_range_m` count (NaN: none). A
+    bin's surface is its returns within `surface_sigmas` σ(r) of the nearest one (clamped to `surface_min_m` …
+    `surface_m`): the nearest return alone is biased short by about 3σ of the depth noise.
     """
     points = height_band(points.base, sensor.min_z_m, max_z_m)
     ranges = np.hypot(points[:, 0], points[:, 1])
