@@ -1319,13 +1319,9 @@ def bench_paper(
     """Six standard trajectories (T = 50, distinct starts), each localized three times; prints Table I of each
     variant, scored over the T steps from the step the filter first reports itself converged (the paper's reading;
     --set evaluation.score_from=start: from the first frame), with the same runs' first T steps on the last line,
-    and writes OUT/results.json (per variant: trans_err_m, orient_err_deg, room_acc, step_ms_median,
-    steps_to_converge, trans_err_conv_m, orient_err_conv_deg, ellipse_coverage, storey_acc; the average also the 95 %
-    bootstrap intervals over runs trans_err_ci95_m, orient_err_ci95_deg, room_acc_ci95 and the mean error per
-    step and from_start; full also icp_accepted_share and icp_rejections), OUT/error_by_step.png and
-    OUT/config.yaml. The building's prior is built into OUT/prior, or with --prior a saved one is used (as a
-    rerun's OUT/prior). With --scenario kidnap the scored steps follow the kidnapping, and the average also holds
-    tracking_before_kidnap_runs and steps_to_recover_median. With --set evaluation.known_storey=true each run's
+    and writes OUT/results.json (its keys: docs/evaluation.md), OUT/error_by_step.png and OUT/config.yaml. The
+    building's prior is built into OUT/prior, or with --prior a saved one is used (as a rerun's OUT/prior). With
+    --scenario kidnap the scored steps follow the kidnapping. With --set evaluation.known_storey=true each run's
     uniform start covers only the storey its route starts on.
 
     \b
