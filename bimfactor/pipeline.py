@@ -759,14 +759,10 @@ class Localizer:
         out.fine_ms = (time.perf_counter() - started) * 1000
 
     def _report(self, key: Keyframe, out: LocalizerStep) -> None:
-        """The graph variants' output pose, storey and room (`localization.output`); its covariance is the whole
-        belief's about that pose (`belief_covariance`).
-
-        best_mode: the most probable mode's graph pose. belief_median: the particles' weighted geometric median on
-        the estimated storey, the position that minimises the expected position error under the belief, decides:
-        the most probable mode within `output_mode_radius_m` of it reports its graph pose; with none there (the
-        belief spread over places none of which dominates) the median itself, with the particles' mean yaw within
-        `output_mode_radius_m` of it."""
+        """The graph variants' output pose, storey and room (`localization.output`), with the whole belief's covariance
+        about it: best_mode, the most probable mode's graph pose; belief_median, the graph pose of the most probable
+        mode within `output_mode_radius_m` of the particles' weighted geometric median, else the median with the nearby
+        particles' yaw."""
         cfg = self.cfg.localization
         if cfg.output == "best_mode":  # before a first mode: the filter's estimate
             source = out.graph.best if out.graph is not None else out.filtered

@@ -35,13 +35,11 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class RefinedRun:
-    """The offline pass over a localized run, one continuous stretch at a time (`segments`: the filter's own,
-    `LocalizationRun.segments`, one unless it relocalized, less its false alarms, their seams searched again in
-    hindsight; and those parted offline, whose first steps are `offline_seams`): every candidate mode refined, by
-    stretch and best fit first within one, with its fit (`fits`, the filter's measurement log-likelihood summed along
-    the refined trajectory); `best`, per stretch, its best fit (None: no mode was born there, and the stretch keeps
-    the forward pass's estimate); and the estimate, the stretches' best fits joined. Its `step_ms` is the forward
-    pass's step time plus the refinement's time shared over the steps."""
+    """The offline pass over a localized run, one continuous stretch at a time (`segments`; `offline_seams` the first
+    steps of those parted offline): every candidate mode refined, by stretch and best fit first, with its fit (`fits`:
+    the filter's measurement log-likelihood along the refined trajectory); `best` per stretch (None: the forward
+    estimate stands); the estimate, the best fits joined, whose `step_ms` adds the refinement's time shared over the
+    steps."""
 
     forward: LocalizationRun
     modes: list[RefinedMode]

@@ -65,12 +65,9 @@ keyframe's scan matched against the BIM from that pose; `backend.scan_factor`)."
 
 
 def floored_covariance(covariance: np.ndarray, cfg: BackendConfig) -> np.ndarray:
-    """(3, 3) covariance with at least the configured prior floor's spread in every direction of (x, y, yaw).
-
-    In units of the floor's σ (`prior_min_sigma_m` for x and y, `prior_min_sigma_deg` for yaw) its eigenvalues are
-    raised to 1, so a diagonal covariance gets its variances raised to the floor, and a cluster whose particles lie
-    on a line in x–yaw (resampled from a few ancestors and turned) gets a usable prior instead of a near-singular one
-    that GTSAM finds indeterminate."""
+    """(3, 3) covariance with at least the configured prior floor's spread in every direction of (x, y, yaw): its
+    eigenvalues in units of the floor's σ (`prior_min_sigma_m`, `prior_min_sigma_deg`) raised to 1, so a cluster lying
+    on a line in x–yaw gets a prior GTSAM does not find indeterminate."""
     cov = 0.5 * (np.asarray(covariance, np.float64) + np.asarray(covariance, np.float64).T)
     sigma = np.array([cfg.prior_min_sigma_m, cfg.prior_min_sigma_m, np.deg2rad(cfg.prior_min_sigma_deg)])
     values, vectors = np.linalg.eigh(cov / np.outer(sigma, sigma))
@@ -101,12 +98,9 @@ def observation_cost(
 def semantic_associator(
     likelihood: SemanticLikelihood, plates: PlateLikelihood, observations: Observations, min_score: float = 0.05
 ) -> AssociateFn:
-    """An `AssociateFn` from the S-MCL score: the Hungarian assignment maximising φ = φ_sem·φ_dist·φ_ang at a pose,
-    then each door-plate reading to the plate it fits best there (`PlateLikelihood.associate`; measurement K + r,
-    landmark `first_landmark_id` + p).
-
-    Pairs scoring at most `min_score` are left unmatched (φ_dist is a loose gate: exp(−|Δd| / σ_d)).
-    """
+    """An `AssociateFn` from the S-MCL score: the Hungarian assignment maximising φ at a pose (pairs scoring at most
+    `min_score` left unmatched), then each door-plate reading to the plate it fits best there (measurement K + r,
+    landmark `first_landmark_id` + p)."""
     K = len(observations)
 
     def associate(pose: np.ndarray, storey: int) -> list[tuple[int, int]]:

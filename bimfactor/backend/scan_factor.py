@@ -127,12 +127,9 @@ class CorrelativeMatcher:
     def factor_fn(
         self, endpoints: np.ndarray, recentre: int | None = None
     ) -> Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray] | None]:
-        """A `backend.posegraph.PoseFactorFn` for one keyframe's (N, 2) endpoints: the accepted match from a pose
-        as (pose, body-frame information), None when rejected.
-
-        A match is a function of its start pose alone, and each is kept: the offline refinement asks again from the
-        very same poses (a stretch's modes refined anew when a seam moves, a track carried across a seam again),
-        half of its matches on a five-storey building."""
+        """A `backend.posegraph.PoseFactorFn` for one keyframe's (N, 2) endpoints: the accepted match from a pose as
+        (pose, body-frame information), None when rejected. Matches are kept by start pose: the offline refinement asks
+        again from the very same poses."""
         found: dict[tuple[bytes, int], ScanMatch] = {}
 
         def measure(pose: np.ndarray, storey: int) -> tuple[np.ndarray, np.ndarray] | None:

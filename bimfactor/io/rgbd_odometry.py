@@ -407,12 +407,9 @@ def odometry_frames(timestamps: np.ndarray, min_interval_s: float = FRAME_INTERV
 def rgbd_odometry(
     sequence: Sequence, *, max_depth_m: float = MAX_DEPTH_M, nonholonomic: bool = True, show_progress: bool = True
 ) -> RgbdOdometryResult:
-    """RGB-D odometry of every frame of `sequence`, with its intrinsics and camera mount (module docstring).
-
-    Made for keyframes (0.5 m or 15° apart, pairs up to about 0.7 m and 30° apart work); closer frames work too.
-    `nonholonomic=False` for a handheld camera (its base may step sideways). Give the sequence its odometry with
-    `sequence.with_odometry(result.odom_poses)`.
-    """
+    """RGB-D odometry of every frame of `sequence`, with its intrinsics and camera mount (module docstring); made for
+    keyframes up to about 0.7 m and 30° apart. `nonholonomic=False` for a handheld camera. Give the sequence its
+    odometry with `sequence.with_odometry(result.odom_poses)`."""
     odometry = RgbdOdometry(
         sequence.meta.intrinsics, sequence.meta.T_base_camera, max_depth_m=max_depth_m, nonholonomic=nonholonomic
     )

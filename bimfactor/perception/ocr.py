@@ -202,12 +202,9 @@ def has_strokes(rgb: np.ndarray, focal_px: float) -> bool:
 
 
 class PlateReader:
-    """Door plates read where they can be (module docstring): the `TextReader` of real frames.
-
-    `intrinsics` and `T_base_camera` are the sequence's; readings with score ≥ `min_score` and non-blank text are kept,
-    their boxes in the frame's pixels. The plate region goes to RapidOCR as it is, its text detector told to scale it
-    to `OCR_FOCAL_PX` (RapidOCR scales an image's shorter side to `limit_side_len`); the recogniser reads the region's
-    own pixels, as RapidOCR does on a whole frame."""
+    """Door plates read where they can be (module docstring): the `TextReader` of real frames, with the sequence's
+    `intrinsics` and `T_base_camera`; readings with score ≥ `min_score` and non-blank text are kept, their boxes in the
+    frame's pixels."""
 
     wants_columns = True
 

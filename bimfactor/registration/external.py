@@ -74,12 +74,8 @@ class SmallGicp(CentredRegistrar):
 
 
 class KissIcp(CentredRegistrar):
-    """KISS-ICP's point-to-map registration (point-to-point, Geman–McClure kernel) against a voxel map of the target.
-
-    KISS-ICP adapts its threshold over a sequence; for one registration the correspondence distance is
-    `max_correspondence_m` and the kernel a third of it (KISS-ICP's own 3σ rule). The voxel size equals the
-    correspondence distance, so the neighbouring voxels it searches cover it.
-    """
+    """KISS-ICP's point-to-map registration (point-to-point, Geman–McClure kernel) against a voxel map of the target:
+    the correspondence distance `max_correspondence_m`, the kernel a third of it, the voxel size the distance."""
 
     def __init__(self, cfg: RegistrationConfig, name: str = "kiss_icp") -> None:
         self.cfg = cfg

@@ -387,13 +387,9 @@ class Scale:
 
 
 class CentredRegistrar:
-    """The frame every 6-DoF registrar works in; subclasses implement `align`.
-
-    The target is the surface cropped around the initial pose to the scan's reach (back faces culled), so a
-    per-call KD-tree stays small. Everything is expressed in a frame centred on the initial pose: the
-    libraries linearise rotations about the origin, and lever arms of tens of metres (a large floor) made
-    Open3D diverge by metres from a 13° start. The result is projected onto (x, y, yaw) at the floor height.
-    """
+    """The frame every 6-DoF registrar works in; subclasses implement `align`. The target is the surface cropped around
+    the initial pose to the scan's reach, in a frame centred on that pose (the libraries linearise rotations about the
+    origin; lever arms of tens of metres made Open3D diverge); the result is projected onto (x, y, yaw)."""
 
     name: str
     cfg: RegistrationConfig
