@@ -700,9 +700,6 @@ def view(
         typer.echo(f"  {shlex.join(web)}    (here: then browse to http://localhost:9090)")
 
 
-# ------------------------------------------------------------------------------------------ bench
-
-
 # ------------------------------------------------------------------------------------------ sequences
 
 
@@ -1301,6 +1298,9 @@ def compare_registrars_cmd(
         typer.echo(f"results: {output / 'summary.json'}, figure: {output / 'basins.png'}")
 
 
+# ------------------------------------------------------------------------------------------ bench
+
+
 @bench_app.command("paper", short_help="The paper's protocol: 6 trajectories x 3 repeats, Table I per variant.")
 def bench_paper(
     output: OutputOption = Path("runs/bench-paper"),
@@ -1504,7 +1504,7 @@ def bench_graph(
         from bimfactor.evaluation.graph import run_graph_bench
 
         with _bench_dir(output, *([building] if Path(building).exists() else [])):
-            result = run_graph_bench(building, cfg, output, preset, None, tour, None, true_odometry)
+            result = run_graph_bench(building, cfg, output, preset, tour, true_odometry)
         summary, speed = result["summary"], result["speed"]
         typer.echo(json.dumps({"summary": summary, "speed": speed}, indent=1, default=float))
         typer.echo(f"results: {output / 'report.json'}")

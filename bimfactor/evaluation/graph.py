@@ -529,18 +529,15 @@ def run_graph_bench(
     cfg: Config,
     out_dir: str | Path,
     preset: str | None = None,
-    trajectories: int | None = None,
     tour: int = 0,
-    seed: int | None = None,
     true_odometry: bool = False,
 ) -> dict[str, Any]:
     """The perception report of one building (synth preset name or IFC path) over its standard trajectories
     (or a furniture tour): graph precision/recall/segmentation/labels, detector rates, update speed."""
-    seed = cfg.seed if seed is None else seed
-    n = cfg.evaluation.num_trajectories if trajectories is None else trajectories
     text_embedder = make_text_embedder(cfg.embed)
     with tempfile.TemporaryDirectory() as work:
-        prior, sims = _simulate_building(building, cfg, text_embedder, n, seed, Path(work), tour)
+        n = cfg.evaluation.num_trajectories
+        prior, sims = _simulate_building(building, cfg, text_embedder, n, cfg.seed, Path(work), tour)
     if true_odometry:
         for frame in (f for sim in sims for f in sim.frames):
             frame.odom_pose = frame.gt_pose.copy()
