@@ -169,6 +169,13 @@ ScenarioOption = Annotated[
         "variants +event); default: the config's evaluation.scenario.",
     ),
 ]
+PriorDirArgument = Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")]
+SequenceDirArgument = Annotated[Path, typer.Argument(metavar="SEQ_DIR", help="A sequence folder.")]
+OutputOption = Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")]
+SequenceOutputOption = Annotated[
+    Path, typer.Option("--output", "-o", metavar="SEQ_DIR", help="Sequence folder to write.")
+]
+OverwriteOption = Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")]
 VerboseOption = Annotated[bool, typer.Option("--verbose", "-v", help="Log progress (INFO); default is WARNING.")]
 DebugOption = Annotated[
     bool,
@@ -622,7 +629,7 @@ def _counts(counts: dict[str, int]) -> str:
 
 @app.command(short_help="Run the demo: paper-floor building → prior → simulated drive → localization → a suggestion.")
 def demo(
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = DEFAULT_DEMO_OUT,
+    output: OutputOption = DEFAULT_DEMO_OUT,
     rerun: RerunOption = None,
     config: ConfigOption = None,
     overrides: SetOption = None,
@@ -693,23 +700,20 @@ def view(
         typer.echo(f"  {shlex.join(web)}    (here: then browse to http://localhost:9090)")
 
 
-# ------------------------------------------------------------------------------------------ bench
-
-
 # ------------------------------------------------------------------------------------------ sequences
 
 
 @app.command(short_help="Simulate an RGB-D + odometry sequence in a prior's building.")
 def simulate(
-    prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="SEQ_DIR", help="Sequence folder to write.")],
+    prior_dir: PriorDirArgument,
+    output: SequenceOutputOption,
     trajectory: Annotated[
         int, typer.Option("--trajectory", "-k", min=0, metavar="K", help="Standard trajectory index (0-5).")
     ] = 0,
     all_trajectories: Annotated[
         bool, typer.Option("--all", help="All standard trajectories, into SEQ_DIR/k<K>/ (the paper's protocol).")
     ] = False,
-    seed: Annotated[int | None, typer.Option("--seed", metavar="S", help="Seed (default: the config's).")] = None,
+    seed: SeedOption = None,
     kidnap_to: Annotated[
         int | None,
         typer.Option(
@@ -720,7 +724,7 @@ def simulate(
             "keyframe evaluation.kidnap_resume_at of trajectory J.",
         ),
     ] = None,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
+    overwrite: OverwriteOption = False,
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -826,8 +830,8 @@ def convert(
             help="TUM RGB-D folder; ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap file; or bimfactor sequence.",
         ),
     ],
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="SEQ_DIR", help="Sequence folder to write.")],
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing sequence folder.")] = False,
+    output: SequenceOutputOption,
+    overwrite: OverwriteOption = False,
     all_frames: Annotated[
         bool, typer.Option("--all-frames", help="Keep every synchronised frame, not only the keyframes.")
     ] = False,
@@ -988,6 +992,17 @@ def _start_overrides(text: str | None, storey: int | None) -> list[str]:
     return [f"smcl.start.pose={json.dumps(values[:3])}", *on, *known]
 
 
+def _localize_overrides(
+    overrides: list[str] | None, variant: str | None, initial_pose: str | None, storey: int | None
+) -> list[str]:
+    """`--set`, then `--variant` (localization.variant), `--initial-pose` and `--storey` as overrides."""
+    return [
+        *(overrides or []),
+        *_variant_overrides("localization.variant", variant),
+        *_start_overrides(initial_pose, storey),
+    ]
+
+
 def _protocol_config(
     config: str | None, overrides: list[str] | None, variants: list[str] | None, scenario: str | None, verbose: bool
 ) -> Config:
@@ -1033,8 +1048,8 @@ def _metrics_line(metrics: Any) -> str:
 
 @app.command(short_help="Localize a sequence against a prior: semantic MCL, per-mode pose graphs, ICP (by default).")
 def localize(
-    prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
-    sequence_dir: Annotated[Path, typer.Argument(metavar="SEQ_DIR", help="A sequence folder.")],
+    prior_dir: PriorDirArgument,
+    sequence_dir: SequenceDirArgument,
     output: Annotated[Path, typer.Option("--output", "-o", metavar="RUN_DIR", help="Run folder to write.")],
     variant: Annotated[
         str | None,
@@ -1091,15 +1106,7 @@ def localize(
       bimfactor localize runs/demo/prior runs/demo/sequence -o runs/loc0 --rerun runs/loc0.rrd
     """
     with _cli_errors(debug):
-        cfg = _start(
-            config,
-            [
-                *(overrides or []),
-                *_variant_overrides("localization.variant", variant),
-                *_start_overrides(initial_pose, storey),
-            ],
-            verbose,
-        )
+        cfg = _start(config, _localize_overrides(overrides, variant, initial_pose, storey), verbose)
         from bimfactor.evaluation.report import run_metrics, twin_summary
         from bimfactor.pipeline import skipped_frames_note
         from bimfactor.workflows import localize_files
@@ -1183,8 +1190,8 @@ def scene_graph(
 
 @app.command(short_help="Localize with pose graphs, then smooth each surviving mode's whole trajectory (offline).")
 def refine(
-    prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
-    sequence_dir: Annotated[Path, typer.Argument(metavar="SEQ_DIR", help="A sequence folder.")],
+    prior_dir: PriorDirArgument,
+    sequence_dir: SequenceDirArgument,
     output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Run folder to write.")],
     variant: Annotated[
         str, typer.Option("--variant", metavar="NAME", help="The forward pass: smcl+graph or full.")
@@ -1217,15 +1224,7 @@ def refine(
       bimfactor refine runs/demo/prior runs/demo/sequence -o runs/refine0 --rerun runs/refine0.rrd
     """
     with _cli_errors(debug):
-        cfg = _start(
-            config,
-            [
-                *(overrides or []),
-                *_variant_overrides("localization.variant", variant),
-                *_start_overrides(initial_pose, storey),
-            ],
-            verbose,
-        )
+        cfg = _start(config, _localize_overrides(overrides, variant, initial_pose, storey), verbose)
         from bimfactor.evaluation.report import run_metrics, track_metrics
         from bimfactor.workflows import refine_files
 
@@ -1256,8 +1255,8 @@ def refine(
 
 @app.command("compare-registrars", short_help="Compare fine registrars against the BIM walls (basin of convergence).")
 def compare_registrars_cmd(
-    prior_dir: Annotated[Path, typer.Argument(metavar="PRIOR_DIR", help="A prior folder (bimfactor prior).")],
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")],
+    prior_dir: PriorDirArgument,
+    output: OutputOption,
     sequence_dir: Annotated[
         Path | None,
         typer.Argument(
@@ -1299,11 +1298,12 @@ def compare_registrars_cmd(
         typer.echo(f"results: {output / 'summary.json'}, figure: {output / 'basins.png'}")
 
 
+# ------------------------------------------------------------------------------------------ bench
+
+
 @bench_app.command("paper", short_help="The paper's protocol: 6 trajectories x 3 repeats, Table I per variant.")
 def bench_paper(
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-paper"
-    ),
+    output: OutputOption = Path("runs/bench-paper"),
     ifc: Annotated[
         Path | None, typer.Option("--ifc", metavar="PATH", help="Another building (default: the paper-floor preset).")
     ] = None,
@@ -1319,13 +1319,9 @@ def bench_paper(
     """Six standard trajectories (T = 50, distinct starts), each localized three times; prints Table I of each
     variant, scored over the T steps from the step the filter first reports itself converged (the paper's reading;
     --set evaluation.score_from=start: from the first frame), with the same runs' first T steps on the last line,
-    and writes OUT/results.json (per variant: trans_err_m, orient_err_deg, room_acc, step_ms_median,
-    steps_to_converge, trans_err_conv_m, orient_err_conv_deg, ellipse_coverage, storey_acc; the average also the 95 %
-    bootstrap intervals over runs trans_err_ci95_m, orient_err_ci95_deg, room_acc_ci95 and the mean error per
-    step and from_start; full also icp_accepted_share and icp_rejections), OUT/error_by_step.png and
-    OUT/config.yaml. The building's prior is built into OUT/prior, or with --prior a saved one is used (as a
-    rerun's OUT/prior). With --scenario kidnap the scored steps follow the kidnapping, and the average also holds
-    tracking_before_kidnap_runs and steps_to_recover_median. With --set evaluation.known_storey=true each run's
+    and writes OUT/results.json (its keys: docs/evaluation.md), OUT/error_by_step.png and OUT/config.yaml. The
+    building's prior is built into OUT/prior, or with --prior a saved one is used (as a rerun's OUT/prior). With
+    --scenario kidnap the scored steps follow the kidnapping. With --set evaluation.known_storey=true each run's
     uniform start covers only the storey its route starts on.
 
     \b
@@ -1378,9 +1374,7 @@ def bench_buildings(
             show_default=False,
         ),
     ] = None,
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-buildings"
-    ),
+    output: OutputOption = Path("runs/bench-buildings"),
     variants: BenchVariantsOption = None,
     scenario: ScenarioOption = None,
     runner: Annotated[
@@ -1488,9 +1482,7 @@ def bench_graph(
     building: Annotated[
         str, typer.Option("--building", metavar="PRESET_OR_IFC", help="Synth preset name or IFC path.")
     ] = "paper-floor",
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-graph"
-    ),
+    output: OutputOption = Path("runs/bench-graph"),
     preset: Annotated[str | None, typer.Option("--preset", help="Sim perception preset: clean, paper, harsh.")] = None,
     tour: Annotated[int, typer.Option("--tour", min=0, help="Orbit every furniture group with N frames instead.")] = 0,
     true_odometry: Annotated[bool, typer.Option("--true-odometry", help="Drift-free odometry (a diagnostic).")] = False,
@@ -1512,7 +1504,7 @@ def bench_graph(
         from bimfactor.evaluation.graph import run_graph_bench
 
         with _bench_dir(output, *([building] if Path(building).exists() else [])):
-            result = run_graph_bench(building, cfg, output, preset, None, tour, None, true_odometry)
+            result = run_graph_bench(building, cfg, output, preset, tour, true_odometry)
         summary, speed = result["summary"], result["speed"]
         typer.echo(json.dumps({"summary": summary, "speed": speed}, indent=1, default=float))
         typer.echo(f"results: {output / 'report.json'}")
@@ -1558,9 +1550,7 @@ def bench_speed(
             help="IFC building timed beside the paper floor (repeatable; default: duplex.ifc from ../shared).",
         ),
     ] = None,
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-speed"
-    ),
+    output: OutputOption = Path("runs/bench-speed"),
     config: ConfigOption = None,
     overrides: SetOption = None,
     verbose: VerboseOption = False,
@@ -1647,9 +1637,7 @@ def bench_speed(
 @bench_app.command("scanmatch", short_help="Scan matching against the BIM: accuracy, covariance honesty, time.")
 def bench_scanmatch(
     prior_dir: BenchPriorOption = None,
-    output: Annotated[Path, typer.Option("--output", "-o", metavar="OUT", help="Output folder.")] = Path(
-        "runs/bench-scanmatch"
-    ),
+    output: OutputOption = Path("runs/bench-scanmatch"),
     every: Annotated[int, typer.Option("--every", min=1, help="Match every N-th simulated keyframe.")] = 2,
     config: ConfigOption = None,
     overrides: SetOption = None,

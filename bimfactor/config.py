@@ -139,7 +139,6 @@ class VisibilityConfig(_Strict):
 
     # Lattice of the precomputed visible-object table.
     cell_m: ClassVar[float] = 0.25
-    # the visibility sector's r: not given in the paper
     radius_m: float = Field(8.0, gt=0.0, description="The visibility sector's radius r (not given in the paper).")
 
 
@@ -158,7 +157,6 @@ class EmbedConfig(_Strict):
     text_model: Literal["minilm", "clip"] = Field(
         "minilm", description="Text embedder: the bundled all-MiniLM-L6-v2, or CLIP's text tower (needs weights)."
     )
-    # open_clip architecture of clip_weights
     clip_model: str = Field("ViT-L-14", description="open_clip architecture name, e.g. ViT-L-14.")
     # one CLIP checkpoint for both towers: the prior's text, the vlm backend's crops
     clip_weights: str = Field(
@@ -258,7 +256,6 @@ class TextReadingConfig(_Strict):
         "rapidocr: "
         "RapidOCR on the colour frames whatever the backend (on simulated frames it reads the printed plates).",
     )
-    # OCR (RapidOCR) readings below this are dropped
     min_score: float = Field(0.5, ge=0.0, le=1.0, description="OCR: readings below this confidence are dropped.")
     # sim: a 15 cm plate is legible to ~2.4 m at 320 px over 90°
     sim_min_height_px: int = Field(10, ge=1, description="Sim: a plate fewer pixels high than this is not legible.")
@@ -331,7 +328,6 @@ class PerceptionConfig(_Strict):
     voxel_size_m: ClassVar[float] = 0.05
     # beyond ~6 m the depth noise (σ ≥ 6 cm) smears instances
     max_depth_m: float = Field(6.0, gt=0.0, description="Depth beyond this is not lifted.")
-    # per detection, evenly strided over the mask
     max_points: int = Field(3000, ge=1, description="At most this many masked pixels are lifted per detection.")
     # DBSCAN neighbourhood radius (on voxel centres).
     dbscan_eps_m: ClassVar[float] = 0.12
@@ -397,7 +393,6 @@ class ScanConfig(_Strict):
     """The depth frame's horizontal 2-D scan (`localization.measurements.scan.scan_endpoints`), for the filter's
     scan term and the pose graphs' scan factor."""
 
-    # one endpoint (the nearest surface) per 2° of bearing: 45 over the 90° view
     beam_deg: float = Field(2.0, gt=0.0, description="One endpoint (the nearest surface) per bearing bin this wide.")
     # A bin's returns within surface_sigmas σ(r) of its nearest one (r), at least surface_min_m and at most this, are
     # its surface; the endpoint is their median. its median return, not the nearest (biased short by ~3σ of the depth
@@ -548,7 +543,6 @@ class AugmentedConfig(_Strict):
     enabled: bool = Field(
         True, description="Augmented MCL random-particle injection (Thrun, Table 8.3), beyond the paper."
     )
-    # uniform: over free space | observations: poses that explain one observation
     injection: Literal["uniform", "observations"] = Field(
         "observations",
         description="Where the random particles come from: free space, or poses that explain one of the step's "
@@ -639,9 +633,7 @@ class ConvergedConfig(_Strict):
 class SmclConfig(_Strict):
     """The semantic particle filter (paper Sec. II.C) and its components, one sub-config each."""
 
-    # M (paper); with the kld resampler the fewest
     num_particles: int = Field(1000, ge=1, description="M (paper: 1000); with the kld resampler the fewest particles.")
-    # δ_ess (paper)
     ess_threshold: float = Field(0.5, gt=0.0, le=1.0, description="δ_ess, resample when ESS < δ_ess·M (paper: 0.5).")
     # the initial belief
     start: StartConfig = Field(default_factory=StartConfig)
@@ -1018,7 +1010,6 @@ class BackendConfig(_Strict):
     # ... and each part must hold this many keyframes. ... each part this long
     refine_split_min_keyframes: ClassVar[int] = 5
     # beyond the paper: the keyframe's 2-D scan against the likelihood field, per mode
-    # beyond the paper: the keyframe's 2-D scan against the likelihood field, per mode
     scan_factor: ScanFactorConfig = Field(default_factory=ScanFactorConfig)
 
 
@@ -1126,9 +1117,7 @@ class ActiveConfig(_Strict):
     """Where to look next (`bimfactor.active`): the viewpoint whose predicted observations best tell the belief's
     modes apart, less the way there."""
 
-    # candidate viewpoints within this path length ...
     horizon_m: float = Field(8.0, gt=0.0, description="Candidate viewpoints lie within this path length of the robot.")
-    # ... at most this many (positions x 8 headings)
     candidates: int = Field(200, ge=8, description="At most this many candidate viewpoints (positions × 8 headings).")
     # each keyframe on the way (0.5 m driven or 15 deg turned) must earn this many nats
     cost_per_keyframe: float = Field(
@@ -1137,7 +1126,6 @@ class ActiveConfig(_Strict):
         description="The travel cost: nats of expected information each keyframe on the way (driven or turned) must "
         "earn.",
     )
-    # one mode with this share of the probability: nothing to suggest
     settled_share: float = Field(
         0.95, gt=0.5, le=1.0, description="Nothing to suggest once one mode holds this share of the modes' probability."
     )

@@ -1,14 +1,8 @@
 """Wheel odometry: the increment between two odometry poses, the odometry motion model's noise, and keyframes.
 
-The increments and their noise (Thrun et al., Probabilistic Robotics, Table 5.6) are shared by the simulator, which
-draws odometry with that noise (`sim.sensors`), and by the back end, whose odometry factors carry its covariance
-(`backend.factors`); the localizer's motion model applies the increments (`localization.motion`).
-
-The S-MCL motion model's noise does not scale with the length of the increment, so a filter step is a keyframe,
-taken every `localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn of the odometry
-(`keyframe_due`): the localizer keeps the keyframes of the frames it is given (`Localizer.due`), the simulator
-records at that spacing of its wheel odometry, and `bimfactor convert` keeps a recording's keyframes
-(`keyframe_indices`). Stepping every camera frame would add σ_trans of noise per frame.
+The increments and their noise (Probabilistic Robotics, Table 5.6) are shared by the simulator (`sim.sensors`), the
+back end's odometry factors and the localizer's motion model. The motion model's noise does not scale with the
+increment, so a filter step is a keyframe (`keyframe_due`; `keyframe_indices` for a recording): docs/sequences.md.
 """
 
 from __future__ import annotations

@@ -1,31 +1,16 @@
 """The localizer: runs the stages frame by frame (perception → online scene graph → semantic MCL → pose graphs).
 
-`Localizer.step` reads like the method: perceive the frame and update the online graph at the odometry
-pose, take the odometry increment since the last frame, predict, weigh the particles by the semantic and
-spatial match of the nodes in view against the BIM, resample when the ESS is low, estimate. With the
-`smcl+graph` variant (`localization.variant`) the filter's modes then each update their own pose graph, and the
-output is a mode's graph pose (`localization.output`: the most probable mode near the particles' geometric median,
-or the most probable mode) with the whole belief's covariance about it. The `full` variant adds the coarse-to-fine
-loop: the keyframe's depth scan is registered against the BIM walls from the most probable mode's pose
-(`registration.fine`), and an accepted fit enters that mode's graph as a pose factor, before the output is chosen.
-Only the best mode is registered: a registration with its ambiguity probes costs about as much as the rest of the
-step (docs/speed.md), the output is mostly the best mode's, and a wrong mode seldom passes the gate anyway (fitness,
-probes), so registering every mode would multiply the step time by the number of modes for estimates nobody reads.
+`Localizer.step` reads like the method: perceive the frame and update the online graph at the odometry pose, take
+the odometry increment, predict, weigh, resample, estimate; with `smcl+graph` each of the filter's modes updates its
+own pose graph and the output is a mode's graph pose (`localization.output`); `full` also registers the keyframe's
+depth scan against the BIM walls from the most probable mode only (a registration costs about the rest of the step,
+docs/speed.md) and feeds an accepted fit into its graph. The offline pass is `bimfactor.refine.refine_run`.
 
-The offline pass over a localized sequence, every surviving mode's trajectory smoothed as a whole, is
-`bimfactor.refine.refine_run`.
-
-Implausible frames are skipped (`FrameSkip`): a depth image with no return, or with every return at one depth beyond
-the farthest the localizer reads (a saturated or stuck sensor), and an odometry pose that moved faster than a ground
-robot can between two frames (`MAX_ODOMETRY_SPEED_MPS`). A skipped frame still takes a step, the filter predicting
-without weighing (its "nothing seen" would count against the places that should see objects): the run keeps one
-row per frame. Across an odometry jump the motion is unknown, so the step carries the previous step's increment
-(keyframes come at a steady spacing: one keyframe's travel is the best guess, where applying the jump would move
-every particle off the building and zero motion would lag a keyframe behind). When the next frame's odometry
-agrees with the last trusted frame again (a glitch of one message), its increment makes up what the guess missed;
-when it agrees only with the jumped frame (the odometry was reset or re-based), the localizer continues from the
-guess and maps the new odometry frame onto the old one, so perception and the submaps see one continuous odometry.
-`check_sequence_against_prior` and `building_mismatch` compare a sequence with the prior before any work.
+Implausible frames are skipped (`FrameSkip`): depth with no return or all returns at one depth beyond the farthest
+read (a stuck sensor), and odometry that moved faster than `MAX_ODOMETRY_SPEED_MPS`. A skipped frame still steps,
+predicting without weighing. Across an odometry jump the step carries the previous increment; when the next frame
+agrees with the last trusted one again (a glitch) its increment makes up the difference, and when it agrees only
+with the jumped frame (a reset) the new odometry frame is mapped onto the old one.
 """
 
 from __future__ import annotations
@@ -390,13 +375,9 @@ class StepObserver(Protocol):
 
 
 class Localizer:
-    """Global localization of one sequence against one prior, in the configured variant.
-
-    The full variant samples its surface models from the prior's wall meshes (once per building and seed). Graph
-    variants use `matcher` for the scan factors, or build
-    their own (`scan_matcher`). `twins` are the building's twin motions (`bim.symmetry.twin_motions`, found here
-    when not given): each step reports the belief's weight at the output pose's twin. `detections` (a checked
-    detections file) feeds the detections perception backend.
+    """Global localization of one sequence against one prior, in the configured variant. `matcher` (graph variants'
+    scan factors), `twins` (`bim.symmetry.twin_motions`) and `detections` (for the detections backend) are built or
+    found when not given.
     """
 
     def __init__(
@@ -524,12 +505,9 @@ class Localizer:
         return out
 
     def due(self, frame: Frame) -> bool:
-        """Whether `frame` is a keyframe: the first, or one whose odometry has moved `localization.keyframe_distance_m`
-        or turned `keyframe_angle_deg` since the last keyframe (`odometry.keyframe_due`; AMCL's update_min_d and
-        update_min_a). The motion model's noise is per step, so a step at every camera frame would pile it up; the
-        frames between keyframes bring nothing the next keyframe's increment does not carry. A frame with a
-        storey-change event (`types.STOREY_CHANGE`: after a lift ride the wheels have not moved) is due, and so is one
-        without a finite odometry pose, for `keyframe` to refuse."""
+        """Whether `frame` is a keyframe: the first, one whose odometry has moved `localization.keyframe_distance_m` or
+        turned `keyframe_angle_deg` since the last keyframe (`odometry.keyframe_due`), one with a storey-change event,
+        or one without a finite odometry pose (for `keyframe` to refuse)."""
         raw = np.asarray(frame.odom_pose, float)
         if self._last_odom is None or not np.all(np.isfinite(raw)) or frame.extras.get(STOREY_CHANGE, 0):
             return True
@@ -714,14 +692,8 @@ class Localizer:
 
     def _odometry_step(self, frame: Frame) -> tuple[np.ndarray | None, Frame, FrameSkip | None]:
         """The odometry increment of this step (None: the first), the frame with its odometry pose continuous with the
-        earlier frames' (itself unless the odometry was re-based), and an odometry jump's `FrameSkip`.
-
-        The increment is checked against the last trusted frame (`plausible_odometry_step`). One that is implausible
-        is an odometry jump: the step carries the last trusted step's increment, and the frame is skipped. The next
-        frames are checked against the last trusted frame: one that agrees with it again (a glitch of one message)
-        takes the increment from it, less what the guesses covered; one that agrees only with the previous frame
-        (the odometry was reset or re-based at the jump) takes the increment from that frame, and later odometry
-        poses are mapped onto the filter's odometry frame."""
+        earlier frames' (itself unless the odometry was re-based), and an odometry jump's `FrameSkip`; the jump handling
+        is the module docstring's."""
         raw = np.asarray(frame.odom_pose, float)
         t = float(frame.timestamp_s)
         skipped = None
@@ -787,14 +759,10 @@ class Localizer:
         out.fine_ms = (time.perf_counter() - started) * 1000
 
     def _report(self, key: Keyframe, out: LocalizerStep) -> None:
-        """The graph variants' output pose, storey and room (`localization.output`); its covariance is the whole
-        belief's about that pose (`belief_covariance`).
-
-        best_mode: the most probable mode's graph pose. belief_median: the particles' weighted geometric median on
-        the estimated storey, the position that minimises the expected position error under the belief, decides:
-        the most probable mode within `output_mode_radius_m` of it reports its graph pose; with none there (the
-        belief spread over places none of which dominates) the median itself, with the particles' mean yaw within
-        `output_mode_radius_m` of it."""
+        """The graph variants' output pose, storey and room (`localization.output`), with the whole belief's covariance
+        about it: best_mode, the most probable mode's graph pose; belief_median, the graph pose of the most probable
+        mode within `output_mode_radius_m` of the particles' weighted geometric median, else the median with the nearby
+        particles' yaw."""
         cfg = self.cfg.localization
         if cfg.output == "best_mode":  # before a first mode: the filter's estimate
             source = out.graph.best if out.graph is not None else out.filtered
@@ -847,15 +815,9 @@ def localize_sequence(
     suggest: bool = False,
     observer: StepObserver | None = None,
 ) -> LocalizationRun:
-    """Localize every frame of a sequence; ground truth, when the frames have it, is carried along; with `suggest`,
-    the run ends with where to look next (`Localizer.suggest`); `observer` watches every step (`Localizer.watch`).
-
-    `matcher` is the graph variants' scan matcher (`scan_matcher`; built when not given); `twins` the building's
-    twin motions (`bim.symmetry.twin_motions`; found when not given); `detections` a detector's detections of the
-    frames (`perception.detections.read_detections`) for the detections backend. The frames are checked against the
-    prior first
-    (`check_sequence_against_prior`: InputError); implausible frames are skipped (`LocalizationRun.skipped`), and a
-    sequence whose every frame is skipped is an InputError.
+    """Localize every frame of a sequence (`Localizer`; ground truth carried along); with `suggest` the run ends with
+    where to look next, and `observer` watches every step. The frames are checked against the prior first
+    (InputError); a sequence whose every frame is skipped is an InputError.
     """
     if not isinstance(frames, SequenceFolder):  # a sequence folder answers without loading its images
         frames = list(frames)

@@ -1,12 +1,8 @@
 """The offline refinement stage (`refine_run`): every candidate mode of a localized run smoothed as a whole, one
-continuous stretch at a time, and the stretches' best fits joined into the estimate.
+continuous stretch at a time, and the stretches' best fits joined into the estimate (docs/refine.md).
 
-The stretches are settled first, each step by the refined modes' fit to the frames: relocalizations the frames do
-not bear out are joined (`_Refiner.join_false_alarms`), the seams are searched again in hindsight
-(`_Refiner.search_seams`) and stretches two modes explain far better than one are parted (`_Refiner.split_stretches`).
-Then each stretch's candidates are refined over it, best fit first (`_Refiner.refined_modes`), and the best fits
-joined (`_Refiner.assemble_estimate`). A stretch is refined once, whichever step asks for it first
-(`_Refiner.refine_stretch`).
+`_Refiner` settles the stretches (`join_false_alarms`, `search_seams`, `split_stretches`), refines each stretch's
+candidates once (`refine_stretch`, `refined_modes`) and joins the best fits (`assemble_estimate`).
 """
 
 from __future__ import annotations
@@ -39,13 +35,11 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class RefinedRun:
-    """The offline pass over a localized run, one continuous stretch at a time (`segments`: the filter's own,
-    `LocalizationRun.segments`, one unless it relocalized, less its false alarms, their seams searched again in
-    hindsight; and those parted offline, whose first steps are `offline_seams`): every candidate mode refined, by
-    stretch and best fit first within one, with its fit (`fits`, the filter's measurement log-likelihood summed along
-    the refined trajectory); `best`, per stretch, its best fit (None: no mode was born there, and the stretch keeps
-    the forward pass's estimate); and the estimate, the stretches' best fits joined. Its `step_ms` is the forward
-    pass's step time plus the refinement's time shared over the steps."""
+    """The offline pass over a localized run, one continuous stretch at a time (`segments`; `offline_seams` the first
+    steps of those parted offline): every candidate mode refined, by stretch and best fit first, with its fit (`fits`:
+    the filter's measurement log-likelihood along the refined trajectory); `best` per stretch (None: the forward
+    estimate stands); the estimate, the best fits joined, whose `step_ms` adds the refinement's time shared over the
+    steps."""
 
     forward: LocalizationRun
     modes: list[RefinedMode]
@@ -80,31 +74,14 @@ def refine_run(
 ) -> RefinedRun:
     """Batch Levenberg–Marquardt smoothing of every candidate mode of the forward pass over its stretch.
 
-    A run the filter never relocalized is one stretch; where it did, the stretches part at the lost monitor's change
-    point (`LocalizationRun.segments`): across it the odometry does not tell where the robot went, so each stretch
-    is smoothed on its own. The stretches are settled in three steps, by the refined modes' fit to the frames:
-
-    1. join (`backend.refine_join`): two stretches whose modes, refined over both, give no offline split are
-       joined; the relocalization was a false alarm (the scans stopped fitting for a while, the robot did not
-       move), and the odometry links the stretches after all;
-    2. seam: the seams are searched in hindsight (`backend.refine_seam_window`, `_hindsight_segments`);
-    3. split (`backend.refine_split`): a stretch that one mode explains up to a step and another after it, by far
-       better than any one mode explains the whole, is parted there and both parts refined anew, until no stretch
-       parts (`_offline_split`): a robot carried off while the filter kept tracking is refined as if it had
-       relocalized.
-
-    Then each stretch is refined: its candidates are the modes born in it, alive at the end or pruned after
-    `backend.refine_retired_min_keyframes` keyframes (a mode that lost to a late rival in the forward pass may still
-    explain the stretch best), each cut at the stretch's end, refined over all the stretch's keyframes
-    (`refine_mode`) and scored by the filter's measurement models, semantic, door-plate and scan terms, summed over
-    its refined trajectory. Last, the stretches' best fits are joined into the estimate; a stretch in which no mode
-    was born keeps the forward pass's estimate.
-
-    With `backend.scan_factor.enabled` and the run's scans, every keyframe's scan is matched anew from each mode's
-    hindsight trajectory, by `matcher` (the forward pass's, or one built now). After a full forward pass, the fine
-    stage's accepted pose factors of each mode enter its batch graph. `show_progress`: a bar per stretch over its
-    modes. The run must come from a graph variant (ValueError otherwise). A run in which the filter never formed a
-    mode has nothing to refine: its `modes` are empty and the estimate is the forward pass's.
+    The run parts into stretches at the lost monitor's change points, settled by joining false alarms
+    (`backend.refine_join`), searching the seams in hindsight (`backend.refine_seam_window`) and splitting
+    kidnappings the filter missed (`backend.refine_split`, `_offline_split`); docs/refine.md. In each stretch the
+    modes born in it (alive at the end, or pruned after `backend.refine_retired_min_keyframes` keyframes) are
+    refined (`refine_mode`) and scored by the filter's measurement models over their refined trajectory, and the
+    best fits join into the estimate. With `backend.scan_factor.enabled` the scans are matched anew by `matcher`; a
+    full forward pass's accepted pose factors enter each mode's graph. ValueError for a run without pose graphs; a
+    run without modes keeps the forward estimate.
     """
     if run.graph is None:
         raise ValueError(f"refinement needs a pose-graph variant ({', '.join(GRAPH_VARIANTS)}), not {run.variant}")
@@ -307,17 +284,10 @@ class _Refiner:
 
 
 def _offline_split(steps: range, refined: list[RefinedMode], fits: list[np.ndarray], cfg: BackendConfig) -> int | None:
-    """Where a stretch parts again in hindsight (None: nowhere): the step s at which one refined candidate, born
-    before s, explaining the keyframes before s and another, born at s or later, explaining those from s on gain the
-    most measurement log-likelihood (`fits`, per keyframe) over the stretch's best fit (the first): at least
-    `cfg.refine_split_min_log_ratio`, with each mode explaining its own part better than the other by
-    `cfg.refine_split_min_keyframe_log_ratio` per keyframe on average, and each part at least
-    `cfg.refine_split_min_keyframes` keyframes long.
-
-    A robot carried off while the filter kept its belief leaves no relocalization; but the mode born at the new
-    place, tracked back across the jump, fits every frame before it badly, as the old place's mode fits those after.
-    Within one continuous stretch the true mode explains both parts; a wrong mode may still fit a part better than
-    a true one tracked a little off, but by little per keyframe."""
+    """Where a stretch parts again in hindsight (None: nowhere): the step s at which one refined candidate born before s
+    explaining the keyframes before it, and another born at s or later explaining those from it, gain the most
+    measurement log-likelihood over the stretch's best fit, within the `cfg.refine_split_*` bounds (docs/refine.md).
+    """
     if len(refined) < 2:
         return None
     n, shortest = len(steps), cfg.refine_split_min_keyframes

@@ -1,12 +1,8 @@
 """Memory a configuration will need, checked before the arrays are allocated.
 
-A particle count or a grid resolution that cannot fit ends, without this, in a `MemoryError` deep inside numpy (or in
-the kernel's OOM killer) after minutes of work. The estimates here are about the size of what the code allocates at
-its peak (measured with tracemalloc on the shipped buildings); a configuration is refused only when its estimate is
-larger than the memory available now, so the defaults and anything that would fit always pass.
-
-`check_particle_memory` runs when a configuration is loaded (`load_config`); the grid's memory depends on the
-building's extent, so the prior builder calls `check_grid_memory` once it knows it, before rasterising.
+The estimates are about the peak the code allocates (measured with tracemalloc on the shipped buildings); a
+configuration is refused only when its estimate exceeds the memory available now, instead of a `MemoryError` deep in
+numpy minutes later. `check_particle_memory` runs in `load_config`, `check_grid_memory` in the prior builder.
 """
 
 from __future__ import annotations

@@ -1,28 +1,9 @@
 """Where to look next: active Markov localization (Burgard, Fox and Thrun 1997) with the BIM as the sensor model.
 
-The belief's modes are the places the robot may be, with probabilities p_k. A candidate viewpoint is a pose c
-relative to the robot (the odometry frame), so driving there means the same motion whichever place is true; in place
-k's frame it is the world pose x_k ⊕ c. The BIM predicts what the robot would observe there in each place
-(`active.views`), and the evidence D[k, j] the view gives against place j when place k is true. With the view's
-observation taken as the one predicted, the posterior after it is q_j ∝ p_j · exp(−D[k, j]), and the expected
-information gain about which place is true is
-
-    IG(c) = H(p) − Σ_k p_k · H(q(· | k)),
-
-at most H(p) (the view settles it). A candidate scores IG(c) − `cost_per_keyframe` · the keyframes it takes to get
-there: the path's expected length over the places, per `localization.keyframe_distance_m`, and the turns (towards the
-goal, then to its heading) per `keyframe_angle_deg`. Keyframes, not metres: each is a step of the filter and of a
-route's budget, and turning on the spot takes them as driving does.
-
-Candidates: viewpoints on the most probable mode's storey reachable along its navigation graph within
-`horizon_m` (`bim.navigation`), spread by farthest-point sampling, 8 headings each; a candidate must be reachable
-in every place (a robot that drives there bumps into nothing whichever is true), or, where none is, in the most
-probable one. The goal is returned in the odometry frame, with the path planned in the most probable place.
-
-Modes within `SAME_PLACE_M` of each other are one place (`distinct_places`); candidates lie at least `MIN_MOVE_M`
-from the robot. Nothing is suggested when the modes hold less than `MIN_MODES_SHARE` of the particle weight (the
-belief is still spread over the building: there are no few places to tell apart), when one place holds
-`settled_share` of the modes' probability, or when no reachable view tells the places apart.
+A candidate viewpoint c is a pose relative to the robot (the odometry frame); the BIM predicts what each of the
+belief's places would show there (`active.views`), and the candidate scores its expected information gain about
+which place is true, IG(c) = H(p) − Σ_k p_k · H(q(· | k)), less `cost_per_keyframe` per keyframe the drive takes.
+Candidates, the cost and when nothing is suggested: docs/active.md.
 """
 
 from __future__ import annotations

@@ -1,23 +1,10 @@
 """What the robot would observe from a pose, by the BIM, and how strongly that tells two places apart.
 
-For a pose x on a storey the prediction holds what the filter weighs (`localization.measurements`):
-- objects: the prior's objects in line of sight (`bim.visibility`), within the depth range and the field of view,
-  as a histogram over (label, position in the robot frame): each object spreads its unit weight bilinearly over
-  cells of σ_d (the semantic term's distance scale), so two views differ by about the number of objects one of them
-  has where the other has none of that label;
-- plates: the door-plate texts legible from x (in front of the plate, within `PLATE_LEGIBLE_M`, in view, nothing
-  between, and far enough ahead that the plate is not above the image: its top at `sim.door_plates` height, seen
-  from the camera's mount height under the image's upper half-angle; 1.3 m for the simulated camera);
-- scan: the 2-D scan's endpoints, one per `SCAN_BEAM_DEG`, cast on the storey's obstacle layers.
-
-`discrepancy` turns the predictions at the poses of K places into D[k, j]: the log evidence expected against place j
-when the robot is at place k. An object or plate that k's view has and j's lacks is a detection that happens with
-probability p (recall) where k is true and with probability f (a false or confused detection) where j is: its
-expected log evidence is the Bernoulli divergence KL(p ‖ f) = p ln(p/f) + (1 − p) ln((1 − p)/(1 − f)), not the
-filter's full weight for a detection seen (that would be certain of what is a coin toss): objects with
-`OBJECT_RECALL` and `OBJECT_FALSE` (≈ 1 nat), plates with `PLATE_READ` and the text term's ε (≈ 1.7 nats). The scan
-is near certain and keeps the filter's units: the likelihood-field score k's predicted scan loses placed at j, over
-T_scan.
+The prediction holds what the filter weighs: the objects in view as a histogram over (label, position in the robot
+frame), the door plates legible from the pose, and the 2-D scan's endpoints. `discrepancy` turns the predictions at K
+places into D[k, j], the log evidence expected against place j when the robot is at place k: the Bernoulli divergence
+KL(p ‖ f) per object or plate one view has and the other lacks, and the scan's likelihood-field loss over T_scan
+(docs/active.md).
 """
 
 from __future__ import annotations

@@ -149,12 +149,8 @@ def odometry_factor(
     covariance: np.ndarray | None = None,
 ) -> gtsam.BetweenFactorPose2:
     """X(i−1) → X(i) by a (3,) robot-frame increment; noise from `odometry_noise_covariance` or a given (3, 3)
-    covariance, robust per `cfg.odom_robust_kernel`.
-
-    The covariance is the motion model's at the *measured* increment, while the odometry's error grows with the
-    true one: a turn the wheels measured short (a slip) is judged by the small turn's σ, ten σ off and more. A
-    heavy-tailed kernel lets the landmark and scan factors overrule such a step instead of bending the graph
-    around it."""
+    covariance, robust per `cfg.odom_robust_kernel` (the covariance is the measured increment's, so a wheel slip is many
+    σ off: a heavy-tailed kernel lets the landmark and scan factors overrule it)."""
     if covariance is None:
         covariance = odometry_noise_covariance(increment, cfg, odometry)
     gaussian = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, np.float64))

@@ -3,26 +3,17 @@
 Per mode k (a `ModeGraph`), keyed by keyframe index i and BIM object id j:
 1. a prior on the mode's first pose X(i0) from its cluster mean and covariance (σ floored);
 2. BetweenFactorPose2 X(i−1) → X(i) per odometry increment;
-3. for every observation matched to object j: a robust BearingRangeFactor2D X(i) → L(j), and once per object a
-   tight PriorFactorPoint2 holding L(j) at its BIM position (σ = `landmark_sigma_m`: as-built reality deviates);
-   a door-plate reading matched to a plate is one more, to the plate's landmark (`factors.Landmarks`);
-4. optionally PriorFactorPose2s: the keyframe's scan matched against the BIM's walls from the mode's predicted pose
-   (`MultiHypothesisBackend.step`'s `pose_factor_fn`, kept apart as `scan_factors`) and a fine registrar's result
-   (`add_pose_factor`).
-Online, ISAM2 takes one update per keyframe (one more only when re-association changes the matches); a mode
-whose update GTSAM finds indeterminate restarts its graph from its particle cluster at that keyframe, and a mode
-whose scan matched beyond the matcher's window about its prediction (`backend.scan_factor`, searched again
-about the window's edge) restarts its graph at that match: its history disagrees with the walls, and a graph
-that kept it would hold the old poses against the match through its robust odometry factors.
+3. per matched observation a robust BearingRangeFactor2D X(i) → L(j), and once per object a tight PriorFactorPoint2
+   holding L(j) at its BIM position (`landmark_sigma_m`); door-plate readings likewise to the plate's landmark;
+4. optionally PriorFactorPose2s: the scan matched against the BIM's walls (`scan_factors`) and a fine registrar's
+   result (`add_pose_factor`).
+Online, ISAM2 takes one update per keyframe; a mode whose update is indeterminate, or whose scan matched beyond the
+matcher's first window, restarts its graph. Mode probability (`MultiHypothesisBackend.step`), with w_k the mode's
+particle-weight share and C_k = Σ_j min(χ²_kj, `outlier_chi2`) over the step's measurements:
 
-Mode probability (`MultiHypothesisBackend.step`): with w_k the mode's particle-weight share and, over the K
-measurements of the step (nodes and text readings), C_k = Σ_j min(χ²_kj, c_out) where χ²_kj = (Δbearing/σ_b)² +
-(Δrange/σ_r)² of a matched one at the updated estimate and an unmatched one costs c_out = `outlier_chi2`,
+    p_k = w_k · exp(−C_k / (2τ)) / Σ_m w_m · exp(−C_m / (2τ)).
 
-    p_k = w_k · exp(−C_k / (2τ)) / Σ_m w_m · exp(−C_m / (2τ)),   ν_k = C_k / (2K)  (normalised residual, ≈ 1 when
-                                                                                    the matches fit their noise).
-Offline, `batch_refine` builds the same factors for a whole trajectory and optimises with Levenberg–Marquardt; its
-marginals leave out the bearings of landmarks the optimum puts on their pose (`DEGENERATE_RANGE_M`).
+Offline, `batch_refine` builds the same factors for a whole trajectory and optimises with Levenberg–Marquardt.
 """
 
 from __future__ import annotations
@@ -74,12 +65,9 @@ keyframe's scan matched against the BIM from that pose; `backend.scan_factor`)."
 
 
 def floored_covariance(covariance: np.ndarray, cfg: BackendConfig) -> np.ndarray:
-    """(3, 3) covariance with at least the configured prior floor's spread in every direction of (x, y, yaw).
-
-    In units of the floor's σ (`prior_min_sigma_m` for x and y, `prior_min_sigma_deg` for yaw) its eigenvalues are
-    raised to 1, so a diagonal covariance gets its variances raised to the floor, and a cluster whose particles lie
-    on a line in x–yaw (resampled from a few ancestors and turned) gets a usable prior instead of a near-singular one
-    that GTSAM finds indeterminate."""
+    """(3, 3) covariance with at least the configured prior floor's spread in every direction of (x, y, yaw): its
+    eigenvalues in units of the floor's σ (`prior_min_sigma_m`, `prior_min_sigma_deg`) raised to 1, so a cluster lying
+    on a line in x–yaw gets a prior GTSAM does not find indeterminate."""
     cov = 0.5 * (np.asarray(covariance, np.float64) + np.asarray(covariance, np.float64).T)
     sigma = np.array([cfg.prior_min_sigma_m, cfg.prior_min_sigma_m, np.deg2rad(cfg.prior_min_sigma_deg)])
     values, vectors = np.linalg.eigh(cov / np.outer(sigma, sigma))
@@ -110,12 +98,9 @@ def observation_cost(
 def semantic_associator(
     likelihood: SemanticLikelihood, plates: PlateLikelihood, observations: Observations, min_score: float = 0.05
 ) -> AssociateFn:
-    """An `AssociateFn` from the S-MCL score: the Hungarian assignment maximising φ = φ_sem·φ_dist·φ_ang at a pose,
-    then each door-plate reading to the plate it fits best there (`PlateLikelihood.associate`; measurement K + r,
-    landmark `first_landmark_id` + p).
-
-    Pairs scoring at most `min_score` are left unmatched (φ_dist is a loose gate: exp(−|Δd| / σ_d)).
-    """
+    """An `AssociateFn` from the S-MCL score: the Hungarian assignment maximising φ at a pose (pairs scoring at most
+    `min_score` left unmatched), then each door-plate reading to the plate it fits best there (measurement K + r,
+    landmark `first_landmark_id` + p)."""
     K = len(observations)
 
     def associate(pose: np.ndarray, storey: int) -> list[tuple[int, int]]:

@@ -1,22 +1,9 @@
 """Offline refinement: each surviving mode's whole trajectory smoothed by batch Levenberg–Marquardt.
 
-For a mode of the forward pass (born at keyframe i0, on one storey; tracked to the end, or pruned at keyframe i1):
-1. initial guess: its ISAM2-smoothed poses over its keyframes; before i0, tracked backwards from X(i0): each
-   keyframe's pose predicted by the inverse odometry increment and, with the keyframes' scans, corrected by matching
-   its scan from that prediction (without scans: dead reckoning, which drifts metres over tens of keyframes, beyond
-   the matcher's window); after i1, tracked forwards from X(i1) the same way;
-2. matches: the forward pass's over its keyframes; elsewhere, the associator's at the initial guess;
-3. scan factors: with the keyframes' scans (`measure_fns`), every keyframe's scan matched against the BIM's walls
-   from the initial guess, before i0 too; without them, the forward pass's;
-4. `batch_refine` over all T keyframes: the mode's birth prior on X(i0), odometry between every pair of keyframes,
-   robust bearing-range factors to the BIM landmarks, the scan factors and the fine registrar's pose factors the
-   forward pass accepted (variant full), so the steps before the mode existed are placed in hindsight;
-5. up to `refine_rounds` times: re-associate (and re-match the scans of) every keyframe at the refined poses and
-   optimise again while the matches change (hindsight association: the smoothed poses put observations next to the
-   right objects).
-6. with scan factors, each keyframe's marginal covariance gains the map's own error, σ = `scan_factor.min_sigma_m`
-   per axis (the BIM's faces as the grid holds them sit a few cm off the real walls): every scan of a wall shares that
-   offset, so smoothing many scans does not average it away, while the batch treats them as independent.
+Per mode of the forward pass: an initial guess from its ISAM2 poses, tracked backwards before its birth and forwards
+after its pruning (by inverse odometry, corrected by scan matches where there are scans); matches and scan factors
+at that guess; `batch_refine` over all keyframes; up to `refine_rounds` rounds of re-association at the refined
+poses; with scan factors, the map's own error (`scan_factor.min_sigma_m`) added to each marginal. docs/refine.md.
 """
 
 from __future__ import annotations

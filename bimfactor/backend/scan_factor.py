@@ -1,41 +1,23 @@
 """Correlative scan matching of the 2-D scan against the BIM's faces: a pose factor with a wide basin.
 
-Beyond the paper. The particle filter weighs particles by the depth scan against the likelihood field
-(`localization.measurements.scan`); the pose graphs get the same evidence through this matcher (after Olson, "Real-time
-correlative scan matching", ICRA 2009): an exhaustive search over a window of poses around a mode's predicted pose,
-scored by
+After Olson, "Real-time correlative scan matching" (ICRA 2009): an exhaustive search over a window of poses around a
+mode's predicted pose, scored by
 
     log P(z | x) = (min(N, N_eff) / N) · Σ_n log(f_n(x) + ε),    f_n = exp(−d_n² / 2σ²),
 
-with d_n the distance of endpoint n to the nearest face of a wall or a piece of furniture (`face_distances`),
-ε (`outlier`) bounding what an endpoint on clutter or a moved object can cost, and N_eff
-(`effective_endpoints`) the most endpoints that count as independent (neighbouring returns of one wall share
-its as-built and grid errors); a scan of fewer endpoints counts each once, not as if it were N_eff of them. An
-endpoint whose ray was inside a wall `clear_before_m` before it scores as an outlier: a sensor cannot see the
-far face of a wall.
+with d_n the distance of endpoint n to the nearest face (`face_distances`), ε (`outlier`) bounding what an endpoint
+on clutter costs, and N_eff (`effective_endpoints`) the most endpoints that count as independent. An endpoint whose
+ray was inside a wall `clear_before_m` before it scores as an outlier (a sensor cannot see a wall's far face).
 
-1. Coarse: the whole window (± `window_m`, ± `window_deg`) in `step_m` / `step_deg` steps,
-   scored in a smoother field (σ = `coarse_sigma_m`) so that no peak falls between the steps;
-2. fine: around each of the `candidates` best coarse poses, ± one coarse step in `fine_step_m` /
-   `fine_step_deg` steps in the sharp field; the best candidate wins;
-3. the result is the mean of the normalised distribution exp(log P) over its fine cells, and its covariance the
-   inverse curvature of a quadratic fitted to log P near the peak (the Laplace approximation); a peak too flat for
-   the fine cells (a corridor, a single wall) takes the covariance of the coarse distribution over the whole window
-   instead, which says how long it is. Floors: `min_sigma_m`, `min_sigma_deg`.
+1. Coarse: the whole window (± `window_m`, ± `window_deg`) in `step_m` / `step_deg` steps, in a smoother field
+   (σ = `coarse_sigma_m`) so that no peak falls between the steps;
+2. fine: around each of the `candidates` best coarse poses, ± one coarse step in `fine_step_m` / `fine_step_deg`;
+3. the mean of exp(log P) over the fine cells, its covariance the Laplace approximation at the peak, or the coarse
+   distribution's over the whole window where the peak is too flat (a corridor); floors `min_sigma_m`, `min_sigma_deg`.
 
-ICP against the walls (`registration.fine`) is precise but has a narrow basin and takes tens of ms; this matcher's
-basin is the window, it costs about 2 ms, and its accuracy is the grid's: about 5 cm and 0.4° (`bimfactor bench
-scanmatch`).
-
-When the best pose lies on the window's edge, the optimum is outside the window: the search starts again about
-that edge pose, up to `recentre` times (a mode seeded from the biased mean of a wide particle cloud can sit
-0.5–1.5 m and 20–40° off, beyond one window). The pose graphs treat a match beyond the first window as a
-disagreement with their history (`backend.posegraph`); the offline refinement matches from its smoothed poses
-with the first window alone (`recentre=0`), where a wider search finds more look-alike optima than it mends.
-
-A match is rejected, with the reason, when the scan has fewer than `min_endpoints` endpoints, when fewer than
-`min_inliers` endpoints lie on the BIM's faces at the best pose (the scan sees clutter or nothing the BIM
-has), or when the best coarse pose still lies on the window's edge after the last search.
+An optimum on the window's edge is searched again about that edge pose, up to `recentre` times. A match is rejected,
+with the reason, for fewer than `min_endpoints` endpoints, fewer than `min_inliers` on the BIM's faces, or an optimum
+still on the edge after the last search. How the pose graphs use it: docs/pose-graphs.md.
 """
 
 from __future__ import annotations
@@ -145,12 +127,9 @@ class CorrelativeMatcher:
     def factor_fn(
         self, endpoints: np.ndarray, recentre: int | None = None
     ) -> Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray] | None]:
-        """A `backend.posegraph.PoseFactorFn` for one keyframe's (N, 2) endpoints: the accepted match from a pose
-        as (pose, body-frame information), None when rejected.
-
-        A match is a function of its start pose alone, and each is kept: the offline refinement asks again from the
-        very same poses (a stretch's modes refined anew when a seam moves, a track carried across a seam again),
-        half of its matches on a five-storey building."""
+        """A `backend.posegraph.PoseFactorFn` for one keyframe's (N, 2) endpoints: the accepted match from a pose as
+        (pose, body-frame information), None when rejected. Matches are kept by start pose: the offline refinement asks
+        again from the very same poses."""
         found: dict[tuple[bytes, int], ScanMatch] = {}
 
         def measure(pose: np.ndarray, storey: int) -> tuple[np.ndarray, np.ndarray] | None:

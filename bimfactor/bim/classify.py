@@ -1,16 +1,9 @@
 """Language-encoded room classification (CoarseBIMLoc, Sec. II.A).
 
-The object labels inside a room are joined into one sentence ("sink, toilet, bathtub"), encoded with a
-sentence encoder, and matched by cosine similarity against a pool of room-category embeddings; the best
-match is the room's type. The pool lives in `bimfactor/configs/room_categories.yaml`.
-
-A room that carries an architect's name (IfcSpace LongName or Name) is typed by that name first: the name and
-each of its words are encoded and matched against the pool's `names` (short, multilingual: "office", "buero",
-"restroom"). The name decides when its best category scores at least `name_min_score` and leads the next category
-by `name_margin`; a generic name ("Room") or an unknown one ("Dachboden") falls back to the objects.
-
-The tests score both paths, with and without names, against architects' room names mapped to the same categories by
-regular expressions (`tests/bim/room_names_eval.yaml`).
+A room's object labels, joined into one sentence, are encoded and matched by cosine against the room-category pool
+(`bimfactor/configs/room_categories.yaml`). A room with an architect's name (IfcSpace LongName or Name) is typed by
+that name first when its best category scores `name_min_score` and leads the next by `name_margin`; a generic or
+unknown name falls back to the objects.
 """
 
 from __future__ import annotations

@@ -1,16 +1,10 @@
 """The BIM's navigation graph: where a robot can drive on a storey, and the shortest paths there.
 
-The robot drives on a storey's indoor free space: the prior's navigable layer (rooms, clearance ≥ robot radius)
-joined through its doorways (`traversable_mask`). Paths are planned by Dijkstra (scipy's csgraph) on a coarse graph:
-one node per `PLANNING_CELL_M` block, at the block's cell farthest from obstacles; edges to the 8 neighbour blocks,
-checked at full resolution, cost grown near obstacles closer than `inflation_m`; then shortcut at full resolution.
-The simulator drives its routes on it (`sim.trajectory`), and active localization plans where to look next
-(`active`).
-
-Floors are joined by the prior's portals (`BimPrior.portals`: lifts and stairs). A portal's end on a floor is reached
-from within `PORTAL_REACH_M` of its footprint there (`box_distance`): the lift's doorway, the foot or the head of a
-stair. The simulator rides through them (`sim.trajectory`), and the filter's motion model carries particles through
-them (`localization.motion.PortalMotion`).
+The robot drives on the prior's navigable layer joined through its doorways (`traversable_mask`). Paths are planned
+by Dijkstra on one node per `PLANNING_CELL_M` block (edges checked at full resolution, costlier near obstacles within
+`inflation_m`), then shortcut at full resolution. Floors are joined by the prior's portals, a portal's end reached
+from within `PORTAL_REACH_M` of its footprint (`box_distance`). Used by the simulator's routes, active localization
+and the motion model's `PortalMotion`.
 """
 
 from __future__ import annotations

@@ -1,11 +1,9 @@
 """Door plates: the room number beside a door, as a robot can read it.
 
-An IFC model has no door plates, but offices, institutes and hospitals label each door with the number of the
-room it leads into, and the model's IfcSpace Name holds that number where a LongName names the room ("101" |
-"Buero Meier"; `Room.space_number`). A plate hangs on the wall beside its door, on the side the room is entered
-from. Where exactly (left or right of the door, how high) differs from building to building, so the localizer
-takes each plate to be at its door's centre on that wall face and matches readings with the paper's distance
-and bearing tolerances (`localization.measurements.text`); the simulator hangs it beside the door (`sim.world`).
+An IFC model has no door plates, but the IfcSpace Name holds a room's number where a LongName names it
+(`Room.space_number`). The localizer takes each plate to be at its door's centre on the wall face the room is entered
+from, and matches readings with the semantic term's tolerances (`localization.measurements.text`); the simulator hangs
+it beside the door (`sim.world`).
 """
 
 from __future__ import annotations

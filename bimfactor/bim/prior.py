@@ -1,15 +1,8 @@
 """The BimPrior: the building as a Building → Storey → Room → Object graph, with grids and room masks.
 
-`build_prior` runs the offline stage (paper Sec. II.A) on an IFC file; `BimPrior.save` / `BimPrior.load`
-keep it on disk in a versioned folder format (see `PRIOR_FORMAT`):
-
-    prior.json   metadata, storeys, rooms, doors, objects, edges, room-match statistics
-    arrays.npz   grid layers per storey (structure, furniture, clearance_m, room_labels, navigable),
-                 the object text embeddings (N, D) float32, and the visible-object table (visibility_*)
-    config.yaml  the resolved configuration that built it
-
-and whatever else the caller of `save` writes into the folder (`extra_files`: the CLI, the demo and the benchmarks
-add `evaluation.plots.save_floorplans`'s floorplan_<storey>.png).
+`build_prior` runs the offline stage (paper Sec. II.A) on an IFC file; `BimPrior.save` / `BimPrior.load` keep it in a
+versioned folder (`PRIOR_FORMAT`): prior.json (the graph and statistics), arrays.npz (grid layers, object embeddings,
+the visible-object table), config.yaml, and what `extra_files` adds (floor plans). docs/offline-prior.md.
 """
 
 from __future__ import annotations

@@ -133,15 +133,9 @@ def floodfill_rooms(sealed: np.ndarray, spec: GridSpec, cfg: RoomsConfig) -> tup
 def door_connected_regions(
     regions: list[RoomRegion], doors: list[DoorGeometry], outside: np.ndarray, spec: GridSpec, probe_m: float
 ) -> list[RoomRegion]:
-    """The flood-fill regions a door (or leafless passage) joins to another place, or all when no door joins any.
-
-    With the doors closed, flood fill also returns enclosed space no door leads into: a courtyard, a walled
-    shaft, an unmodelled block. A robot never gets there, so where the storey has door-connected regions at
-    all, the door-less ones are no rooms (and no navigable space). A storey where no door joins any region
-    (a one-room building, a model whose doors are missing on that storey) keeps all its regions: there the
-    doors are missing from the model, and dropping every region would leave the storey with no rooms. A door
-    leading outside counts; flood-fill regions never touch each other, so no open-plan boundary joins them.
-    """
+    """The flood-fill regions a door (or leafless passage, or a door to the outside) joins to another place; all of them
+    when no door joins any (a one-room building, a storey whose doors the model lacks). Enclosed space no door leads
+    into (a courtyard, a shaft) is no room."""
     labels = label_map(regions, list(range(len(regions))), outside)
     reached: set[int] = set()
     for door in doors:

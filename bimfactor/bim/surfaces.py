@@ -71,12 +71,8 @@ def wall_meshes(model: IfcModel, classes: tuple[str, ...] = SURFACE_CLASSES) -> 
 
 
 def outward_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(V, 3) vertices and (F, 3) faces rewound consistently so that each closed body's normals point outward.
-
-    IFC meshes mix windings (measured on duplex.ifc: a party wall with half its faces inward) and mirrored
-    placements flip whole elements; back-face culling needs outward normals. trimesh merges duplicate
-    vertices, makes the winding consistent across shared edges and flips bodies of negative volume.
-    """
+    """(V, 3) vertices and (F, 3) faces rewound so that each closed body's normals point outward (IFC meshes mix
+    windings and mirrored placements flip elements; back-face culling needs outward normals), by trimesh."""
     import trimesh
 
     mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64), process=True)

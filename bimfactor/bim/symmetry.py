@@ -1,11 +1,8 @@
 """Twin places: rigid motions of a storey that carry its labelled objects onto other objects of the same label.
 
-A semantic localizer cannot tell two places apart when a rotation or translation of the storey carries every
-object onto one of the same label and the walls onto walls (twin flats, a repeated office bay): what the robot
-observes, ranges and bearings included, is the same from both. `symmetries` finds such motions from pairs of
-objects (an object and its nearest neighbours against every pair of the same labels at the same distance);
-`twin_motions` keeps, per storey, the best one that carries nearly everything. The evaluation scores a twin
-building also up to that motion (`evaluation/paper.py`); `tools/building_symmetry.py` lists them.
+A semantic localizer cannot tell two places apart when such a motion also carries the walls onto walls (twin flats,
+a repeated bay). `symmetries` finds motions from pairs of objects, `twin_motions` keeps per storey the best one that
+carries nearly everything; the evaluation also scores up to it, and `tools/building_symmetry.py` lists them.
 """
 
 from __future__ import annotations

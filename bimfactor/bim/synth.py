@@ -786,12 +786,9 @@ def _room_windows(
 def paper_floor(rng: np.random.Generator) -> BuildingSpec:
     """The CoarseBIMLoc floor: 86 x 86 m, 7 rooms, 43 objects in 14 categories.
 
-    A courtyard building, a common form of large Hong Kong floors: a 12 m deep ring around a 62 x 62 m
-    courtyard, a 3.5 m corridor (the hallway) along the courtyard, the rest of the ring's 8.5 m outer band
-    rooms. Six rooms are modelled, five along the south band (living room, study room, bathroom, bedroom,
-    kitchen) and a meeting room across the whole ring in the east, with a door to each side, so the hallway is
-    a 280 m loop; the rest of the band is walled, unmodelled space (no IfcSpace: not navigable). 7 doors,
-    8 windows, 28 furnishing elements; the seed moves doors, windows and objects.
+    A 12 m deep ring around a 62 x 62 m courtyard: a 3.5 m hallway loop along the courtyard, five rooms along the south
+    band and a meeting room across the east; the rest of the band is unmodelled (no IfcSpace). The seed moves doors,
+    windows and objects.
     """
     t = WALL_THICKNESS_M
     lo, hi = t / 2, 86.0 - t / 2  # outer wall centrelines

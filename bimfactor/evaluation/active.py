@@ -1,16 +1,9 @@
 """The active scenario (`evaluation.scenario: active`): the simulated robot follows the localizer's suggestions.
 
-A run starts as the global scenario does, from the uniform belief, on route k. The robot drives the route until the
-localizer first suggests where to look (`Localizer.suggest`), then to each suggested goal: the goal comes in the
-odometry frame, and the robot drives to where that is in the true world (its planner on the true building, as a
-robot's local planner would get there whichever place the belief had right), turns to its heading, and asks again.
-While nothing is suggested (the belief still spread, one place holding it, converged) it drives its route. Frames
-are rendered as the robot goes, with the simulator's motion, odometry and sensor noise; T keyframes in all.
-
-Beside it, from the same start and seeds, the passive route: the first T keyframes of route k. Both are scored from
-their first frame (Table I's cells over the T steps, and the route's outcome: success at its end, distance to correct
-convergence, wrong convergence); the active run's variants are named with `+active` (`smcl+graph+active`).
-Everything the two share is drawn from the same streams, so up to the first suggestion they are one run.
+From the uniform belief on route k, the robot drives its route until the localizer suggests where to look, then to
+each suggested goal (given in the odometry frame, driven in the true world), asking again on arrival; T keyframes in
+all. Beside it, from the same start and seeds, the passive route (its first T keyframes); both are scored from their
+first frame, the active run's variants named with `+active`. docs/active.md.
 """
 
 from __future__ import annotations

@@ -1,13 +1,8 @@
 """`bimfactor bench buildings`: the paper's protocol over many buildings at once, its runs on Ray or a process pool.
 
-Each building's prior is built once (OUT/priors/<IFC stem>/; the paper-floor preset is written first as
-OUT/paper-floor.ifc); then every run of every building (trajectory × repeat, each scoring every variant) goes to one
-runner, so a cluster works through all buildings together. Per building and variant the report keeps Table I's keys
-(`trans_err_m`, `orient_err_deg`, `room_acc`, `storey_acc`, …) and the routes' outcomes from their first frame
-(`evaluation.metrics.route_outcome`): `success_rate` (within 1 m and 15° on the true storey at the route's end),
-`wrong_convergence_rate` (the filter said converged while more than 2 m off or on another storey), the median
-`distance_to_convergence_m` and `top3_rate` (the truth among the three most probable modes; graph variants). The
-results are keyed by the building's IFC file name, so a building's name finds its block.
+Each building's prior is built once (OUT/priors/<IFC stem>/), then every run of every building goes to one runner.
+Per building (keyed by IFC file name) and variant the report keeps Table I's keys and the routes' outcomes
+(`evaluation.metrics.route_outcome`: success, wrong convergence, distance to convergence, top-3). docs/buildings.md.
 """
 
 from __future__ import annotations

@@ -1,20 +1,10 @@
 """Evaluation of the online scene graph against the BIM objects, the sim detector's rates, and the update speed.
 
-The graph lives in the odometry frame; a node is brought into the world with T_world_odom(t) = T_world_base(t) ·
-T_odom_base(t)⁻¹ at the frame t it was last fused in (`alignment="per_node"`, which keeps odometry drift out
-of a perception metric) or at the first frame (`"first_frame"`, the drift included). A node matches an object
-when its centroid lies within `match_distance_m` of the object's box (position ± size/2) and its label is the
-object's label or a synonym (`SYNONYMS`); matches are one-to-one (Hungarian on that distance). Precision is
-matched / nodes, recall matched / objects the camera saw (≥ `min_pixels` pixels within `max_depth_m` in some
-frame), label accuracy the share of matches with the exact label. Over-segmentation counts objects that hold
-the majority of ≥ 2 nodes' voxels; under-segmentation counts nodes with ≥ 20 % of their voxels on each of
-≥ 2 objects (a voxel belongs to the nearest object box within `box_margin_m`).
-
-Reproduce the reported numbers (paper preset, six standard trajectories each) with `bimfactor bench graph`:
-    bimfactor bench graph --building paper-floor -o runs/perception/paper-floor
-    bimfactor bench graph --building ../shared/data/ifc/duplex.ifc -o runs/perception/duplex
-(`--preset clean|harsh` for the other error presets, `--true-odometry` to take odometry drift out,
-`--tour 12` to orbit each furniture group with 12 frames instead: see `bimfactor.perception.scenes`.)
+A node is brought into the world frame with T_world_odom at the frame it was last fused in (`alignment="per_node"`,
+keeping odometry drift out of a perception metric) or at the first frame (`"first_frame"`). A node matches an object
+when its centroid lies within `match_distance_m` of the object's box and its label is the object's or a synonym
+(`SYNONYMS`), one-to-one (Hungarian). Precision is matched / nodes, recall matched / objects seen; over- and
+under-segmentation count objects split over nodes and nodes spread over objects. Run with `bimfactor bench graph`.
 """
 
 from __future__ import annotations
@@ -539,18 +529,15 @@ def run_graph_bench(
     cfg: Config,
     out_dir: str | Path,
     preset: str | None = None,
-    trajectories: int | None = None,
     tour: int = 0,
-    seed: int | None = None,
     true_odometry: bool = False,
 ) -> dict[str, Any]:
     """The perception report of one building (synth preset name or IFC path) over its standard trajectories
     (or a furniture tour): graph precision/recall/segmentation/labels, detector rates, update speed."""
-    seed = cfg.seed if seed is None else seed
-    n = cfg.evaluation.num_trajectories if trajectories is None else trajectories
     text_embedder = make_text_embedder(cfg.embed)
     with tempfile.TemporaryDirectory() as work:
-        prior, sims = _simulate_building(building, cfg, text_embedder, n, seed, Path(work), tour)
+        n = cfg.evaluation.num_trajectories
+        prior, sims = _simulate_building(building, cfg, text_embedder, n, cfg.seed, Path(work), tour)
     if true_odometry:
         for frame in (f for sim in sims for f in sim.frames):
             frame.odom_pose = frame.gt_pose.copy()

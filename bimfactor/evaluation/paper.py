@@ -1,35 +1,10 @@
 """The paper's protocol (Sec. III): six trajectories with distinct starts, T = 50, each localized three times.
 
-Each trajectory is simulated once (its route, sensor and odometry noise fixed by the config seed) and
-localized `repeats` times with different filter and perception seeds, like replaying one recording three
-times. The scored steps are the T from the step the filter first reports itself converged (`evaluation.score_from:
-filter_converged`, the default: the route simulated longer, and the first T steps scored as well, as `from_start`) or
-the first T (`start`, the uniform cloud included). Table I's statistics cannot include a uniform cloud's first steps
-(every value lies within std·√(N − 1) of the mean, and the paper's Trajectory 4, 0.32 ± 0.22 m over 3 × 50 steps, puts
-each of its estimates within 3.0 m of the truth), so its steps began once the filter had narrowed the floor down.
-Table I's statistics are mean ± std over the steps of a trajectory's repeats; the average row pools every step of
-every run, and comes with a 95 % bootstrap interval that resamples whole runs (a run that locks onto
-a wrong place is wrong for many steps at once, so the steps' std says little about how far the average can move
-when the same protocol runs with other seeds). Runs go to parallel processes.
-
-Scenarios (`evaluation.scenario`): `global` is the paper's, every run from the uniform belief over the building;
-`guess` starts each run from a pose guess a fixed distance and heading off the first frame's truth, in a direction
-and sign drawn from the run's seed (AMCL's initial pose; the filter's Gaussian is `smcl.start.sigma_*`); `kidnap`
-starts uniform, and after `kidnap_at` keyframes of route k carries the robot to keyframe `kidnap_resume_at` of route
-k + 3 (odometry sees nothing, `sim.simulate.kidnap`), scoring the T steps from there: `steps_to_converge` is then the
-steps to recover, and each run also says whether it was tracking when carried off; `storeys` starts uniform on routes
-that change floor through a portal (`sim.trajectory.TrajectorySimulator.storey_route`), localizes each run twice,
-without the storey-change event and with it (variants named with `EVENT_SUFFIX`), and scores as `global` does, adding
-`storey_acc_after_change`, the storey accuracy over the `sim.trajectory.AFTER_CHANGE_KEYFRAMES` keyframes after each
-change. With `evaluation.known_storey` the uniform start of `global` and `kidnap` covers only the storey the route
-starts on (a robot told its floor); a relocalization still spreads over the whole building. On a building of several
-storeys the translation error is the planar one, and `storey_acc` says how often the estimate was on the true storey.
-
-Variants (`evaluation.variants`): `smcl` (the paper's filter), `smcl+graph` (the best mode of the per-mode pose
-graphs), `refine` (smcl+graph, then offline batch smoothing) and `full` (smcl+graph with ICP against the BIM walls
-fed back into the best mode's graph). The back end only reads the particle set, so one smcl+graph run yields the
-filter's own estimate (bit for bit the smcl run of the same seed) and, refined, the `refine` estimate; `full` needs
-its own forward pass. Each job runs each forward pass it needs once and scores every variant asked for.
+Each trajectory is simulated once and localized `repeats` times with other filter and perception seeds, in parallel
+processes; Table I's statistics are mean ± std over the scored steps of a trajectory's repeats, the average pooled
+over every run with a 95 % bootstrap interval over whole runs. Scored steps (`evaluation.score_from`), scenarios
+(`evaluation.scenario`: global, guess, kidnap, storeys) and variants (`evaluation.variants`; one smcl+graph forward
+pass also yields the smcl and refine estimates): docs/evaluation.md.
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
 """What to check in a converted recording before localizing it: the camera mount and the odometry.
 
-A wrong mount (height, pitch) moves every depth point: the floor no longer lies at z = 0 in the base frame and the
-2-D scan's height band cuts floor and walls wrongly. A wrong odometry (scale, a yaw sign, a frame mix-up) bends the
-trajectory. `recording_checks` measures the first and draws both into one figure (`checks.png` of `convert`): a side
-view and a top view of a frame's depth points in the base frame, with the floor's measured height, and the odometry
-in plan.
+`recording_checks` measures the floor's height in the base frame (a wrong mount moves every depth point) and draws
+`convert`'s checks.png: side and top views of a frame's depth points in the base frame, and the odometry in plan.
 """
 
 from __future__ import annotations

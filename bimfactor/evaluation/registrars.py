@@ -1,12 +1,8 @@
 """The registrar comparison: basins of convergence on simulated keyframes, per-registrar summaries, and speed.
 
-For keyframes with ground truth, the true pose is perturbed by a sweep of initial errors (random
-directions, seeded); each registrar runs from every perturbed start, and a run succeeds when it ends
-within `success_trans_m` and `success_rot_deg` of the truth.
-
-Every run is also gated three ways, to measure what each check adds: without the ambiguity probes,
-with them, and with them plus a calibrated coarse covariance (`calibrated_covariance`: the σ a coarse
-stage would report whose errors are the size of this start's).
+Each registrar runs from the true pose perturbed by a seeded sweep of start errors and succeeds within
+`success_trans_m` and `success_rot_deg`; every run is gated without the ambiguity probes, with them, and with them
+plus a calibrated coarse covariance (`calibrated_covariance`), to measure what each check adds.
 """
 
 from __future__ import annotations

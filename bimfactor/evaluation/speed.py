@@ -88,13 +88,9 @@ def benchmark_step(
     repeats: int = 20,
     seed: int = 0,
 ) -> list[dict[str, Any]]:
-    """Median milliseconds of predict + update + resample per particle count, from a uniform (global) start.
-
-    Every repeat starts from freshly spread particles (not timed), the hardest case: particles everywhere, every
-    candidate list different. The observations are `n_obs` objects seen from one pose (padded with distractors);
-    with the scan term, the update also scores a scan of 45 endpoints over the view, up to `max_range_m`.
-    `*_ms_*` are wall-clock; `total_cpu_ms_median` is this thread's CPU time (robust to a busy machine).
-    """
+    """Median milliseconds of predict + update + resample per particle count, from a uniform start (particles spread
+    anew, untimed, every repeat): `n_obs` objects seen from one pose plus distractors and, with the scan term, a scan of
+    45 endpoints. `*_ms_*` are wall-clock; `total_cpu_ms_median` this thread's CPU time."""
     rng = np.random.default_rng(seed)
     observations, _, _ = _benchmark_observations(prior, visibility, cfg, n_obs, rng)
     # With the scan term: one endpoint per bearing bin of the view (timing does not depend on where they land).
@@ -139,13 +135,9 @@ def benchmark_step(
 def benchmark_scan_matching(
     prior: BimPrior, model: IfcModel, cfg: Config, every: int = 2, trans_m: float = 0.3, rot_deg: float = 5.0
 ) -> dict:
-    """Accuracy, covariance honesty and time of `CorrelativeMatcher.match` on simulated keyframes.
-
-    Every `every`-th keyframe of the evaluation's simulated trajectories (the config seed's), matched from its true
-    pose moved `trans_m` in a random direction and turned ±`rot_deg` (the seeded `registrars.perturb`). Reports the
-    accepted share and the rejection reasons; over the accepted matches the median and p90 position and yaw errors
-    and the share whose true pose lies inside the 95 % ellipsoid (χ² with 3 DoF); the median and p90 time of all.
-    """
+    """Accuracy, covariance honesty and time of `CorrelativeMatcher.match` on every `every`-th keyframe of the
+    evaluation's simulated trajectories, from the true pose moved `trans_m` and turned ±`rot_deg`: accepted share,
+    rejection reasons, median and p90 errors, the share inside the 95 % ellipsoid (χ², 3 DoF), and time."""
     matcher = CorrelativeMatcher(prior, cfg.backend.scan_factor)
     world = build_world(prior, model, cfg, cfg.seed)
     rng = np.random.default_rng([cfg.seed, 0xC5])

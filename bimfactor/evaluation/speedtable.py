@@ -1,17 +1,9 @@
 """`bimfactor bench speed`: every speed figure the project is held to, in one table from one run on this machine.
 
-Per building (the paper floor and the shared IFC files asked for): the `full` variant's time per keyframe on its
-simulated trajectory 0 (filter, perception, pose graphs and the fine stage, as `steps.csv` splits it); the real
-perception on the same keyframes, as a recording without a detections file meets it (the shipped YOLOX-Nano and
-RapidOCR reading door plates where they can be), beside the simulator's; and the fine
-registrars side by side on that trajectory's keyframes: each one's median time, its ratio to Open3D point-to-plane
-(the default) on the same scans, and its success rate over `compare-registrars`' sweep of start errors. Then the
-filter step at M = 1000 and 20000 (`benchmark_step`), and wall clocks measured as a user meets them, each in a fresh
-process: `bimfactor --help`, a 50-keyframe `localize`, `bimfactor demo`, and the prior of AC11-Institute-Var-2 cold
-(empty geometry cache, the text encoder's load included) and with its geometry cached.
-
-Machines differ up to twice in speed, so the registrars are compared as ratios within the run; the absolute figures
-hold for the machine that printed them.
+Per building: the `full` variant's time per keyframe (split as `steps.csv` splits it), the real perception on the
+same keyframes, and the fine registrars side by side (median time, ratio to Open3D point-to-plane within the run,
+success over `compare-registrars`' sweep); then the filter step at M = 1000 and 20000 and wall clocks of commands in
+fresh processes. docs/speed.md.
 """
 
 from __future__ import annotations

@@ -1,20 +1,12 @@
 """Safe outputs: a file or folder appears complete under its final name or not at all, and nothing bimfactor did
 not write is ever removed.
 
-Every folder a command writes carries a marker file, `.bimfactor.json`, written last: `{"kind", "complete",
-"files"}`. A command replaces only a folder of its own kind whose every file is listed in that marker; any other
-non-empty folder is refused (`InputError`), whatever `--overwrite` says, and an output never swallows its input.
-
-Two shapes of output folder:
-- `output_dir` (prior, sequence, run): built in a hidden temporary folder beside the target, then swapped in. The
-  swap is two renames; if the process dies between them, the next write to the same place restores the old folder.
-  A mount point cannot be renamed, so there the files are moved in one by one, the marker saying `complete: false`
-  until the last one is in place.
-- `container_dir` (demo, bench, the sequences of `simulate --all`): a folder that collects several outputs, each
-  written atomically on its own; its marker says `complete: false` until the command ends.
-
-Temporary names carry the writer's process id (`.NAME.<pid>.<random>.part`), so a later run removes what a killed
-run left behind. Files and folders get the permissions the umask allows, as `open` and `mkdir` would give.
+Every folder a command writes carries a marker file, `.bimfactor.json` (`{"kind", "complete", "files"}`), written
+last; a command replaces only a folder of its own kind whose every file the marker lists, and an output never
+swallows its input. `output_dir` (prior, sequence, run) builds in a hidden temporary folder and swaps it in (on a
+mount point: moves the files in one by one); `container_dir` (demo, bench, `simulate --all`) collects several outputs,
+each written atomically. Temporary names carry the writer's pid (`.NAME.<pid>.<random>.part`), so a later run removes
+what a killed run left behind. docs/reliability.md.
 """
 
 from __future__ import annotations

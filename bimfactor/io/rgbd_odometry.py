@@ -1,28 +1,11 @@
 """RGB-D odometry: planar odometry for a recording that has none, from its colour and depth frames alone.
 
-Each pair of consecutive frames gets a 6-DoF relative camera pose T_prev_curr:
-
-1. Feature guess: ORB keypoints of both images are matched (OpenCV brute-force Hamming, cross-checked), the previous
-   frame's keypoints are lifted with its depth, and `cv2.solvePnPRansac` finds the pose that projects them onto the
-   current frame's keypoints. Fewer than `PNP_MIN_INLIERS` inliers (low texture) and the pair *falls back*.
-2. Starts: the PnP pose; on a fall-back, the previous pair's motion (a robot keeps moving as it moved; none for the
-   first pair), that motion turned by `START_TURNS_DEG` about the base's vertical axis, and no motion. The first is
-   the *prior*.
-3. Depth alignment: Open3D point-to-plane ICP (Tukey loss, voxelised clouds, coarse to fine) from each start in turn,
-   until one overlaps `GOOD_OVERLAP` of the cloud; the best overlap wins (a later start needs `START_MARGIN` more),
-   judged after step 5, since along an unmeasured direction a smaller motion overlaps more without being right.
-4. Dense refinement: Open3D's RGB-D odometry (legacy API, hybrid photometric + depth term) from the ICP pose.
-5. Degeneracy: depth cannot measure motion along a direction no surface faces (a corridor, a single wall, all that
-   the simulator's empty rooms often show). Along a horizontal direction whose share of surface normals is below
-   `FLAT_SHARE`, the prior's translation is kept (for a wheeled base, `nonholonomic`, its sideways part follows the
-   measured turn's arc); where the clouds overlap less than `MIN_OVERLAP`, the prior is the pair's pose. ICP or
-   dense steps that jump further than their limits (a solver running along such a direction) are dropped.
-
-Poses are rounded to `POSE_DECIMALS` after each Open3D step, so that a run repeats bit for bit.
-The camera poses are chained (T_cam0_camk) and carried through the camera mount into the robot base:
-T_odom_base(k) = T_base_camera · T_cam0_camk · T_base_camera⁻¹, projected onto the floor plane (x, y, yaw), so the
-odometry frame is the base at the first frame. `odometry_noise` measures the per-step error against ground truth as
-α1..α4 of the odometry motion model. Measured accuracy, speed and the recommended α: docs/rgbd-odometry.md.
+Each pair of consecutive frames gets a 6-DoF relative camera pose: an ORB + `cv2.solvePnPRansac` guess (or, on too
+few inliers, the previous motion, turned by `START_TURNS_DEG`, and no motion), Open3D point-to-plane ICP from each
+start, then Open3D's RGB-D odometry; along a horizontal direction no surface faces (`FLAT_SHARE`) the prior's
+translation is kept. Poses are rounded to `POSE_DECIMALS` after each Open3D step so that a run repeats bit for bit,
+chained, carried through the camera mount into the base and projected onto the floor (x, y, yaw). Method, accuracy
+and the recommended α: docs/rgbd-odometry.md.
 """
 
 from __future__ import annotations
@@ -424,12 +407,9 @@ def odometry_frames(timestamps: np.ndarray, min_interval_s: float = FRAME_INTERV
 def rgbd_odometry(
     sequence: Sequence, *, max_depth_m: float = MAX_DEPTH_M, nonholonomic: bool = True, show_progress: bool = True
 ) -> RgbdOdometryResult:
-    """RGB-D odometry of every frame of `sequence`, with its intrinsics and camera mount (module docstring).
-
-    Made for keyframes (0.5 m or 15° apart, pairs up to about 0.7 m and 30° apart work); closer frames work too.
-    `nonholonomic=False` for a handheld camera (its base may step sideways). Give the sequence its odometry with
-    `sequence.with_odometry(result.odom_poses)`.
-    """
+    """RGB-D odometry of every frame of `sequence`, with its intrinsics and camera mount (module docstring); made for
+    keyframes up to about 0.7 m and 30° apart. `nonholonomic=False` for a handheld camera. Give the sequence its
+    odometry with `sequence.with_odometry(result.odom_poses)`."""
     odometry = RgbdOdometry(
         sequence.meta.intrinsics, sequence.meta.T_base_camera, max_depth_m=max_depth_m, nonholonomic=nonholonomic
     )

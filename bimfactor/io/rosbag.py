@@ -1,39 +1,8 @@
 """Robot recordings as a `Sequence`: ROS 1 bags (.bag), ROS 2 bags (a folder with metadata.yaml, sqlite3 or mcap
 storage, or a lone .db3 / .mcap file), read with the `rosbags` library's AnyReader.
 
-What is read (the topic keys of `RosbagConfig`, io.rosbag; a key left "" is found by message type):
-
-- colour: sensor_msgs/Image in rgb8, bgr8, rgba8 or bgra8 (alpha dropped); found as the one Image topic whose first
-  message has a colour encoding (several: those named color/colour/rgb);
-- depth: sensor_msgs/Image in 16UC1 / mono16 millimetres (0 = no return) or 32FC1 metres (NaN, ±inf, ≤ 0 = no
-  return); found by encoding 16UC1 / 32FC1 (several: those named depth, then aligned);
-- either as sensor_msgs/CompressedImage, as image_transport writes it: `compressed` (JPEG or PNG, decoded by OpenCV)
-  and `compressedDepth` (its 12-byte header, then a 16-bit PNG of millimetres or of 32FC1's quantised inverse depth;
-  the RVL codec is refused). A decoded message reads as the Image it was (`decoded_image`), so the rest is the same;
-- CameraInfo of the colour camera (the colour topic's sibling `camera_info`, else the one with its frame_id): K gives
-  the intrinsics, a plumb_bob or rational_polynomial distortion is undistorted with OpenCV (colour bilinear, depth at
-  the nearest pixel), another model with non-zero coefficients is refused. A topic whose name says "rect" is
-  already rectified: P gives its intrinsics and nothing is undistorted;
-- depth not registered to colour (another frame_id or size) is registered: its own CameraInfo, the depth → colour
-  transform from tf, and a z-buffered reprojection (`io.rectify.register_depth`);
-- /tf_static and /tf (tf2_msgs/TFMessage): the camera mount T_base_camera is the chain `base_frame` → the colour
-  image's frame_id (an optical frame: x right, y down, z forward, as bimfactor's camera frame); a chain with moving
-  links is taken at the sample nearest the first colour image;
-- storey changes (only when `storey_topic` names them): std_msgs/Int32, the floors the robot went up (+) or down (−),
-  as a barometer, an IMU or a lift's interface says; each goes to the first frame at or after its stamp (its log
-  time: Int32 has no header) as the frame extra `storey_change` (frames.csv's `extra.storey_change`);
-- odometry: nav_msgs/Odometry (pose.pose is T_odom_child; a child frame other than base_frame is moved onto it
-  through tf), or without such a topic the `odom_frame` → `base_frame` chain on /tf. Its planar poses are
-  interpolated at every colour stamp (x, y linear, yaw along the shorter arc).
-
-Times are header stamps (a message stamped zero takes its log time). Each colour image takes the depth
-image nearest in time within `max_sync_dt_s`, one-to-one; colour images without one, outside the odometry's time
-span, or across an odometry gap longer than `max_odom_gap_s` are dropped and counted by reason. The bag is scanned
-twice when opened (tf, camera info and odometry, then the image headers); images are decoded when a frame is
-accessed, and iterating streams the bag in one pass. Everything the conversion assumed goes into `meta.extras`
-(topics, mount and its source, intrinsics and distortion, depth registration, time offsets, drops);
-`conversion_report` turns it into lines. A recording that cannot be read as asked is an InputError naming the topic,
-frame or transform, raised before the images are read where it can be.
+Topics are named in `io.rosbag` or found by message type; what is read, how it is synchronised, registered and
+undistorted, and every error: docs/sequences.md, "Bags".
 """
 
 from __future__ import annotations

@@ -1,12 +1,8 @@
 """TUM trajectory files: planar trajectories as TUM text files.
 
-A TUM trajectory file has one pose per line, `timestamp tx ty tz qx qy qz qw` (seconds, metres, unit
-quaternion), and comment lines starting with "#". Planar poses (x, y, yaw) are written with z = 0 and a
-rotation about z; reading accepts any 3D pose and projects it onto the plane (x, y and the heading of the
-pose's x-axis), with a logged warning when roll or pitch exceed `MAX_TILT_DEG`.
-
-The sequence format writes its odometry and ground truth in this format; TUM RGB-D benchmark folders are read
-by `bimfactor.io.tum_rgbd`.
+One pose per line, `timestamp tx ty tz qx qy qz qw` (seconds, metres, unit quaternion), "#" comments. Planar poses
+(x, y, yaw) are written with z = 0 and a rotation about z; reading projects any 3D pose onto the plane, warning when
+roll or pitch exceed `MAX_TILT_DEG`.
 """
 
 from __future__ import annotations

@@ -1,21 +1,11 @@
 """TUM RGB-D benchmark folders as a `Sequence`.
 
-A TUM RGB-D folder (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats) holds `rgb.txt` and
-`depth.txt` (`timestamp filename` per line), 640×480 8-bit colour PNGs, 16-bit depth PNGs at 5000 units per
-metre (0 = no data), and usually `groundtruth.txt`: the pose of the colour camera's optical centre in the
-motion-capture frame. `accelerometer.txt` is ignored. `read_tum_rgbd` pairs each colour image with the depth
-image nearest in time (one-to-one, within `max_sync_dt_s`, as the benchmark's associate.py) and with the
-ground-truth pose nearest in time (within the same limit; frames without one have unknown ground truth).
-Ground truth becomes a planar base pose: T_world_base = T_world_camera · T_base_camera⁻¹, projected.
-
-TUM has no wheel odometry: the returned sequence's `odometry()` is None and `Frame.odom_pose` is NaN.
-Deriving odometry from ground truth would hide the drift a localizer must cope with, so it is never done.
-
-Intrinsics, unless passed in: the folder name's camera ("freiburg1", "freiburg2", "freiburg3") selects the
-benchmark's published colour-camera calibration for that sensor (fx, fy, cx, cy; distortion terms are ignored,
-which is exact for freiburg3, whose published distortion is zero, and an approximation for freiburg1/2); any other
-name gets the "ROS default" set 525, 525, 319.5, 239.5 that TUM recommends for the pre-registered depth. Pass
-`intrinsics` to choose otherwise (e.g. the ROS default for freiburg1/2 too).
+`read_tum_rgbd` pairs each colour image of a TUM folder (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)
+with the depth image nearest in time (one-to-one, within `max_sync_dt_s`, as the benchmark's associate.py) and with
+the nearest ground-truth pose, made a planar base pose: T_world_base = T_world_camera · T_base_camera⁻¹, projected.
+TUM has no wheel odometry, and none is made up from the ground truth: `odometry()` is None. Intrinsics, unless
+passed in: the benchmark's calibration of the camera the folder's name says (freiburg1/2/3; distortion ignored),
+else the ROS default 525, 525, 319.5, 239.5.
 """
 
 from __future__ import annotations

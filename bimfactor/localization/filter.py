@@ -1,25 +1,13 @@
 """Semantic Monte Carlo localization (paper Sec. II.C): a particle filter over (x, y, yaw, storey) in the BIM.
 
 One step (`SemanticMCL.step`) is the paper's loop:
-1. predict:  move every particle by the odometry increment plus Gaussian noise (`motion.propagate`); one whose
-             step passed a portal's end may go to another floor (`motion.PortalMotion`: rarely, or every one when an
-             event says the robot changed storey); a particle that leaves navigable space keeps
-             `motion.off_map_weight` of its weight;
-2. update:   weight ×= Π_m p_m(z | x), the measurement models' terms summed in log (`measurements`: the paper's
-             semantic Hungarian score, and beyond it door plates read and the depth scan); normalise;
-3. resample: when ESS < δ_ess·M, draw the particles anew (`resampling`: systematic as the paper, or KLD-sized);
-             the recoveries (`recovery`) may redraw some of them elsewhere;
-4. estimate: weighted mean x, y and circular mean yaw on the storey holding the most weight; its room. The estimate
-             is `compact` when its spread and storey share pass `smcl.converged`, and `converged` when it is compact
-             and every recovery confirms it: the challenger must have looked for a look-alike place that explains
-             the frames as well and found none (`recovery.challenger`).
-
-Recoveries act at their points of the loop: after the update (the belief is lost: spread it over the building again)
-and after the estimate (a challenger explains the frames better: take its particles).
-
-The storey is part of the state: a global start spreads the particles over the navigable space of all storeys in
-proportion to area, and the motion model moves a particle to another storey only through a portal (a lift, a stair),
-so the observations decide the storey, helped by a storey-change event where the robot has one.
+1. predict:  move every particle by the odometry increment plus Gaussian noise (`motion`), through portals to other
+             floors (`motion.PortalMotion`);
+2. update:   weight ×= Π_m p_m(z | x), the measurement models' terms summed in log (`measurements`); normalise;
+3. resample: when ESS < δ_ess·M (`resampling`); the recoveries (`recovery`) may redraw some particles elsewhere;
+4. estimate: weighted mean x, y and circular mean yaw on the storey holding the most weight, and its room; `compact`
+             when its spread and storey share pass `smcl.converged`, `converged` when every recovery also confirms it.
+Recoveries act after the update (lost: spread again) and after the estimate (a challenger takes over). docs/filter.md.
 """
 
 from __future__ import annotations

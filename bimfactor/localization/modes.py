@@ -1,18 +1,11 @@
 """Modes of the particle filter's belief: clusters of weighted particles, and their identities over time.
 
-Clustering (`extract_modes`), per storey, never across storeys:
-1. bin the particles on a grid of `cluster_radius_m` in x, y and `cluster_yaw_deg` in yaw; the heaviest bin holding
-   unassigned particles seeds a cluster at its particles' weighted mean;
-2. mean-shift with a flat window: the centre moves to the weighted mean of the unassigned particles within
-   `cluster_radius_m` in position and `cluster_yaw_deg` in wrapped yaw (circular mean), until it stops moving;
-3. the window's particles form the cluster: weight = their share of the total weight, mean (circular yaw) and
-   (3, 3) covariance with wrapped yaw residuals; repeat while unassigned weight remains.
-The strongest `max_modes` clusters holding at least `min_cluster_weight` are the step's modes.
-
-Tracking (`ModeTracker`): each mode keeps an integer id while clusters continue it (gated nearest match to its
-pose predicted by the odometry increment); an unmatched cluster of weight ≥ `spawn_weight` spawns a new id; modes
-on one storey within `merge_distance_m` and `merge_yaw_deg` merge (the more probable keeps its id, weights add);
-modes whose probability is below `prune_probability` are pruned (the most probable mode is always kept).
+Clustering (`extract_modes`), per storey: the heaviest bin of unassigned particles (`cluster_radius_m`,
+`cluster_yaw_deg`) seeds a flat-window mean-shift; the window's particles form a cluster (weight share, circular mean,
+(3, 3) covariance with wrapped yaw), repeated while weight remains; the strongest `max_modes` clusters holding
+`min_cluster_weight` are the modes. Tracking (`ModeTracker`): a mode keeps its id while a cluster near its
+odometry-predicted pose continues it; an unmatched cluster of `spawn_weight` spawns one; modes within
+`merge_distance_m` and `merge_yaw_deg` merge; modes below `prune_probability` are pruned, never the most probable.
 """
 
 from __future__ import annotations

@@ -1,19 +1,12 @@
 """The S-MCL kinematic motion model (paper Sec. II.C): apply the odometry increment, add Gaussian noise.
 
-x_t = x_{t-1} ⊕ u_t + [ε_trans, ε_rot] with ε_trans ~ N(0, σ_trans² I) (metres, world frame: the noise is
-isotropic, so the frame does not matter) and ε_rot ~ N(0, σ_rot²) (radians), drawn independently per particle
-and per step, as the paper does; the noise does not scale with the length of the increment. A step is therefore a
-keyframe (`bimfactor.odometry`, which also holds the increments and the odometry noise model the simulator and the
-back end share with the localizer).
+x_t = x_{t-1} ⊕ u_t + [ε_trans, ε_rot], ε_trans ~ N(0, σ_trans² I) (metres) and ε_rot ~ N(0, σ_rot²) (radians) drawn
+per particle and per step, not scaled with the increment: a step is a keyframe (`bimfactor.odometry`).
 
-Between floors (`PortalMotion`): a particle whose step passed a portal's end on its floor may have taken it. Without
-word of it, each such particle goes through with the small probability `portal_share` per step, to another floor of
-its portal, or with `portal_cross_share` when its step crossed the portal's footprint (a stair's steps, where a robot
-on the floor cannot drive), and the observations decide; told that the robot changed storey (a barometer, an IMU, a
-lift's interface: `types.STOREY_CHANGE`), every particle at a portal reaching that floor goes through, and the others
-come out of a portal on that floor (`PortalMotion.exits`) with `event_miss_weight` of their weight: a belief with a
-particle where the robot rode keeps it, and one without learns from the ride where the robot is (at a lift's or a
-stair's end on the floor the event names), for the frames to tell which.
+Between floors (`PortalMotion`): a particle whose step passed a portal's end goes through with `portal_share` per
+step (`portal_cross_share` when it crossed a stair's footprint); told of a storey change (`types.STOREY_CHANGE`),
+every particle at a portal reaching that floor goes through and the others come out of a portal's end on that floor
+(`PortalMotion.exits`) with `event_miss_weight` of their weight.
 """
 
 from __future__ import annotations

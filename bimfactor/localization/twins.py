@@ -1,13 +1,9 @@
 """Twin evidence, beyond the paper: what the frames say about a belief against its image in the building's twin place.
 
-In a building with twin places (`bim.symmetry.twin_motions`: duplex.ifc's two units are one turned by 180°), a belief
-converged in one unit has an image in the other that explains the objects and the walls of every frame exactly as
-well; the challenger, drawn from the same observations, agrees with either. Only what the motion does not carry
-tells them apart: a door plate, the one object without a twin. `TwinEvidence` keeps that score: each frame, the
-log predictive likelihood of the belief, ln Σ w_i p(z | x_i), less that of its image, ln Σ w_i p(z | T(x_i)), summed
-over the frames since the belief last started over. The filter reports a compact belief on a storey with a twin as
-converged only once that sum reaches `SETTLED_NATS`: about one plate read in front of the right door
-(ln(1 / ε) ≈ 3.9 nats with `smcl.text.unexplained` 0.02).
+In a building with twin places (`bim.symmetry.twin_motions`), a belief's image under the twin motion T explains the
+objects and walls as well; only what T does not carry (a door plate) tells them apart. `TwinEvidence` sums, since the
+belief last started over, ln Σ w_i p(z | x_i) − ln Σ w_i p(z | T(x_i)); a compact belief on a storey with a twin is
+reported converged only once that sum reaches `SETTLED_NATS` (about one plate read in front of the right door).
 """
 
 from __future__ import annotations

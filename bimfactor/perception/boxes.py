@@ -40,15 +40,10 @@ def box_mask(
     cfg: PerceptionConfig,
     floor_z_m: float | None,
 ) -> np.ndarray:
-    """(H, W) bool: the object's pixels in a box, found by depth clustering (on a grid of `BOX_SAMPLES` pixels).
-
-    The box's depth returns within `max_depth_m` and at least `floor_z_m` above the floor (the floor under an object
-    joins it to everything else; None: a camera with no robot base, every return) are voxelised and clustered by
-    DBSCAN (`perception.dbscan_*`, as the lifting does);
-    a detector's box is centred on its object, so the object is the cluster with the most pixels in the box's central
-    part (`BOX_CENTRE_SHARE` of its width and height), not the wall behind it; and the object spans the depths of
-    that cluster's central pixels (`CORE_DEPTH_QUANTILE`, give or take a DBSCAN radius), not the desk it stands on.
-    """
+    """(H, W) bool: the object's pixels in a box, found by depth clustering on a grid of `BOX_SAMPLES` pixels. The box's
+    returns within `max_depth_m` and `floor_z_m` above the floor (None: every return) are clustered by DBSCAN; the
+    object is the cluster with the most pixels in the box's centre (`BOX_CENTRE_SHARE`), spanning the depths of its
+    central pixels (`CORE_DEPTH_QUANTILE`), not the wall behind it or the desk under it."""
     height, width = depth_m.shape
     x0, y0, x1, y1 = box_to_pixels(box_xyxy, width, height)
     mask = np.zeros((height, width), bool)

@@ -1,28 +1,9 @@
 """The `detections` perception backend: per-frame detections that any external detector wrote to a file.
 
-The file is the contract between bimfactor and a detector it does not run (YOLO-World, Grounding DINO, a ROS node):
-JSON Lines, one line per colour frame::
-
-    {"timestamp": 12.345, "detections": [{"label": "chair", "score": 0.83, "box": [x0, y0, x1, y1],
-                                          "mask": {"size": [h, w], "counts": "..."}, "embedding": [...]}]}
-
-- `timestamp`: the colour image's stamp in seconds, matched to a frame's `timestamp_s` within
-  `TIMESTAMP_TOLERANCE_S`; or `"frame": N`, the frame's index (frames.csv's `index` column: 0, 1, 2, ... in a
-  simulated sequence, the source stream's index in a converted one, so it survives keyframe selection).
-- `label` any text (it is embedded with the prior's text encoder); `score` in [0, 1], faced with the paper's
-  thresholds `perception.box_threshold` and `text_threshold`.
-- `box` in pixels (x right, y down), x1 / y1 exclusive; a box may pass the image border by `BOX_SLACK_PX` (rounding
-  of a resized prediction) and is clipped to it.
-- `mask` (optional): COCO run-length encoding, column-major runs starting with a run of zeros, `counts` either the
-  compressed string pycocotools writes or the uncompressed list of run lengths; `size` is [height, width] and must be
-  the image's. Without a mask the box is segmented by depth clustering (`box_mask`).
-- `embedding` (optional): a vector in the prior's embedding space (as many values as its text encoder gives); without
-  it the label's text embedding stands in.
-- A frame with no detections has an empty list; a frame the file does not mention has none either.
-
-`read_detections` checks the whole file before any heavy work: each problem is one `InputError` naming the file and
-line. `write_detections` writes the format (the simulator writes `detections.jsonl` into every sequence it makes);
-`attach_detections` checks a file against a sequence folder and copies it in.
+The file (JSON Lines, one line per colour frame, each naming its frame by `timestamp` or `frame` index, with labelled,
+scored boxes and optional RLE masks and embeddings) is specified in docs/perception.md. `read_detections` checks the
+whole file before any heavy work, each problem one `InputError` naming the file and line; `write_detections` writes
+it; `attach_detections` checks a file against a sequence folder and copies it in.
 """
 
 from __future__ import annotations

@@ -1,13 +1,8 @@
 """The online open-set scene graph of a whole recording from its camera poses (`bimfactor scene-graph`).
 
-Localization builds the graph in the odometry frame from planar poses; mapping a recording builds it in the world
-frame from 6-DoF camera poses: a TUM folder's motion-capture poses of a hand-held camera, or a robot's sequence's
-ground-truth (else odometry) poses composed with its camera mount. Each frame is perceived, lifted and fused as the
-localizer does it (`Perception.perceive`, `OnlineSceneGraph.update`). At the end, duplicates are merged and nodes
-seen in one frame only are dropped, as the graph's pruning does every few frames during the recording.
-
-`fused_cloud` gathers the frames' depth into one voxel-downsampled cloud for the figure; `graph_record` is what
-scene_graph.json holds.
+Built in the world frame from 6-DoF camera poses (a TUM folder's motion capture, or a sequence's ground truth, else
+odometry, through its camera mount), each frame perceived, lifted and fused as the localizer does; at the end
+duplicates merge and nodes seen once are dropped. `fused_cloud` is the figure's cloud, `graph_record` scene_graph.json.
 """
 
 from __future__ import annotations

@@ -1,18 +1,10 @@
 """A real scene-text reader for door plates: RapidOCR (PP-OCRv4 detection + recognition on ONNX Runtime).
 
-`RapidOcrReader` implements the `TextReader` protocol: it finds text in a frame's colour image and reads it,
-e.g. the room numbers "101" or "A204" on door plates. The PP-OCRv4 ONNX models ship inside the
-`rapidocr-onnxruntime` wheel, so it runs offline with no weight files to provide and nothing downloaded.
-The library is imported inside the constructor; a missing one is a DependencyError with the install hint.
-`from_engine` wraps an already built engine, so tests can inject a fake one.
-
-`PlateReader` reads only where a door plate can be: RapidOCR on a whole 320 × 240 frame (upscaled to 981 × 736
-first, RapidOCR's default) costs 0.2–0.6 s, and most of that frame is floor, ceiling, furniture and walls too far
-to read. `plate_region` boxes, from the depth and the camera mount, the surfaces at the heights door plates hang
-(`PLATE_HEIGHTS_M`) within reading range (`READ_RANGE_M`), in the image columns where the localizer's belief holds a
-plate (`plate_columns`); RapidOCR detects text in that box at the scale it would give the whole frame
-(`OCR_FOCAL_PX`) and recognises it (no angle classifier: plates hang upright). A frame with no such surface, or
-whose belief holds no plate in view, is not read.
+`RapidOcrReader` implements the `TextReader` protocol with the models the `rapidocr-onnxruntime` wheel ships (offline;
+a missing library is a DependencyError with the install hint; `from_engine` wraps a built engine, for tests).
+`PlateReader` reads only where a door plate can be: `plate_region` boxes the surfaces at plate height
+(`PLATE_HEIGHTS_M`) within `READ_RANGE_M` in the columns where the belief holds a plate (`plate_columns`), and
+RapidOCR reads that box at the scale it would give the whole frame (`OCR_FOCAL_PX`). docs/perception.md.
 """
 
 from __future__ import annotations
@@ -210,12 +202,9 @@ def has_strokes(rgb: np.ndarray, focal_px: float) -> bool:
 
 
 class PlateReader:
-    """Door plates read where they can be (module docstring): the `TextReader` of real frames.
-
-    `intrinsics` and `T_base_camera` are the sequence's; readings with score ≥ `min_score` and non-blank text are kept,
-    their boxes in the frame's pixels. The plate region goes to RapidOCR as it is, its text detector told to scale it
-    to `OCR_FOCAL_PX` (RapidOCR scales an image's shorter side to `limit_side_len`); the recogniser reads the region's
-    own pixels, as RapidOCR does on a whole frame."""
+    """Door plates read where they can be (module docstring): the `TextReader` of real frames, with the sequence's
+    `intrinsics` and `T_base_camera`; readings with score ≥ `min_score` and non-blank text are kept, their boxes in the
+    frame's pixels."""
 
     wants_columns = True
 

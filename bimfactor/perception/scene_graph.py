@@ -1,30 +1,14 @@
 """The online open-set scene graph M (paper Sec. II.B), built frame by frame in the odometry frame.
 
 One update reads like the paper:
-1. lift:      each detection's mask is lifted to 3D with the depth, K, the camera mount and the odometry pose,
-              voxel-downsampled and denoised by DBSCAN (`lifting.lift_mask`).
-2. associate: a lifted instance j joins node k when cos(f_j, f_k) ≥ δ_sim AND IoU_3(j, k) ≥ δ_IoU (the 3D
-              overlap below); among such pairs a one-to-one assignment maximising cos + IoU_3 (Hungarian); the
-              rest start new nodes.
-3. fuse:      voxel sets are united (then already voxel-downsampled: they are voxel sets), the embedding is the
-              running mean f_k = (n f_k + f_j)/(n + 1) (kept unnormalised with its count n, normalised for use),
-              the label is the majority vote of the fused labels.
-4. prune:     every `prune_every` frames, nodes smaller than `prune_size_ratio` × the median node (in voxels) go,
-              and so do nodes seen only once and not for `prune_stale_frames` frames.
-Edges join nodes whose centroids are closer than `edge_distance_m`.
-
-The 3D overlap compares axis-aligned boxes (grown by `iou_padding_m`) of the new instance and of the part of
-the node the current camera can see (its voxels inside the image and not behind the observed depth). Boxes, not
-voxel sets: two depth samplings of one surface share few 5 cm voxels once depth noise (σ up to 6 cm at 6 m) and
-odometry drift shift them, while their boxes barely move; the padding keeps a one-face view a box, not a sheet.
-The visible part, not the whole node: a node fused from many views covers more than any one view does.
-`overlap_measure` chooses the number compared with δ_IoU: `iou` is the paper's IoU_3; `overlap` (the default)
-is the intersection over the smaller box, like the point-overlap ratio ConceptGraphs merges objects with (at
-visual similarity and overlap thresholds 0.7 / 0.7, the paper's values). IoU is symmetric, so a first glimpse of a
-table's front edge never reaches 0.7 against a later view of its whole top: on the duplex with a perfect front
-end and ground-truth poses, IoU leaves 77 duplicate nodes over 83 objects (precision 0.51), the overlap
-coefficient 10 (precision 0.89); with the `paper` preset and simulated odometry, precision 0.44 vs 0.61. Every
-`prune_every` frames, node pairs that pass both thresholds on their whole boxes are merged as well.
+1. lift:      each detection's mask is lifted to 3D and voxel-downsampled (`lifting.lift_mask`).
+2. associate: a lifted instance j joins node k when cos(f_j, f_k) ≥ δ_sim AND its 3D overlap with the part of k the
+              camera can see ≥ δ_IoU (`overlap_measure`: the paper's IoU, or the overlap coefficient); a one-to-one
+              assignment maximising cos + overlap (Hungarian); the rest start new nodes.
+3. fuse:      voxel sets are united, the embedding is the running mean, the label the majority vote.
+4. prune:     every `prune_every` frames small and stale nodes go, and node pairs that pass both thresholds merge.
+Edges join nodes whose centroids are closer than `edge_distance_m`. Why boxes and the overlap coefficient:
+docs/perception.md.
 """
 
 from __future__ import annotations

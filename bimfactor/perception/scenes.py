@@ -1,9 +1,8 @@
 """Perception test drives: the camera circles groups of furniture, looking at them.
 
-The standard trajectories cross rooms on planned paths and, in a building as sparse as the paper floor (86 ×
-86 m, 43 objects along the walls), come within 6 m of almost nothing. A furniture tour visits every group of
-objects (BIM objects within `link_m` of each other) on a navigable arc `clearance_m` beyond the group, so the
-front end and the graph see objects from several sides. Odometry is simulated between the poses as usual.
+The standard trajectories see few objects in a sparse building; a furniture tour visits every group of objects (BIM
+objects within `link_m` of each other) on a navigable arc `clearance_m` beyond it, so the front end and the graph see
+objects from several sides (`bimfactor bench graph --tour`).
 """
 
 from __future__ import annotations

@@ -1,54 +1,10 @@
 """The `sim` perception backend: detections, masks and crop embeddings from the simulator's instance buffer.
 
-The simulator renders, per pixel, which instance the ray hit (`Frame.instance_ids`, `SequenceMeta.instances`).
-This backend turns that ground truth into what a YOLO-World + SAM + CLIP front end would report, with errors
-drawn from a named preset (`bimfactor/configs/perception_sim.yaml`, chosen by `perception.sim_preset`):
-
-Detection (SimDetector). Each BIM object (and as-built clutter) instance in view gets a quality
-    q = σ((range_half − d)/range_width) · σ((v − visible_half)/visible_width) · σ((ln A − ln area_half)/width)
-from its median depth d, its visible fraction v and its visible pixel area A (σ the logistic). The visible
-fraction is estimated from the buffer alone: the share of the instance's boundary pixels whose neighbour is
-the image border (truncation) or a closer surface (occlusion), v = 1 − that share. Box score
-box_score_max·q + N(0, box_score_std²) and text score N(text_score_mean, text_score_std²) face the paper's
-thresholds δ_box = δ_text = 0.25; `miss_prob` adds appearance misses. A kept detection is relabelled with
-probability `confusion_rate`, the new label drawn from the household vocabulary with p ∝ exp(cos(t_true, t_l)/τ)
-(cosines of the text embedder), so a chair becomes an armchair or a sofa far more often than a bathtub. The
-crop's embedding follows the confusion: it is drawn as an instance of the class the detector took it for.
-False positives: Poisson(`false_positive_candidates`) boxes per frame centred on structure or clutter pixels,
-scores U(0, `false_positive_score_max`), labels drawn by the same kernel from the structure's own label
-(a wall becomes a window or a cabinet). Boxes get corner noise (`box_jitter` × side).
-
-Masks (SimSegmenter): the instance's pixels in the box, dilated or eroded by 1..`mask_radius_px` pixels, plus
-`mask_bleed` × area random background pixels of the box (what SAM leaks onto the wall behind).
-
-Crop embeddings (SimEmbedder), in the space of the BIM text embeddings. An instance of class c has the
-appearance A = t_c + g·m + b·v_c + σ_i·u_i, where t_c is the unit text embedding of c, m a shared "image
-modality" direction and v_c a per-class visual direction (both unit and orthogonal to the span of the label
-texts, so they leave crop-to-text cosines untouched), u_i a per-instance direction; one view of it is
-e = normalise(Σ_k w_k A_k + σ_v·u_view), mixing the instances under the mask by pixel share. With unit
-random u in D dimensions and μ, s the mean and std of the cosines between distinct vocabulary labels:
-    crop-to-text matched ≈ 1/N ± σ_n/(√D N), unmatched ≈ μ/N ± √(s² + σ_n²/D)/N, σ_n² = σ_i² + σ_v²,
-    N² = 1 + g² + b² + σ_n²;  crop-to-crop: same object (1 + g² + b² + σ_i²)/N², same class (1 + g² + b²)/N²,
-    other class (μ + g²)/N².
-The coefficients are solved so that d' = Δμ/σ_pooled of matched vs unmatched crop-to-text cosines equals
-`embedding_dprime` and the crop-to-crop cosines equal the preset's. CLIP ViT-L/14 zero-shot on object crops
-gives matched 0.28 ± 0.03 vs unmatched 0.19 ± 0.03, d' ≈ 3: the `paper` preset asks for d' = 3 and CLIP-like
-image-to-image cosines (same object 0.90, same class 0.78, other class 0.55), so δ_sim = 0.7 fuses views of one
-object but not a chair with the table it stands under. A sentence-encoder space cannot match CLIP's raw values
-at that d' (MiniLM label texts spread as 0.30 ± 0.10, so σ_n must be ≈ 4.3 and 1/N ≤ 0.23); only d' is matched.
-
-Measured with the `paper` preset and MiniLM (duplex, six standard trajectories; paper floor, a 100-frame
-furniture tour): recall of objects within 6 m (≥ 50 pixels) 0.65 / 0.75, pooled 0.68; confused labels 0.19 /
-0.18; false positives 0.29 / 0.31 per frame; crop-to-text cosines in `MEASURED_PAPER` (d' ≈ 3.2); crop-to-crop
-0.90 same object, 0.79 same class, 0.58 other class. `clean`: recall 1.0, no confusion or false positive,
-d' ≈ 6; `harsh`: recall 0.54, confusion 0.38, 0.68 false positives per frame, d' ≈ 1.9 (duplex). Reproduce
-with `bimfactor.evaluation.graph.sim_detector_statistics` (`bimfactor bench graph`).
-In CLIP-like terms the `paper` preset wants a matched crop to score above an unmatched one by ~3 σ; the
-localizer's `smcl.semantic.threshold` must then sit between the two means (≈ 0.08), not at MiniLM
-text-to-text values such as 0.7.
-
-Every random choice comes from a numpy Generator: per-frame draws from the generator the caller passes,
-persistent appearance vectors from generators seeded by (seed, stream, instance id or label checksum).
+It turns the simulator's ground truth into what a YOLO-World + SAM + CLIP front end would report, with errors drawn
+from a named preset (`bimfactor/configs/perception_sim.yaml`, chosen by `perception.sim_preset`): detection quality
+by range, visible fraction and area (`SimDetector`), mask errors (`SimSegmenter`) and crop embeddings with a chosen
+separation d′ (`SimEmbedder`). The model, its derivation and its measured rates: docs/perception.md, "The sim
+backend's model".
 """
 
 from __future__ import annotations

@@ -1,13 +1,9 @@
 """Door-plate text: the simulator's reader, and where a reading is in the robot frame.
 
-`SimTextReader` reads the door plates the simulator hung (`sim.door_plates`, `bim.plates`) from the instance
-buffer: a plate at least `sim_min_height_px` high and wide is legible, and read with a chance that grows with the
-width its characters take in the image (`read_probability`: distance and an oblique view narrow them); each
-character is then read as a look-alike (`bim.plates.look_alikes`) with `sim_look_alike_rate`, as any other letter or
-digit with `sim_char_error_rate`, or lost with `sim_drop_rate` (the defaults are fitted to RapidOCR on the
-simulator's rendered plates, `tools/calibrate_text_reader.py`). Real images go through
-`perception.ocr.RapidOcrReader`. `locate_readings` places any reader's readings in the robot base frame from the
-depth under their boxes: the `TextObservations` the localizer weighs (`localization.measurements.text`).
+`SimTextReader` reads the simulator's door plates from the instance buffer: legible at `sim_min_height_px`, read with a
+chance that grows with the characters' width in the image (`read_probability`), each character then misread as a
+look-alike, as another, or lost at the rates `tools/calibrate_text_reader.py` fitted to RapidOCR. `locate_readings`
+places any reader's readings in the base frame from the depth under their boxes (`TextObservations`).
 """
 
 from __future__ import annotations

@@ -1,14 +1,9 @@
 """The `vlm` perception backend of the paper: YOLO-World detections, SAM masks, CLIP ViT-L crop embeddings.
 
-Weights are local files named in the config (this code never downloads): `perception.vlm.yolo_world_weights`,
-`perception.vlm.sam_weights` (+ `sam_model_type`), and CLIP's `embed.clip_model` / `embed.clip_weights`: one
-checkpoint for both CLIP towers, so it stays with the text encoder, which also reads it where no vlm backend runs
-(`bimfactor prior`, a detections file with CLIP embeddings). Crop embeddings are compared with BIM text embeddings,
-so the text embedder must be CLIP's text tower of the same model; a config that mixes CLIP crops with MiniLM text
-is a ConfigError. `check_vlm_ready` checks the files, that pairing and the libraries in milliseconds, before any
-heavy work; a missing weight file is a DependencyError naming the file, its config key and where to download it, a
-missing library one naming `bash tools/setup.sh --vlm`. Libraries are imported inside the constructors. Each
-class also has `from_model` taking an already built model, so tests can run randomly initialised ones.
+Weights are local files named in the config (never downloaded); the text embedder must be CLIP's text tower of the
+same model (ConfigError otherwise). `check_vlm_ready` checks files, pairing and libraries before any heavy work: a
+missing file is a DependencyError naming it, its config key and where to get it. Each class has `from_model`, for
+tests with randomly initialised models.
 """
 
 from __future__ import annotations

@@ -1,21 +1,10 @@
 """The `yolox` perception backend: YOLOX-Nano, the detector that ships inside the package, run by ONNX Runtime.
 
-YOLOX-Nano (Megvii, Apache-2.0; `bimfactor/models/yolox_nano.onnx`, 3.7 MB) is trained on COCO's 80 classes. It finds
-chairs, tables, sofas, beds, plants, screens, toilets, sinks and fridges, and has no class for doors, windows,
-cabinets, shelves, radiators or stairs. Its boxes go through the same depth segmentation as any box detector's
-(`perception.boxes`) and are embedded by their label's text.
-
-One frame: the colour image is letterboxed into 416 × 416 (scaled by r = min(416/h, 416/w), padded with 114 at the
-bottom and right, BGR, 0–255), the network gives one row per grid cell of the strides 8, 16 and 32 ([dx, dy, log w,
-log h, objectness, 80 class scores]); a row's box is centre (d + cell) · stride, size exp(log size) · stride, divided
-by r, and its score objectness × class score. Rows below `perception.box_threshold` are dropped, the rest go through
-non-maximum suppression over all labels (OpenCV's `NMSBoxes`, IoU `NMS_IOU`).
-
-A COCO class becomes a label of the prior's vocabulary (`coco_label_table`) the way an IFC element's name does: the
-vocabulary's rules first ("couch" → sofa, "tv" → television, "toilet" → water closet), then the nearest vocabulary
-label by the sentence encoder where its cosine reaches δ_sim (`perception.sim_threshold`, the paper's "same thing"
-threshold: "laptop" → computer); a class that reaches none ("person", "keyboard", "book") is dropped, and the detector
-never reports it.
+YOLOX-Nano (Megvii, Apache-2.0; `bimfactor/models/yolox_nano.onnx`) is trained on COCO's 80 classes. A frame is
+letterboxed into 416 × 416, decoded per grid cell of the strides 8, 16 and 32, thresholded at
+`perception.box_threshold` and suppressed (`NMSBoxes`, IoU `NMS_IOU`); a COCO class becomes a label of the prior's
+vocabulary by its rules, then by the nearest label within δ_sim, or is dropped (`coco_label_table`). Its boxes go
+through the depth segmentation of any box detector (`perception.boxes`). What it sees: docs/perception.md.
 """
 
 from __future__ import annotations

@@ -1,11 +1,7 @@
 """Registrars from optional libraries, for the comparison: small_gicp (GICP) and KISS-ICP (point-to-point).
 
-Neither is a dependency of bimfactor: install them with `pip install 'bimfactor[registrars]'`. They are
-imported when a registrar is constructed; a missing one is a DependencyError with that hint.
-
-Both run in 6-DoF like `Open3dIcp` and are held to SE(2) the same way (`CentredRegistrar`: culled local
-target, a frame centred on the initial pose, projection onto x, y, yaw); diagnostics come from
-`registration_result`, so all registrars are scored alike.
+Installed with `pip install 'bimfactor[registrars]'` (a missing one is a DependencyError with that hint), both run in
+6-DoF and are held to SE(2) like `Open3dIcp` (`CentredRegistrar`); diagnostics come from `registration_result`.
 """
 
 from __future__ import annotations
@@ -74,12 +70,8 @@ class SmallGicp(CentredRegistrar):
 
 
 class KissIcp(CentredRegistrar):
-    """KISS-ICP's point-to-map registration (point-to-point, Geman–McClure kernel) against a voxel map of the target.
-
-    KISS-ICP adapts its threshold over a sequence; for one registration the correspondence distance is
-    `max_correspondence_m` and the kernel a third of it (KISS-ICP's own 3σ rule). The voxel size equals the
-    correspondence distance, so the neighbouring voxels it searches cover it.
-    """
+    """KISS-ICP's point-to-map registration (point-to-point, Geman–McClure kernel) against a voxel map of the target:
+    the correspondence distance `max_correspondence_m`, the kernel a third of it, the voxel size the distance."""
 
     def __init__(self, cfg: RegistrationConfig, name: str = "kiss_icp") -> None:
         self.cfg = cfg

@@ -1,30 +1,11 @@
 """The coarse-to-fine stage: refine one mode's pose against the BIM walls, gate it, and hand the back end a factor.
 
-Per keyframe and per mode of the multi-hypothesis back end: build the keyframe's scan (once, shared by the
-modes), register it against the mode's storey surface from the mode's pose, gate the result (fit,
-correction size, degeneracy, consistency with the mode's covariance, ambiguity probes), and return the
-corrected pose with a body-frame information matrix for a PriorFactorPose2. Nothing here raises on bad
-sensor data: an empty or all-NaN depth image, a pose that is not finite or an unknown storey give a
-result that is not accepted, with the reason.
-
-How the localizer calls it (`prior`, `cfg` the run's; `graph_step` what `MultiHypothesisBackend.step` returned
-for keyframe `graph_step.index`; `recent` the previous keyframes, oldest first):
-
-    fine = FineRegistration.for_prior(prior, cfg)          # once per run: surface models built once per prior
-    scan = fine.scan(frame, meta, recent)                  # once per keyframe, shared by every mode
-    for mode in graph_step.modes:
-        out = fine.register_scan(scan, mode.pose, mode.storey, mode.covariance)
-        if out.accepted:
-            backend.add_pose_factor(mode.mode_id, graph_step.index, out.pose, out.information_body)
-
-`fine.register(frame, meta, pose, storey, covariance, recent)` does both steps for one pose. With
-`registration.submap_keyframes` = N > 1 the scan stitches the last N − 1 of `recent` to the frame, placed by
-their odometry (or by `recent_poses`, e.g. the mode's smoothed trajectory).
-
-The information matrix: ICP's JᵀJ/σ² treats every scan point as an independent measurement and is about
-40 times too confident in σ (measured: 1 mm claimed against 9 mm RMS error on simulated keyframes), so the
-factor's covariance is ICP's plus a floor (`factor_min_sigma_m`, `factor_min_sigma_deg`), and the result is
-rotated into GTSAM's body frame (the convention of `MultiHypothesisBackend.add_pose_factor`).
+Per keyframe the scan is built once (`FineRegistration.scan`, stitching `registration.submap_keyframes` − 1 recent
+keyframes by odometry) and registered from a mode's pose (`register_scan`), gated (fit, correction size, degeneracy,
+consistency with the mode's covariance, ambiguity probes) and returned with a body-frame information matrix for a
+PriorFactorPose2. Bad sensor data gives a result that is not accepted, with the reason, never an exception. ICP's
+JᵀJ/σ² is about 40 times too confident in σ, so the factor's covariance is ICP's plus a floor (`factor_min_sigma_m`,
+`factor_min_sigma_deg`).
 """
 
 from __future__ import annotations

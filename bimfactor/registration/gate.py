@@ -1,17 +1,10 @@
 """Gating: accept a registration only when it fits well, moved plausibly, and the scene constrains every direction.
 
-A featureless corridor (or a single visible wall) leaves one horizontal direction unconstrained: ICP then
-"converges" wherever it started along that direction with a perfect fit, so fitness and RMSE cannot catch
-it. The degeneracy check looks at the translational information instead.
-
-A scene can constrain every direction and still hold more than one good fit nearby (a run of identical
-bays, mirrored rooms): ICP then settles in whichever basin it started in, well constrained and with a
-good fit. The ambiguity check (`gate_with_probes`) re-registers from probe starts around the result and
-rejects it when some probe ends at another place with a fit at least as good. Given the coarse pose's
-covariance, the correction must also be consistent with it (χ² test), and places the coarse pose rules
-out do not count as alternatives. Measured on the registrar comparison's sweep (10 keyframes x 12 starts
-per building), the consistency test alone does not catch the wrong fits that passed the old gate (their
-corrections lie well inside a calibrated coarse covariance); the probes do, and reject no correct fit.
+A corridor or a single wall leaves a horizontal direction unconstrained with a perfect fit, so the degeneracy check
+reads the translational information, not fitness or RMSE. A scene can also hold several good fits nearby (identical
+bays, mirrored rooms): `gate_with_probes` re-registers from probe starts around the result and rejects it when a probe
+ends elsewhere with a fit at least as good; with the coarse pose's covariance, the correction must pass a χ² test and
+places it rules out do not count as alternatives. docs/registration.md.
 """
 
 from __future__ import annotations
@@ -137,15 +130,9 @@ def probe_starts(
     T_world_base_init: np.ndarray | None = None,
     covariance_world: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(P, 3) probe starts along the eigenvectors of the result's translational information (the least
-    constrained direction first) and in yaw.
-
-    Six probes test the result's own basin: `result.pose` ± `ambiguity_probe_m` along each axis and
-    ± `ambiguity_probe_deg` in yaw. Given the coarse pose and its covariance, the region it allows is sampled
-    too where it reaches farther: the initial pose ± the coarse σ along each axis (and in yaw) whose σ
-    exceeds the probe step. That catches a run of identical bays farther apart than the probe step when the
-    coarse pose cannot tell them apart (measured on a corridor of 3 m bays: each fit's basin is only about
-    ±0.5 m wide, so probes around the wrong bay's fit never reach the true one).
+    """(P, 3) probe starts: `result.pose` ± `ambiguity_probe_m` along each eigenvector of its translational information
+    (the least constrained first) and ± `ambiguity_probe_deg` in yaw; given the coarse covariance, also the initial
+    pose ± the coarse σ along each axis whose σ exceeds the probe step (identical bays farther apart than a probe).
     """
     info_xy = translational_information(result.information)
     axes = np.linalg.eigh(info_xy)[1].T if np.all(np.isfinite(info_xy)) else np.eye(2)

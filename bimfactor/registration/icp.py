@@ -1,29 +1,12 @@
 """Fine registrars: align a base-frame scan with a storey's BIM surface model, starting from a planar pose.
 
-The robot is planar, so every registrar returns an SE(2) pose (x, y, yaw) at the storey's floor height.
-Two ways of keeping to SE(2) are implemented:
-
-- `PlanarIcp` (the default, "planar") solves point-to-plane ICP directly over the three planar parameters:
-  Gauss–Newton on r_i = n_iᵀ(R(yaw)·s_i + t − m_i), correspondences from a KD-tree over the visible
-  surface around the initial pose, the correspondence distance shrinking from `max_correspondence_m`
-  to `final_correspondence_m`.
-  No roll, pitch or z ever enters, so walls alone (normals in the xy-plane) give a well-posed problem.
-- `Open3dIcp` runs Open3D's 6-DoF registration (point-to-point, point-to-plane, robust point-to-plane,
-  generalized ICP, or a coarse-to-fine schedule of point-to-plane) and projects the result onto
-  (x, y, yaw) at the floor height after every scale. With vertical walls only, z is in the null space
-  of the 6-DoF problem, and z, roll and pitch left free couple back into x, y and yaw (without the two
-  fixes below, runs diverged by metres on the paper floor). A virtual floor pins them: the scan's points dropped
-  to z = 0 and the target's samples dropped to the storey elevation, both with normal +z, enter the
-  problem; in the horizontal they duplicate the walls' footprint, so x, y and yaw are unaffected.
-  Open3D works in a frame centred on the initial pose (its rotation linearisation is about the origin).
-
-Both see only surface samples facing the initial position (`SurfaceModel.facing`): otherwise a scan of
-a wall's near face locks onto its far face, one wall thickness off, with a perfect fit (measured).
-
-Every result carries the same diagnostics, computed at the final pose by `evaluate_planar` so registrars
-compare fairly: fitness, point-to-plane inlier RMSE and the planar information matrix JᵀJ / σ². Open3D's
-`get_information_matrix_from_point_clouds` is not used: it models point-to-point residuals, so its
-translational block is (count · I) and cannot see that a corridor leaves its own axis unconstrained.
+Every registrar returns an SE(2) pose (x, y, yaw) at the storey's floor height. `PlanarIcp` ("planar") solves
+point-to-plane Gauss–Newton directly over (x, y, yaw); `Open3dIcp` runs one of Open3D's 6-DoF registrations and
+projects onto SE(2) after every scale, with a virtual floor pinning z, roll and pitch (docs/registration.md).
+Both see only surface samples facing the initial position (`SurfaceModel.facing`), so a scan of a wall's near face
+cannot lock onto its far face. Every result carries the same diagnostics, computed at the final pose by
+`evaluate_planar`: fitness, point-to-plane inlier RMSE and the planar information matrix JᵀJ / σ² (Open3D's own
+information matrix models point-to-point residuals and cannot see that a corridor leaves its axis unconstrained).
 """
 
 from __future__ import annotations
@@ -404,13 +387,9 @@ class Scale:
 
 
 class CentredRegistrar:
-    """The frame every 6-DoF registrar works in; subclasses implement `align`.
-
-    The target is the surface cropped around the initial pose to the scan's reach (back faces culled), so a
-    per-call KD-tree stays small. Everything is expressed in a frame centred on the initial pose: the
-    libraries linearise rotations about the origin, and lever arms of tens of metres (a large floor) made
-    Open3D diverge by metres from a 13° start. The result is projected onto (x, y, yaw) at the floor height.
-    """
+    """The frame every 6-DoF registrar works in; subclasses implement `align`. The target is the surface cropped around
+    the initial pose to the scan's reach, in a frame centred on that pose (the libraries linearise rotations about the
+    origin; lever arms of tens of metres made Open3D diverge); the result is projected onto (x, y, yaw)."""
 
     name: str
     cfg: RegistrationConfig

@@ -1,23 +1,9 @@
 """Robot trajectories through the building: room-to-room goals, grid path planning, pure-pursuit driving.
 
-The robot drives on a storey's indoor free space along paths planned on the BIM's navigation graph
-(`bim.navigation`: Dijkstra on 0.2 m blocks, shortcut at full resolution). A unicycle pure-pursuit controller
-with the robot's speed and turn-rate limits follows them; a keyframe is taken every
-`localization.keyframe_distance_m` of travel or `keyframe_angle_deg` of turn that the wheel odometry reads
-(`odometry.keyframe_due` on `sim.sensors.WheelOdometry`, as the localizer's own keyframe rule sees it), and a
-trajectory has exactly T keyframes: when a goal is reached first, a next goal in another room is chosen.
-
-Routes (`sim.trajectory.route`): `viewpoints` (the default) starts and stops where at least
-`min_view_objects` objects (doors left out) lie within `view_radius_m` in line of sight, and the robot faces
-them at the start and turns to them on arrival, the way a robot that has to relocalize looks around at
-things; `rooms` starts and stops anywhere roomy. In a building as sparse as the paper floor (43 objects over
-86 × 86 m), room-to-room routes see 0–2 objects per keyframe.
-
-Storey routes (`TrajectorySimulator.storey_route`) change floor through a portal of the prior (`BimPrior.portals`):
-the robot drives its route on one floor for half of its keyframes, then to the portal's end, goes through and
-drives on on the other floor, at least `AFTER_CHANGE_KEYFRAMES` keyframes (the route is that much longer where the way
-to the portal took longer). A lift ride takes `LIFT_RIDE_S` per floor with the wheels still; a stair is climbed
-(the robot is one that can) at `STAIR_SPEED_MPS` from its foot to its head. No keyframe is taken in between.
+The robot follows paths planned on the BIM's navigation graph (`bim.navigation`) with a unicycle pure-pursuit
+controller within its speed and turn-rate limits, and takes a keyframe when its wheel odometry says one is due
+(`odometry.keyframe_due`), until the trajectory has exactly T keyframes. Routes (`sim.trajectory.route`: `viewpoints`
+or `rooms`) and storey routes through a portal (`TrajectorySimulator.storey_route`): docs/simulator.md.
 """
 
 from __future__ import annotations

@@ -1,16 +1,9 @@
 """The scan term of the measurement model: the depth frame's horizontal scan against the BIM's likelihood field.
 
-Beyond the paper, whose measurement model is semantic only. The depth image is cut to the obstacle band of the
-occupancy grid and turned into a 2-D scan like a laser's: per bearing bin of `scan.beam_deg`, the nearest return
-(`scan_endpoints`). A particle's scan score is the likelihood-field model (Thrun et al., Probabilistic Robotics,
-Table 6.3) with the prior's clearance layer as the field: each endpoint, placed in the world by the particle's
-pose, scores exp(−d² / 2σ²) with d its distance to the nearest BIM obstacle (walls and furniture), and the
-particle's score is the mean over the endpoints, in [0, 1]. The mean, not the product, keeps clutter and moved
-furniture (endpoints far from any BIM obstacle) at a bounded cost and puts the term on the semantic score's
-scale: log P(z_scan|x) = score / `smcl.scan.temperature`.
-
-Walls constrain yaw and position wherever the robot looks, also when no object is in view; the semantic term
-tells places of the same shape apart.
+Beyond the paper. The depth image, cut to the grid's obstacle band, becomes a 2-D scan (the nearest return per
+`scan.beam_deg` bin, `scan_endpoints`); each endpoint placed by a particle's pose scores exp(−d² / 2σ²), d its
+distance to the nearest BIM obstacle (the likelihood field, Probabilistic Robotics Table 6.3), and the particle's
+score is the mean over endpoints, so clutter costs a bounded amount: log P(z_scan|x) = score / `smcl.scan.temperature`.
 """
 
 from __future__ import annotations
@@ -64,16 +57,11 @@ def scan_endpoints(
     sensor: SensorConfig,
     max_z_m: float,
 ) -> np.ndarray:
-    """(N, 2) base-frame x, y of one endpoint per bearing bin: the nearest surface's median return.
+    """(N, 2) base-frame x, y of one endpoint per `beam_deg` bearing bin: the nearest surface's median return.
 
-    Points are kept between `sensor.min_z_m` and `max_z_m` (the top of the grid's obstacle band) above the floor
-    and within `sensor.max_range_m` (horizontal); bins are `beam_deg` wide. NaN depth is no return. In each bin
-    the returns within w of the nearest one form the nearest surface, and the endpoint is their median by range:
-    the nearest return alone is the minimum of hundreds of noisy samples of a wall, biased short by about 3σ of the
-    depth noise (15 cm at 5 m for a RealSense-like camera). w = `surface_sigmas` (6) σ(r) of the noise
-    (`sensor.depth_noise`) at the nearest return's range r, within `surface_min_m` … `surface_m`: it holds
-    a wall's ±3σ spread, and no more. A fixed 0.3 m took in the top of a low table seen from above, whose returns
-    lie behind its edge, and put the endpoint 0.15–0.2 m inside the table (`bimfactor bench scanmatch`).
+    Returns between `sensor.min_z_m` and `max_z_m` above the floor and within `sensor.max_range_m` count (NaN: none). A
+    bin's surface is its returns within `surface_sigmas` σ(r) of the nearest one (clamped to `surface_min_m` …
+    `surface_m`): the nearest return alone is biased short by about 3σ of the depth noise.
     """
     points = height_band(points.base, sensor.min_z_m, max_z_m)
     ranges = np.hypot(points[:, 0], points[:, 1])

@@ -1,28 +1,15 @@
 """The S-MCL measurement model (paper Sec. II.C, Eqs. 1–4): semantic × spatial pair scores, Hungarian matching.
 
-For a particle x and its candidate BIM objects (visible from x's lattice cell, within r and the field of view),
-each candidate k has a distance d and bearing α relative to x; each observation j has d_obs, α_obs and an
-embedding f_j. The pair score is
+For a particle x, each candidate BIM object k in view has a distance d and bearing α, each observation j d_obs, α_obs
+and an embedding f_j; the pair score is
 
     φ = φ_sem · φ_dist · φ_ang,  φ_sem = cos(f_j, C_k),  φ_dist = exp(−|d_obs − d| / σ_d),
     φ_ang = exp(κ_α (cos(α_obs − α) − 1)),
 
-with pairs whose φ_sem is below `threshold` screened out (φ = 0). With `footprint_match` (beyond the
-paper) d and α are those of the point of k's footprint box nearest to where observation j puts the node: a node is
-the centroid of the object's seen part, which lies anywhere on a large object's footprint, so a 3 m table seen from
-one end is not penalised for being a metre from the table's centre. A one-to-one assignment of
-observations to candidates maximises the summed φ (Hungarian); the particle's score is that sum divided by the
-number of observations K, so an observation without a partner counts 0 (a particle that explains fewer of the
-observations scores lower; clutter that no particle explains lowers every particle alike). The likelihood is
-P(z|x) = exp(K^(1−γ) · score / T) (`count_exponent` γ): γ = 1 is the paper's exp(score / T), where a frame
-of six matched objects weighs as much as a frame of one; γ = 0 (beyond the paper, the default) is exp(Σφ / T),
-each observation its own factor, as independent measurements multiply. The candidates' radius r is the prior's
-visibility table's (`bim.visibility.radius_m`).
-
-Everything but the assignment is computed for all particles at once on the sparse set of pairs that pass the
-FOV and semantic screens, then laid out as a padded (M, K, C) array. The assignment is exact for every particle
-but calls scipy's Hungarian solver only for the few whose contested part is larger than 2 × 2 (see
-`assignment_sums`); on the synth office that is ~2 % of the particles with 12 observations.
+with φ_sem below `threshold` screened out. A one-to-one assignment maximises Σφ (Hungarian), the score is that sum
+over the K observations, and P(z|x) = exp(K^(1−γ) · score / T) (`count_exponent` γ; `footprint_match`: docs/filter.md).
+Everything but the assignment runs for all particles at once on a padded (M, K, C) array; scipy's Hungarian solver
+is called only where the contested part is larger than 2 × 2 (`assignment_sums`).
 """
 
 from __future__ import annotations

@@ -1,20 +1,14 @@
 """The door-plate term of the measurement model (beyond the paper).
 
-A reading t seen at range r and bearing b from pose x is explained by a plate j (`bim.plates`) on x's storey,
-in front of x (x is on the side its wall faces), whose text it matches:
+A reading t seen at range r and bearing b from pose x is explained by a plate j (`bim.plates`) on x's storey, in front
+of x, whose text it matches:
 
     q_j(x) = exp(−cost(t, s_j)) · φ_dist(r, d_j(x)) · φ_ang(b, α_j(x))
     P(t | x) = ε + (1 − ε) · max_j q_j(x)
 
-with ε = `smcl.text.unexplained`, φ_dist and φ_ang the paper's terms with its σ_d and κ_α, and cost the cheapest
-edit of the normalised texts (`bim.plates.normalise_text`) into each other: a substitution of look-alike characters
-(`bim.plates.look_alikes`: "8" for "B") costs `smcl.text.look_alike_cost`, any other substitution, insertion or
-deletion `smcl.text.edit_cost`. OCR misreads a character mostly as its look-alike, so "8204" where "B204" hangs is a
-likely misread and "A204" an unlikely one. The readings of a
-step are independent, log P(z_text | x) = Σ_k log P(t_k | x). ε is the chance that a reading is a misread or a
-plate the model does not know: one reading moves a particle's weight by at most 1/ε against another's, and a
-reading that no plate near any particle matches moves nothing. Plates repeat their room's number at every door
-into it, so a particle is matched to the best of them (no one-to-one assignment: a frame reads one or two).
+with ε = `smcl.text.unexplained`, φ_dist and φ_ang the semantic term's, and cost the cheapest edit of the normalised
+texts, a look-alike substitution ("8" for "B") costing `smcl.text.look_alike_cost` and any other edit
+`smcl.text.edit_cost`. A step's readings are independent: log P(z_text | x) = Σ_k log P(t_k | x). docs/filter.md.
 """
 
 from __future__ import annotations

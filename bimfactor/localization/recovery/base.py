@@ -1,17 +1,11 @@
 """The three roles a recovery of the filter plays, and when the filter asks each (`filter.SemanticMCL.step`):
 
-- an `Injection` redraws particles at a resampling: it watches each measurement update (`after_update`: augmented
-  MCL's likelihood averages, the door plates the belief does not explain), then says how many particles to redraw
-  instead of resampling them (`replacements`) and where (`draw`; fewer: the rest are drawn uniformly);
-- a `LostDetection` says, once a step after the update, that the belief must be spread over the building again
-  (`lost` > 0: the frames since it stopped explaining the data);
-- a `Verification` checks a converged belief: after the estimate it may hand over a weighted particle set the belief
-  should take instead (`challenge`), and it decides whether a compact estimate may be reported converged
-  (`confirms`: the challenger, only once it looked for a look-alike place and found none that explains the frames
-  as well).
+- an `Injection` watches each update (`after_update`) and redraws particles at a resampling (`replacements`, `draw`);
+- a `LostDetection` says after the update that the belief must be spread over the building again (`lost` > 0);
+- a `Verification` may hand over a particle set the belief should take (`challenge`) and decides whether a compact
+  estimate may be reported converged (`confirms`).
 
-Each starts over (`reset`) when the particles are set anew: a start, a relocalization, a set taken over.
-`Recoveries` holds the ones the configuration enables.
+Each starts over (`reset`) when the particles are set anew. `Recoveries` holds the ones the configuration enables.
 """
 
 from __future__ import annotations

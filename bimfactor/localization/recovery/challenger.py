@@ -1,24 +1,9 @@
 """The challenger, beyond the paper: a second, small filter that a converged belief must keep out-predicting.
 
-A belief that converged in the wrong one of two rooms of the same shape explains each frame almost as well as the
-right one would: its scan fit stays at its usual level (the relocalization never fires) and augmented MCL's
-averages settle there too. What tells the rooms apart is evidence summed over frames, against an alternative. The
-challenger is that alternative: `particles` poses that explain the current frame's observations (each one
-observation by one BIM object, `ParticleSampler.from_observations`; uniform over free space where those run short),
-drawn from `oversample` times as many by the frame's scan, then run as a filter of its own on the same frames. From
-the next frame on, each frame's log predictive likelihoods ln p(z | challenger) and ln p(z | belief) (one
-measurement model for both, so their ratio is a Bayes factor) feed Page's CUSUM of their difference. When it
-exceeds `threshold_nats` while the challenger's estimate lies elsewhere, the belief takes the challenger's
-particles. A challenger that agrees with the belief (estimates within `agree_m` on one storey) for `agree_frames`
-frames in a row, or has not won within `max_frames`, is drawn again at the next frame: the belief is checked
-against fresh alternatives for as long as it is compact. The frame it is drawn from does not count (the draw was
-chosen to fit it). Its draws come from a generator of its own, so the belief's draws are those it would make
-without it.
-
-The challenger also decides when a compact belief may be called converged (`confirms`): once a challenger agreed
-with it, or ran `max_frames` while the belief predicted the frames at least as well in sum. Until then another
-place may explain the frames as well, and the flag stays down: a belief that collapsed on a look-alike office is
-compact but not converged. A belief that spreads again, or is handed over, must be confirmed anew.
+Drawn from poses that explain the current frame's observations, it runs on the same frames as the belief; Page's
+CUSUM of the two filters' log predictive likelihoods (a Bayes factor) hands its particles to the belief when it
+passes `threshold_nats` while its estimate lies elsewhere. It also decides when a compact belief may be called
+converged (`confirms`). Why and how: docs/filter.md.
 """
 
 from __future__ import annotations

@@ -13,27 +13,12 @@ from bimfactor.localization.measurements.base import FrameData, Update
 class LostMonitor:
     """Tells when a belief that was tracking stops explaining the depth scans: the kidnapped robot.
 
-    Each frame's fit is the belief's predicted scan score, Σ w_i s_i in [0, 1] (`Update.scan_fit`): about
-    0.55 while tracking (the prediction's spread and the depth noise keep it under 1), about 0.1 for a cloud
-    spread over the building, 0.01–0.2 in the first frames after a kidnapping to an unlike place, and 0.3–0.45 for
-    many frames after one to a place whose walls the old belief half explains. The monitor keeps a running average
-    of the fit (rate `fit_alpha`) and is armed once that average covers 1 / `fit_alpha` frames and has
-    reached `min_fit` (a belief still spread or just converged after a global start is never called lost).
-    Armed, two tests say lost:
-    - a sudden drop: `frames` consecutive frames below `fit_ratio` × the average. It must be quick:
-      within two or three frames of a kidnapping the motion noise finds the old belief places nearby that fit the
-      new scans locally;
-    - a held one, Page's CUSUM of the fit's log-ratio to the average: S ← max(0, S + min(ln(average / fit), h) −
-      `cusum_drift`), lost when S exceeds h = `cusum_threshold`. A fit held at half the average takes
-      four frames; fits above e^−drift ≈ 0.67 of it never add up (a robot nosing up to furniture the map lacks
-      dips to about half for a few frames).
-    No single frame says lost (a passer-by filling the view). Frames that start or continue either test stay out
-    of the average. Frames with fewer than `min_endpoints` scan endpoints (facing a wall at arm's length)
-    leave it as it is.
-
-    When it says lost, it also says since when: the frames of the excursion that led there, from the frame at which
-    S (or the streak) last left zero. That is Page's estimate of the change point, where a kidnapped recording's
-    continuous stretches part (`LocalizationRun.segments`).
+    Each frame's fit is the belief's predicted scan score Σ w_i s_i in [0, 1] (`Update.scan_fit`). Armed once its
+    running average (rate `fit_alpha`) covers 1 / `fit_alpha` frames and has reached `min_fit`, it says lost on a sudden
+    drop (`frames` consecutive frames below `fit_ratio` × the average) or a held one (Page's CUSUM of ln(average / fit),
+    less `cusum_drift`, above `cusum_threshold`); frames in either test stay out of the average, and frames with fewer
+    than `min_endpoints` endpoints leave it as it is. It also says since when: Page's change point, where the run's
+    stretches part (`LocalizationRun.segments`). Measurements behind the numbers: docs/filter.md, "Relocalization".
     """
 
     def __init__(self, cfg: RelocalizeConfig) -> None:
