@@ -62,7 +62,6 @@ from bimfactor.perception.pipeline import make_perception
 from bimfactor.progress import progress
 from bimfactor.registration.fine import FineRegistration, FineResult
 from bimfactor.types import (
-    STOREY_CHANGE,
     Frame,
     Observations,
     SequenceMeta,
@@ -212,11 +211,6 @@ class Keyframe:
     perception_parts: dict[str, float]
     detections: list[Detection] = field(default_factory=list)
     readings: list[TextReading] = field(default_factory=list)
-
-    @property
-    def storey_change(self) -> int:
-        """The floors the robot went up (+) or down (−) since the last keyframe, when the frame says so (0: no word)."""
-        return int(self.frame.extras.get(STOREY_CHANGE, 0))
 
     @property
     def seen(self) -> Observations | None:
@@ -497,7 +491,7 @@ class Localizer:
         if not self.due(frame):
             return None
         key = self.keyframe(frame)
-        filtered = self.filter.step(key.increment, key.seen, key.scan, key.storey_change)
+        filtered = self.filter.step(key.increment, key.seen, key.scan, key.frame.storey_change)
         self._converged, self._suggestion = filtered.converged, None
         out = LocalizerStep.of(key, filtered)
         for stage in self._stages:
@@ -509,7 +503,7 @@ class Localizer:
         turned `keyframe_angle_deg` since the last keyframe (`odometry.keyframe_due`), one with a storey-change event,
         or one without a finite odometry pose (for `keyframe` to refuse)."""
         raw = np.asarray(frame.odom_pose, float)
-        if self._last_odom is None or not np.all(np.isfinite(raw)) or frame.extras.get(STOREY_CHANGE, 0):
+        if self._last_odom is None or not np.all(np.isfinite(raw)) or frame.storey_change:
             return True
         odom = raw if self._odom_offset is None else se2_compose(self._odom_offset, raw)
         steps = self.cfg.localization

@@ -119,6 +119,11 @@ class Frame:
     instance_ids: np.ndarray | None = None
     extras: dict[str, float] = field(default_factory=dict)
 
+    @property
+    def storey_change(self) -> int:
+        """The floors the robot went up (+) or down (−) since the frame before, when it was told (0: no word)."""
+        return int(self.extras.get(STOREY_CHANGE, 0))
+
 
 STOREY_CHANGE = "storey_change"
 """The `Frame.extras` key (frames.csv's `extra.storey_change`) of a storey-change event, as a barometer, an IMU or a
