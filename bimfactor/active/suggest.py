@@ -46,8 +46,9 @@ class Suggestion:
     `odom_pose` (3,) the robot's odometry pose the suggestion is for; `goal_odom` (3,) x, y, yaw in the odometry
     frame; `path_odom` / `path_world` (P, 2) the path to it in the odometry frame and in the most probable place's
     world frame (on `storey`); `gain_nats` the expected information gain of
-    its view, `travel_m` the expected path length. `candidates_odom` (C, 3) and `gains_nats` (C,) are every
-    candidate scored, `seen_odom` (V, 3) the views already weighed (the route so far), for figures."""
+    the views on the way and at the goal, `travel_m` the expected path length; `route_gain_nats` that of the route's
+    next views (0 without a route). `candidates_odom` (C, 3) and `gains_nats` (C,) are every candidate scored,
+    `seen_odom` (V, 3) the views already weighed (the route so far), for figures."""
 
     hypotheses: list[Hypothesis]
     odom_pose: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -60,6 +61,7 @@ class Suggestion:
     candidates_odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     gains_nats: np.ndarray = field(default_factory=lambda: np.zeros(0))
     seen_odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    route_gain_nats: float = 0.0
     entropy_nats: float = 0.0
     reason: str = ""
 
@@ -89,6 +91,7 @@ class Suggestion:
             },
             "reason": self.reason,
             "expected_gain_nats": self.gain_nats,
+            "route_gain_nats": self.route_gain_nats,
             "belief_entropy_nats": self.entropy_nats,
             "travel_m": self.travel_m,
             "storey": self.storey,
@@ -170,11 +173,14 @@ class Suggester:
         modes_share: float = 1.0,
         converged: bool = False,
         seen_odom: np.ndarray | None = None,
+        route_odom: np.ndarray | None = None,
     ) -> Suggestion:
         """The next goal for (K,) hypotheses (probabilities summing to 1, most probable first) at the robot's current
         odometry pose; `modes_share` is the particle weight the hypotheses hold, `converged` the filter's flag,
         `seen_odom` (V, 3) the odometry poses of the views the filter has weighed (the localizer keeps the last
-        `SEEN_VIEWS`)."""
+        `SEEN_VIEWS`), `route_odom` (R, 3) the odometry poses of the keyframes the robot's route takes next (its
+        planned path through `path_views`); those beyond `horizon_m` of path are not counted. The route is a
+        candidate of no cost: where its views are worth as much as the best candidate's way, nothing is suggested."""
         cfg = self.cfg.active
         hyps = distinct_places(hypotheses)
         odom_pose = np.asarray(odom_pose, float)
@@ -204,7 +210,8 @@ class Suggester:
         positions = reachable[_farthest_points(graph.node_xy[reachable], max(cfg.candidates // HEADINGS, 1))]
         yaws = np.arange(HEADINGS) * (2 * np.pi / HEADINGS)
         world = np.column_stack([np.repeat(graph.node_xy[positions], HEADINGS, axis=0), np.tile(yaws, len(positions))])
-        relative = se2_compose(se2_inverse(top.pose), world)  # (C, 3) in the robot's frame
+        to_robot = se2_inverse(top.pose)
+        relative = se2_compose(to_robot, world)  # (C, 3) in the robot's frame
         poses = np.stack([se2_compose(h.pose, relative) for h in hyps], axis=1)  # (C, K, 3)
         storeys = np.asarray([h.storey for h in hyps], np.int64)
         p = np.asarray([h.probability for h in hyps], float)
@@ -215,46 +222,74 @@ class Suggester:
             travel[:, k] = self._travel(h, poses[:, k, :2])
         everywhere = np.isfinite(travel).all(axis=1)
         keep = everywhere if everywhere.any() else np.isfinite(travel[:, 0])
+        # Evidence accumulates along a path: a candidate's is that of the views on the way (one a keyframe, heading
+        # along the path) and of its goal's, each beyond what the views already weighed give.
+        weighed = self.weighed_evidence(hyps, storeys, odom_pose, seen_odom)
+        paths = [graph.plan(top.pose[:2], pred, int(node)) for node in positions]
+        on_way = [path_views(path, self.cfg.localization.keyframe_distance_m) for path in paths]
+        owner = np.repeat(np.arange(len(positions)), [len(v) for v in on_way])
+        way = np.zeros((len(positions), len(hyps), len(hyps)))
+        if len(owner):
+            way_relative = se2_compose(to_robot, np.concatenate(on_way))
+            np.add.at(way, owner, self.unweighed_evidence(way_relative, hyps, storeys, weighed))
         gains = np.zeros(len(relative))
-        gains[keep] = information_gain(p, self.unweighed_evidence(poses[keep], storeys, hyps, odom_pose, seen_odom))
+        evidence = self.unweighed_evidence(relative[keep], hyps, storeys, weighed) + np.repeat(way, HEADINGS, 0)[keep]
+        gains[keep] = information_gain(p, evidence)
         expected_travel = np.where(np.isfinite(travel), travel, 0.0) @ p / np.maximum(np.isfinite(travel) @ p, 1e-12)
         keyframes = self._keyframes(relative, expected_travel)
         informative = keep & (gains >= MIN_GAIN_NATS)
         out.candidates_odom = se2_compose(odom_pose, relative[keep])
         out.gains_nats = gains[keep]
+        # The route's own next views: a candidate of no cost (the robot takes those keyframes anyway).
+        route = self._route_ahead(odom_pose, route_odom)
+        if len(route):
+            route_evidence = self.unweighed_evidence(route, hyps, storeys, weighed).sum(axis=0)
+            out.route_gain_nats = float(information_gain(p, route_evidence[None])[0])
         if not informative.any():
             out.reason = "no reachable view within the horizon tells the places apart"
             return out
         score = np.where(informative, gains - cfg.cost_per_keyframe * keyframes, -np.inf)
         best = int(np.argmax(score))
+        if len(route) and score[best] <= out.route_gain_nats:
+            out.reason = "the route's next views are worth more"
+            return out
         if score[best] <= 0:  # no view is worth its way: the route's own keyframes are worth more
             out.reason = "no view within the horizon is worth the way there"
             return out
-        goal_node = positions[best // HEADINGS]
         out.goal_odom = se2_compose(odom_pose, relative[best])
         out.gain_nats, out.travel_m, out.storey = float(gains[best]), float(expected_travel[best]), top.storey
-        out.path_world = graph.plan(top.pose[:2], pred, int(goal_node))
-        in_robot = se2_compose(se2_inverse(top.pose), np.column_stack([out.path_world, np.zeros(len(out.path_world))]))
+        out.path_world = paths[best // HEADINGS]
+        in_robot = se2_compose(to_robot, np.column_stack([out.path_world, np.zeros(len(out.path_world))]))
         out.path_odom = se2_compose(odom_pose, in_robot)[:, :2]
         return out
 
-    def unweighed_evidence(
-        self,
-        poses: np.ndarray,
-        storeys: np.ndarray,
-        hyps: list[Hypothesis],
-        odom_pose: np.ndarray,
-        seen_odom: np.ndarray | None,
+    def weighed_evidence(
+        self, hyps: list[Hypothesis], storeys: np.ndarray, odom_pose: np.ndarray, seen_odom: np.ndarray | None
     ) -> np.ndarray:
-        """(C, K, K) the evidence the candidates' views at (C, K, 3) poses give beyond the views already weighed:
-        D − max over the seen views of theirs, ≥ 0. The filter weighed those views and the places are still apart,
-        so the predicted evidence of views like them is what the filter does not realise."""
-        D = self.views.discrepancy(poses, storeys)
+        """(K, K) what the views already weighed tell between the places by the model: the most any of them does
+        (zeros without any). The filter weighed them and the places are still apart, so views like them tell the
+        filter nothing more."""
+        K = len(hyps)
         if seen_odom is None or not len(seen_odom):
-            return D
+            return np.zeros((K, K))
         seen = se2_compose(se2_inverse(odom_pose), np.asarray(seen_odom, float).reshape(-1, 3))
-        in_places = np.stack([se2_compose(h.pose, seen) for h in hyps], axis=1)  # (V, K, 3)
-        return np.maximum(D - self.views.discrepancy(in_places, storeys).max(axis=0), 0.0)
+        return self.unweighed_evidence(seen, hyps, storeys, np.zeros((K, K))).max(axis=0)
+
+    def unweighed_evidence(
+        self, relative: np.ndarray, hyps: list[Hypothesis], storeys: np.ndarray, weighed: np.ndarray
+    ) -> np.ndarray:
+        """(N, K, K) the evidence the views at (N, 3) poses relative to the robot give beyond the (K, K) `weighed`:
+        D − weighed, ≥ 0."""
+        poses = np.stack([se2_compose(h.pose, relative) for h in hyps], axis=1)  # (N, K, 3)
+        return np.maximum(self.views.discrepancy(poses, storeys) - weighed, 0.0)
+
+    def _route_ahead(self, odom_pose: np.ndarray, route_odom: np.ndarray | None) -> np.ndarray:
+        """(R, 3) the route's next keyframe poses relative to the robot, those within `horizon_m` of path."""
+        if route_odom is None or not len(route_odom):
+            return np.zeros((0, 3))
+        route = se2_compose(se2_inverse(odom_pose), np.asarray(route_odom, float).reshape(-1, 3))
+        along = np.cumsum(np.hypot(*np.diff(np.vstack([np.zeros((1, 2)), route[:, :2]]), axis=0).T))
+        return route[along <= self.cfg.active.horizon_m]
 
     def _keyframes(self, relative: np.ndarray, travel_m: np.ndarray) -> np.ndarray:
         """(C,) keyframes the robot takes to reach each (C, 3) relative pose along paths of (C,) length: the distance
@@ -274,6 +309,24 @@ class Suggester:
         dist, _ = graph.shortest_paths(graph.nearest_node(hypothesis.pose[:2]), 1.5 * self.cfg.active.horizon_m)
         gap, node = graph.nearest_nodes(xy)
         return np.where(gap <= SNAP_M, dist[node], np.inf)
+
+
+def path_views(path_xy: np.ndarray, spacing_m: float) -> np.ndarray:
+    """(V, 3) the views the robot takes on its way along a (P, 2) path: one every `spacing_m` of path after its start
+    and before its end, heading along the path (x, y, yaw)."""
+    path_xy = np.asarray(path_xy, float).reshape(-1, 2)
+    seg = np.diff(path_xy, axis=0)
+    length = np.hypot(seg[:, 0], seg[:, 1])
+    seg, start, length = seg[length > 1e-9], path_xy[:-1][length > 1e-9], length[length > 1e-9]
+    if not len(length):
+        return np.zeros((0, 3))
+    ends = np.cumsum(length)
+    s = np.arange(1, int(np.ceil(ends[-1] / spacing_m))) * spacing_m
+    s = s[s < ends[-1]]
+    k = np.searchsorted(ends, s, side="right")
+    t = (s - (ends[k] - length[k])) / length[k]
+    xy = start[k] + t[:, None] * seg[k]
+    return np.column_stack([xy, np.arctan2(seg[k, 1], seg[k, 0])])
 
 
 def _farthest_points(xy: np.ndarray, n: int) -> np.ndarray:

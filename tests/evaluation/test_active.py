@@ -19,10 +19,10 @@ def test_the_active_run_follows_suggestions_and_is_the_passive_run_until_the_fir
 ) -> None:
     cfg = load_config(None, [*config_overrides, "evaluation.trajectory_length=16", "localization.variant=smcl+graph"])
     prior = BimPrior.load(paper_floor_prior)
-    run, frames, steer = active_route(paper_floor_prior, cfg, 2, 0, twin_motions(prior))
+    (passive,), _ = simulate_routes(paper_floor_prior, cfg, [(2, 16)])
+    run, frames, steer = active_route(paper_floor_prior, cfg, 2, 0, twin_motions(prior), route=passive.frames)
     assert len(frames) == len(run.poses) == 16
     assert steer.first_suggestion is not None and steer.goals  # the belief narrowed to a few places and asked
-    (passive,), _ = simulate_routes(paper_floor_prior, cfg, [(2, 16)])
     first = steer.first_suggestion + 1  # frames up to and including the one the first suggestion came after
     for mine, theirs in zip(frames[:first], passive.frames[:first], strict=True):
         np.testing.assert_allclose(mine.gt_pose, theirs.gt_pose)
@@ -34,6 +34,13 @@ def test_the_active_run_follows_suggestions_and_is_the_passive_run_until_the_fir
         for mine, theirs in zip(frames[first:], passive.frames[first:], strict=True)
     ]
     assert max(off) > 0.1, off
+    # The localizer weighed the route's next keyframes as a candidate while the robot was on the route, not after.
+    steer.frames = frames[:first]
+    np.testing.assert_array_equal(steer.route_ahead(), [f.odom_pose for f in passive.frames[first:]])
+    steer.frames = frames
+    assert steer.route_ahead() is None
+    steer.frames = frames[: first + int(np.argmax(np.asarray(off) > 1e-6)) + 1]  # the first frame off the route
+    assert steer.route_ahead() is None
 
 
 def test_the_active_scenario_reports_each_variant_and_its_closed_loop(
