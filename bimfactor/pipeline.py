@@ -598,7 +598,8 @@ class Localizer:
         if self._suggestion is not None and self._suggested_route == key:
             return self._suggestion
         if self._suggester is None:
-            self._suggester = Suggester(self.prior, self.filter.models.semantic.visibility, self.cfg, self.meta)
+            visibility = self.filter.models.semantic.visibility
+            self._suggester = Suggester(self.prior, visibility, self.cfg, self.meta, self.filter.models)
         weights = self.filter.estimation_weights()
         modes = extract_modes(self.filter.particles, weights, self.cfg.backend, self.filter.storeys)
         share = float(sum(m.weight for m in modes))
@@ -607,12 +608,12 @@ class Localizer:
             p = m.weight / share
             twin, evidence = self.twins.get(m.storey), self.filter.twin_evidence
             if twin is None or evidence is None:
-                hypotheses.append(Hypothesis(m.mean, m.storey, p))
+                hypotheses.append(Hypothesis(m.mean, m.storey, p, m.covariance))
                 continue
             # The mode's image in the twin place explains the frames worse by the twin evidence's nats, no more.
             image = float(expit(-evidence.nats))
-            hypotheses.append(Hypothesis(m.mean, m.storey, p * (1 - image)))
-            hypotheses.append(Hypothesis(twin.apply(m.mean[None])[0], m.storey, p * image))
+            hypotheses.append(Hypothesis(m.mean, m.storey, p * (1 - image), m.covariance))
+            hypotheses.append(Hypothesis(twin.apply(m.mean[None])[0], m.storey, p * image, m.covariance))
         self._suggestion = self._suggester.suggest(
             hypotheses, self._believed_odom, share, self._converged, np.asarray(self._seen), route
         )

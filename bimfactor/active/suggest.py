@@ -12,12 +12,14 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.special import logsumexp
 
-from bimfactor.active.views import ViewPredictor
+from bimfactor.active.views import OBJECT_RECALL, PLATE_READ, ViewPredictor
 from bimfactor.bim.navigation import PLANNING_CELL_M, NavGraph, build_nav_graph
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config
+from bimfactor.localization.filter import FilterModels
 from bimfactor.types import SequenceMeta, se2_compose, se2_inverse, wrap_angle
 
 HEADINGS = 8  # candidate headings per position, 45° apart (half the field of view)
@@ -28,6 +30,13 @@ SAME_PLACE_M = 2.0  # modes closer than this on one storey are one place (a wron
 SNAP_M = 1.5 * PLANNING_CELL_M  # a candidate farther than this from a graph node is not on free space
 SEEN_VIEWS = 30  # the views already weighed that a candidate's evidence is counted beyond (the last 15 m or 450°)
 CLEARANCE_MARGIN_M = 0.1  # paths keep this much beyond the robot's radius from obstacles where they can
+RESCORED = 8  # the candidates best by the screen that the filter's own update then scores over their whole way
+PLACE_SAMPLES = 9  # poses of a place's spread the filter's update is averaged over (its mean and 8 fixed draws)
+MAX_SPREAD_M, MAX_SPREAD_RAD = 1.0, np.deg2rad(30.0)  # a place is at most this wide (a mode wider is a spread belief)
+# The chance a model's evidence is there to be seen: the detector's recall, a plate's read chance (the scan: always).
+SEEN_CHANCE = {"semantic": OBJECT_RECALL, "text": PLATE_READ}
+SEEN_STRIDE = 3  # of the views taken, every third (the last first) is scored by the filter's update
+_DRAWS = np.random.default_rng(0).standard_normal((PLACE_SAMPLES - 1, 3))  # fixed: one answer per belief
 
 
 @dataclass(frozen=True)
@@ -37,6 +46,7 @@ class Hypothesis:
     pose: np.ndarray
     storey: int
     probability: float
+    covariance: np.ndarray | None = None  # (3, 3) the pose's spread (world frame); None: a point
 
 
 @dataclass
@@ -126,7 +136,8 @@ def distinct_places(hypotheses: list[Hypothesis]) -> list[Hypothesis]:
         if same is None:
             places.append(h)
         else:
-            places[same] = Hypothesis(places[same].pose, h.storey, places[same].probability + h.probability)
+            kept = places[same]
+            places[same] = Hypothesis(kept.pose, h.storey, kept.probability + h.probability, kept.covariance)
     return places
 
 
@@ -154,10 +165,16 @@ class Suggester:
     per storey when first needed."""
 
     def __init__(
-        self, prior: BimPrior, visibility: VisibilityTable, cfg: Config, meta: SequenceMeta | None = None
+        self,
+        prior: BimPrior,
+        visibility: VisibilityTable,
+        cfg: Config,
+        meta: SequenceMeta | None = None,
+        models: FilterModels | None = None,
     ) -> None:
         self.prior, self.cfg = prior, cfg
         self.views = ViewPredictor(prior, visibility, cfg, meta)
+        self.models = models or FilterModels.build(prior, visibility, cfg.smcl)  # the filter's, when it runs
         self._graphs: dict[int, NavGraph] = {}
 
     def graph(self, storey: int) -> NavGraph:
@@ -222,29 +239,38 @@ class Suggester:
             travel[:, k] = self._travel(h, poses[:, k, :2])
         everywhere = np.isfinite(travel).all(axis=1)
         keep = everywhere if everywhere.any() else np.isfinite(travel[:, 0])
-        # Evidence accumulates along a path: a candidate's is that of the views on the way (one a keyframe, heading
-        # along the path) and of its goal's, each beyond what the views already weighed give.
+        # Screen: each candidate's goal view alone, by the BIM's discrepancy beyond what the views already weighed
+        # show; the best few, and the route, are then scored by the filter's own update over their whole way.
+        screen = np.zeros(len(relative))
         weighed = self.weighed_evidence(hyps, storeys, odom_pose, seen_odom)
-        paths = [graph.plan(top.pose[:2], pred, int(node)) for node in positions]
-        on_way = [path_views(path, self.cfg.localization.keyframe_distance_m) for path in paths]
-        owner = np.repeat(np.arange(len(positions)), [len(v) for v in on_way])
-        way = np.zeros((len(positions), len(hyps), len(hyps)))
-        if len(owner):
-            way_relative = se2_compose(to_robot, np.concatenate(on_way))
-            np.add.at(way, owner, self.unweighed_evidence(way_relative, hyps, storeys, weighed))
-        gains = np.zeros(len(relative))
-        evidence = self.unweighed_evidence(relative[keep], hyps, storeys, weighed) + np.repeat(way, HEADINGS, 0)[keep]
-        gains[keep] = information_gain(p, evidence)
+        screen[keep] = information_gain(p, np.maximum(self._discrepancy(relative[keep], hyps, storeys) - weighed, 0))
         expected_travel = np.where(np.isfinite(travel), travel, 0.0) @ p / np.maximum(np.isfinite(travel) @ p, 1e-12)
         keyframes = self._keyframes(relative, expected_travel)
-        informative = keep & (gains >= MIN_GAIN_NATS)
         out.candidates_odom = se2_compose(odom_pose, relative[keep])
-        out.gains_nats = gains[keep]
+        out.gains_nats = screen[keep]
+        screened = np.where(keep & (screen >= MIN_GAIN_NATS), screen - cfg.cost_per_keyframe * keyframes, -np.inf)
+        shortlist = np.argsort(-screened, kind="stable")[:RESCORED]
+        shortlist = shortlist[np.isfinite(screened[shortlist])]
+        spacing = self.cfg.localization.keyframe_distance_m
+        seen = se2_compose(se2_inverse(odom_pose), out.seen_odom[::-SEEN_STRIDE][::-1])
+        taken = self.update_evidence(seen, hyps, storeys).max(axis=0) if len(seen) else np.zeros((len(hyps),) * 2)
+
+        def gain_of(views: np.ndarray) -> float:
+            """IG of the views at (V, 3) relative poses by the filter's update, each beyond what a view taken gave."""
+            evidence = np.maximum(self.update_evidence(views, hyps, storeys) - taken, 0.0).sum(axis=0)
+            return float(information_gain(p, evidence[None])[0])
+
+        paths = {int(c // HEADINGS): graph.plan(top.pose[:2], pred, int(positions[c // HEADINGS])) for c in shortlist}
+        gains = np.full(len(relative), -np.inf)
+        for c in shortlist:
+            way = se2_compose(to_robot, path_views(paths[int(c // HEADINGS)], spacing))
+            views = np.vstack([way.reshape(-1, 3), relative[c][None]])
+            gains[c] = gain_of(views)
         # The route's own next views: a candidate of no cost (the robot takes those keyframes anyway).
         route = self._route_ahead(odom_pose, route_odom)
         if len(route):
-            route_evidence = self.unweighed_evidence(route, hyps, storeys, weighed).sum(axis=0)
-            out.route_gain_nats = float(information_gain(p, route_evidence[None])[0])
+            out.route_gain_nats = gain_of(route)
+        informative = gains >= MIN_GAIN_NATS
         if not informative.any():
             out.reason = "no reachable view within the horizon tells the places apart"
             return out
@@ -266,22 +292,46 @@ class Suggester:
     def weighed_evidence(
         self, hyps: list[Hypothesis], storeys: np.ndarray, odom_pose: np.ndarray, seen_odom: np.ndarray | None
     ) -> np.ndarray:
-        """(K, K) what the views already weighed tell between the places by the model: the most any of them does
-        (zeros without any). The filter weighed them and the places are still apart, so views like them tell the
-        filter nothing more."""
+        """(K, K) what the views already weighed tell between the places by the BIM's discrepancy: the most any of
+        them does (zeros without any). The filter weighed them and the places are still apart, so views like them
+        tell the filter nothing more."""
         K = len(hyps)
         if seen_odom is None or not len(seen_odom):
             return np.zeros((K, K))
         seen = se2_compose(se2_inverse(odom_pose), np.asarray(seen_odom, float).reshape(-1, 3))
-        return self.unweighed_evidence(seen, hyps, storeys, np.zeros((K, K))).max(axis=0)
+        return self._discrepancy(seen, hyps, storeys).max(axis=0)
 
-    def unweighed_evidence(
-        self, relative: np.ndarray, hyps: list[Hypothesis], storeys: np.ndarray, weighed: np.ndarray
-    ) -> np.ndarray:
-        """(N, K, K) the evidence the views at (N, 3) poses relative to the robot give beyond the (K, K) `weighed`:
-        D − weighed, ≥ 0."""
-        poses = np.stack([se2_compose(h.pose, relative) for h in hyps], axis=1)  # (N, K, 3)
-        return np.maximum(self.views.discrepancy(poses, storeys) - weighed, 0.0)
+    def _discrepancy(self, relative: np.ndarray, hyps: list[Hypothesis], storeys: np.ndarray) -> np.ndarray:
+        """(N, K, K) the BIM's discrepancy (`ViewPredictor.discrepancy`) of the views at (N, 3) poses relative to the
+        robot."""
+        return self.views.discrepancy(np.stack([se2_compose(h.pose, relative) for h in hyps], axis=1), storeys)
+
+    def update_evidence(self, relative: np.ndarray, hyps: list[Hypothesis], storeys: np.ndarray) -> np.ndarray:
+        """(V, K, K) E[v, k, j]: what the filter's own update takes against place j, in nats, from the view at each
+        of (V, 3) poses relative to the robot when place k is true: ln p(z_kv | place k) − ln p(z_kv | place j), z_kv
+        the frame the BIM predicts at place k's view v (`ViewPredictor.frames`), p(z | place) the filter's
+        measurement models averaged over `PLACE_SAMPLES` poses of the place's spread. Each model's term is taken at
+        the chance its evidence is seen (the detector's recall, a plate's read chance; the scan always)."""
+        K, V = len(hyps), len(relative)
+        offsets = np.stack([_spread_offsets(h) for h in hyps])  # (K, S, 3) in each place's frame
+        S = offsets.shape[1]
+        # The particles of every place after each view's motion: (V, K·S, 3), on their places' storeys.
+        starts = np.concatenate([se2_compose(h.pose, offsets[k]) for k, h in enumerate(hyps)])  # (K·S, 3)
+        particles = np.stack([se2_compose(starts, np.broadcast_to(v, (K * S, 3))) for v in relative])
+        particle_storeys = np.repeat(storeys, S)
+        truths = np.stack([se2_compose(h.pose, relative) for h in hyps], axis=1).reshape(V * K, 3)
+        frames = self.views.frames(truths, np.tile(storeys, V))
+        evidence = np.zeros((V, K, K))
+        for n, frame in enumerate(frames):
+            v, k = divmod(n, K)
+            log_p = np.zeros(K * S)
+            for model in self.models.measurements:
+                term = model.weigh(particles[v], particle_storeys, frame)
+                if term is not None:
+                    log_p += SEEN_CHANCE.get(model.name, 1.0) * term.log_likelihood
+            per_place = logsumexp(log_p.reshape(K, S), axis=1) - np.log(S)
+            evidence[v, k] = per_place[k] - per_place
+        return evidence
 
     def _route_ahead(self, odom_pose: np.ndarray, route_odom: np.ndarray | None) -> np.ndarray:
         """(R, 3) the route's next keyframe poses relative to the robot, those within `horizon_m` of path."""
@@ -327,6 +377,18 @@ def path_views(path_xy: np.ndarray, spacing_m: float) -> np.ndarray:
     t = (s - (ends[k] - length[k])) / length[k]
     xy = start[k] + t[:, None] * seg[k]
     return np.column_stack([xy, np.arctan2(seg[k, 1], seg[k, 0])])
+
+
+def _spread_offsets(hypothesis: Hypothesis) -> np.ndarray:
+    """(PLACE_SAMPLES, 3) poses of the place's spread in its own frame: the mean, then fixed normal draws scaled by
+    its position spread (the covariance's mean xy variance, so in any frame) and its heading spread, each capped."""
+    offsets = np.zeros((PLACE_SAMPLES, 3))
+    if hypothesis.covariance is not None:
+        cov = np.asarray(hypothesis.covariance, float)
+        xy = min(float(np.sqrt(max(np.trace(cov[:2, :2]) / 2, 0.0))), MAX_SPREAD_M)
+        yaw = min(float(np.sqrt(max(cov[2, 2], 0.0))), MAX_SPREAD_RAD)
+        offsets[1:] = _DRAWS * np.array([xy, xy, yaw])
+    return offsets
 
 
 def _farthest_points(xy: np.ndarray, n: int) -> np.ndarray:

@@ -41,6 +41,20 @@ def test_a_view_of_the_plate_separates_the_twins_and_a_view_inside_them_does_not
     assert plate_view > room_view
 
 
+def test_the_filters_own_update_reads_the_plate_and_nothing_else_tells_the_twins_apart(twins: Suggester) -> None:
+    # The frames the BIM predicts, weighed by the filter's own measurement models at the places' poses.
+    views = np.array([[5.5, 0.0, np.pi], [0.0, 0.0, np.pi]])  # facing room B's door and plate; the room's far wall
+    storeys = np.zeros(2, np.int64)
+    frames = twins.views.frames(np.stack([se2_compose(IN_B, v) for v in views]), storeys)
+    assert frames[0].observations.n_texts == 1 and frames[1].observations.n_texts == 0
+    assert len(frames[1].observations) > 0 and frames[0].has_scan
+    E = twins.update_evidence(views, [Hypothesis(IN_A, 0, 0.5), Hypothesis(IN_B, 0, 0.5)], storeys)
+    assert E.shape == (2, 2, 2) and np.allclose(np.diagonal(E, axis1=1, axis2=2), 0.0)
+    assert E[0, 1, 0] > 1.0  # B true: its plate is read (at its read chance), and A has none there
+    assert abs(E[0, 0, 1]) < 0.1  # A true: no plate to read, and the filter takes nothing from a plate not read
+    assert np.abs(E[1]).max() < 0.1  # the room's far wall: the same in both
+
+
 def test_the_suggestion_walks_past_the_plate(twins: Suggester) -> None:
     odom = np.array([1.0, -2.0, 0.3])  # any odometry frame
     hyps = [Hypothesis(CORRIDOR_A, 0, 0.5), Hypothesis(CORRIDOR_B, 0, 0.5)]
