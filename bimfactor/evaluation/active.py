@@ -40,6 +40,7 @@ from bimfactor.sim.simulate import (
     load_world_inputs,
     render_frame,
     sim_sequence_meta,
+    sim_sequence_name,
     simulate_sequence,
     world_obstacles,
 )
@@ -127,7 +128,8 @@ def active_route(
     starts = sim.start_rooms(cfg.seed)
     storey = starts[trajectory % len(starts)][0]  # the route's storey, as `TrajectorySimulator.trajectory` picks it
     camera = RgbdCamera.from_config(world, cfg)
-    name = f"active-{Path(prior.source_file).stem}-t{trajectory}-s{cfg.seed}"
+    # The passive route's name: its perception draws the same as the passive run's while the frames are the same.
+    name = sim_sequence_name(prior, trajectory, cfg.seed)
     meta = sim_sequence_meta(name, prior, world, camera, {"trajectory_index": trajectory, "seed": cfg.seed})
     matcher = scan_matcher(prior, cfg) if cfg.localization.variant in GRAPH_VARIANTS else None
     localizer = Localizer(prior, meta, cfg, run_seed(cfg.seed, trajectory, repeat), matcher=matcher, twins=twins)
