@@ -445,6 +445,7 @@ class Localizer:
         self._converged = False  # the filter's flag at the last step
         self._suggester: Suggester | None = None  # built at the first `suggest`
         self._suggestion: Suggestion | None = None  # `suggest`'s answer for the belief after the last step
+        self._suggested_route: bytes | None = None  # ... for this route (`suggest(route_odom)`)
         self._seen: deque[np.ndarray] = deque(maxlen=SEEN_VIEWS)  # odometry poses of the views the belief weighed
 
     @staticmethod
@@ -584,15 +585,21 @@ class Localizer:
         )  # fmt: skip
         return share > 0
 
-    def suggest(self) -> Suggestion:
+    def suggest(self, route_odom: np.ndarray | None = None) -> Suggestion:
         """Where to look next from the belief after the last step (`bimfactor.active`): the viewpoint, as a goal in the
-        odometry frame, whose predicted view best tells the filter's modes apart less the way there, with its
-        expected gain and path; or, with `goal_odom` None, the reason there is none (one place holds the belief, it
-        has converged, or it is still spread over the building). Asked again before the next step, the same answer."""
-        if self._suggestion is not None:
+        odometry frame, whose predicted views on the way and at it best tell the filter's modes apart less the way
+        there, with its expected gain and path; or, with `goal_odom` None, the reason there is none (one place holds
+        the belief, it has converged, it is still spread over the building, or the route's next views are worth
+        more). `route_odom` (R, 3): the odometry poses of the keyframes the robot's route takes next, where it has
+        one (`active.path_views` turns a planned path into them); the route is scored as a candidate of no cost.
+        Asked again with the same route before the next step, the same answer."""
+        route = None if route_odom is None else np.asarray(route_odom, float).reshape(-1, 3)
+        key = None if route is None else route.tobytes()
+        if self._suggestion is not None and self._suggested_route == key:
             return self._suggestion
         if self._suggester is None:
-            self._suggester = Suggester(self.prior, self.filter.models.semantic.visibility, self.cfg, self.meta)
+            visibility = self.filter.models.semantic.visibility
+            self._suggester = Suggester(self.prior, visibility, self.cfg, self.meta, self.filter.models)
         weights = self.filter.estimation_weights()
         modes = extract_modes(self.filter.particles, weights, self.cfg.backend, self.filter.storeys)
         share = float(sum(m.weight for m in modes))
@@ -601,15 +608,16 @@ class Localizer:
             p = m.weight / share
             twin, evidence = self.twins.get(m.storey), self.filter.twin_evidence
             if twin is None or evidence is None:
-                hypotheses.append(Hypothesis(m.mean, m.storey, p))
+                hypotheses.append(Hypothesis(m.mean, m.storey, p, m.covariance))
                 continue
             # The mode's image in the twin place explains the frames worse by the twin evidence's nats, no more.
             image = float(expit(-evidence.nats))
-            hypotheses.append(Hypothesis(m.mean, m.storey, p * (1 - image)))
-            hypotheses.append(Hypothesis(twin.apply(m.mean[None])[0], m.storey, p * image))
+            hypotheses.append(Hypothesis(m.mean, m.storey, p * (1 - image), m.covariance))
+            hypotheses.append(Hypothesis(twin.apply(m.mean[None])[0], m.storey, p * image, m.covariance))
         self._suggestion = self._suggester.suggest(
-            hypotheses, self._believed_odom, share, self._converged, np.asarray(self._seen)
+            hypotheses, self._believed_odom, share, self._converged, np.asarray(self._seen), route
         )
+        self._suggested_route = key
         return self._suggestion
 
     def run_of(self, frames: list[Frame], rows: list[LocalizerStep], snapshots: dict | None = None) -> LocalizationRun:

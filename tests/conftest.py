@@ -1,12 +1,16 @@
-"""Shared fixtures: the real IFC buildings beside the project, a per-session geometry cache, and a drive through
-the paper-floor building localized by each online variant (the localizer's and the offline refinement's tests).
+"""Shared fixtures: the real IFC buildings beside the project, the session's caches, and a drive through the
+paper-floor building localized by each online variant (the localizer's and the offline refinement's tests).
 
 Tests never write to ~/.cache: pass `config_overrides` to `load_config` (or `cli_config_args` to the CLI),
-or use `test_config` directly; they point `bim.ifc.cache_dir` at a temporary folder for the session.
+or use `test_config` directly; they point `bim.ifc.cache_dir` at a temporary folder for the session, and the text
+vectors' cache ($XDG_CACHE_HOME) is one too. Both are shared by the session's xdist workers: what one meshes or
+embeds, the others read.
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -78,10 +82,33 @@ def ifc_file(ifc_dir: Path):
     return get
 
 
+def _session_dir(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
+    """A folder of this test session's, shared by its xdist workers (each worker's temp folder lies in the run's)."""
+    base = tmp_path_factory.getbasetemp()
+    folder = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / name
+    folder.mkdir(exist_ok=True)
+    return folder
+
+
+@pytest.fixture(scope="session", autouse=True)
+def text_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The text vectors' cache of the session ($XDG_CACHE_HOME, read by `embed.text.text_cache_dir`), not the
+    user's; CLI runs in child processes inherit it."""
+    folder = _session_dir(tmp_path_factory, "xdg-cache")
+    before = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(folder)
+    yield folder
+    if before is None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+    else:
+        os.environ["XDG_CACHE_HOME"] = before
+
+
 @pytest.fixture(scope="session")
 def geometry_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One geometry cache for the whole session, so each IFC file is meshed at most once."""
-    return tmp_path_factory.mktemp("geometry-cache")
+    """One geometry cache for the whole session, so each IFC file is meshed at most once per worker and is read,
+    not meshed again, by a worker that asks for it after another wrote it (entries are written atomically)."""
+    return _session_dir(tmp_path_factory, "geometry-cache")
 
 
 @pytest.fixture(scope="session")

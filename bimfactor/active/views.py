@@ -16,7 +16,8 @@ from bimfactor.bim.plates import door_plates, normalise_text
 from bimfactor.bim.prior import BimPrior
 from bimfactor.bim.visibility import VisibilityTable
 from bimfactor.config import Config
-from bimfactor.types import CameraIntrinsics, SequenceMeta, wrap_angle
+from bimfactor.localization.measurements import FrameData
+from bimfactor.types import CameraIntrinsics, Observations, SequenceMeta, TextObservations, wrap_angle
 
 PLATE_LEGIBLE_M = 2.5  # a 15 cm plate is legible to ~2.4 m at 320 px over 90° (perception.text.sim_min_height_px)
 SCAN_BEAM_DEG = 6.0  # predicted scan: one beam per 6° (the filter weighs one per scan.beam_deg; this is a preview)
@@ -70,6 +71,9 @@ class ViewPredictor:
         texts = sorted({normalise_text(p.text) for p in plates})
         self.plate_text = np.asarray([texts.index(normalise_text(p.text)) for p in plates], np.int64)
         self.n_texts = len(texts)
+        self.plate_texts = [p.text for p in plates]
+        self.object_embeddings = np.asarray(prior.object_embeddings, np.float32)
+        self.object_labels = [o.label for o in prior.objects]
         self.plate_xy = np.asarray([p.xy for p in plates], float).reshape(-1, 2)
         self.plate_normal = np.asarray([p.normal_xy for p in plates], float).reshape(-1, 2)
         self.plate_storey = np.asarray([p.storey_index for p in plates], np.int64)
@@ -84,6 +88,17 @@ class ViewPredictor:
 
     # -------------------------------------------------------------------------------- predictions
 
+    def _in_view(self, poses: np.ndarray, storeys: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The objects in view from (N, 3) poses on (N,) storeys: owner pose, object id and the object's (x, y) in the
+        robot frame, one row each."""
+        offsets, ids = self.visibility.candidates(poses[:, :2], np.asarray(storeys, np.int64))
+        owner = np.repeat(np.arange(len(poses)), np.diff(offsets))
+        rel = self.object_xy[ids] - poses[owner, :2]
+        c, s = np.cos(poses[owner, 2]), np.sin(poses[owner, 2])
+        fx, fy = c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]
+        seen = (np.hypot(fx, fy) <= self.object_range_m) & (np.abs(np.arctan2(fy, fx)) <= self.half_fov)
+        return owner[seen], ids[seen], fx[seen], fy[seen]
+
     def objects(self, poses: np.ndarray, storeys: np.ndarray) -> np.ndarray:
         """(N, L · nx · ny) float32: the objects in view from (N, 3) poses on (N,) storeys, splatted bilinearly onto
         robot-frame cells of σ_d by label."""
@@ -91,13 +106,7 @@ class ViewPredictor:
         out = np.zeros((len(poses), self.n_labels * self.nx * self.ny), np.float32)
         if not len(self.object_xy):
             return out
-        offsets, ids = self.visibility.candidates(poses[:, :2], np.asarray(storeys, np.int64))
-        owner = np.repeat(np.arange(len(poses)), np.diff(offsets))
-        rel = self.object_xy[ids] - poses[owner, :2]
-        c, s = np.cos(poses[owner, 2]), np.sin(poses[owner, 2])
-        fx, fy = c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]
-        seen = (np.hypot(fx, fy) <= self.object_range_m) & (np.abs(np.arctan2(fy, fx)) <= self.half_fov)
-        owner, ids, fx, fy = owner[seen], ids[seen], fx[seen], fy[seen]
+        owner, ids, fx, fy = self._in_view(poses, storeys)
         u = fx / self.cell_m + 1.0
         v = fy / self.cell_m + (self.ny - 1) / 2
         u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
@@ -108,13 +117,9 @@ class ViewPredictor:
             np.add.at(out, (owner, col), w.astype(np.float32))
         return out
 
-    def plates(self, poses: np.ndarray, storeys: np.ndarray) -> np.ndarray:
-        """(N, texts) bool: the plate texts legible from (N, 3) poses on (N,) storeys."""
-        poses = np.asarray(poses, float).reshape(-1, 3)
+    def _legible(self, poses: np.ndarray, storeys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(pose, plate) index pairs of the plates legible from (N, 3) poses on (N,) storeys."""
         storeys = np.asarray(storeys, np.int64)
-        out = np.zeros((len(poses), self.n_texts), bool)
-        if not self.n_texts:
-            return out
         rel = self.plate_xy[None] - poses[:, None, :2]  # (N, P, 2)
         dist = np.hypot(rel[..., 0], rel[..., 1])
         bearing = wrap_angle(np.arctan2(rel[..., 1], rel[..., 0]) - poses[:, None, 2])
@@ -127,10 +132,19 @@ class ViewPredictor:
             & facing
         )
         n, p = np.nonzero(near)
-        if len(n):
-            angles = np.arctan2(rel[n, p, 1], rel[n, p, 0])
-            free = self._march(poses[n, :2], storeys[n], angles, dist[n, p]) >= dist[n, p] - 2 * _MARCH_STEP_M
-            out[n[free], self.plate_text[p[free]]] = True
+        if not len(n):
+            return n, p
+        angles = np.arctan2(rel[n, p, 1], rel[n, p, 0])
+        free = self._march(poses[n, :2], storeys[n], angles, dist[n, p]) >= dist[n, p] - 2 * _MARCH_STEP_M
+        return n[free], p[free]
+
+    def plates(self, poses: np.ndarray, storeys: np.ndarray) -> np.ndarray:
+        """(N, texts) bool: the plate texts legible from (N, 3) poses on (N,) storeys."""
+        poses = np.asarray(poses, float).reshape(-1, 3)
+        out = np.zeros((len(poses), self.n_texts), bool)
+        if self.n_texts:
+            n, p = self._legible(poses, storeys)
+            out[n, self.plate_text[p]] = True
         return out
 
     def scan(self, poses: np.ndarray, storeys: np.ndarray) -> np.ndarray:
@@ -142,6 +156,35 @@ class ViewPredictor:
         ranges = self._march(origins, np.repeat(np.asarray(storeys, np.int64), b), angles, self.scan_range_m)
         ranges = np.where(ranges < self.scan_range_m, ranges, np.nan).reshape(n, b)
         return np.stack([ranges * np.cos(self.beams), ranges * np.sin(self.beams)], axis=-1)
+
+    def frames(self, poses: np.ndarray, storeys: np.ndarray) -> list[FrameData]:
+        """What the filter would weigh at each of (N, 3) poses on (N,) storeys, by the BIM: every object in view as a
+        node at its centre (its label's embedding), every legible plate read as it hangs, and the predicted scan."""
+        poses = np.asarray(poses, float).reshape(-1, 3)
+        storeys = np.broadcast_to(np.asarray(storeys, np.int64), len(poses))
+        owner, ids, fx, fy = self._in_view(poses, storeys) if len(self.object_xy) else (np.zeros(0, int),) * 4
+        plate_of, plate = self._legible(poses, storeys) if self.n_texts else (np.zeros(0, int),) * 2
+        plate_rel = self.plate_xy[plate] - poses[plate_of, :2]
+        plate_range = np.hypot(plate_rel[:, 0], plate_rel[:, 1])
+        plate_bearing = wrap_angle(np.arctan2(plate_rel[:, 1], plate_rel[:, 0]) - poses[plate_of, 2])
+        scans = self.scan(poses, storeys) if self.field is not None else None
+        out = []
+        for n in range(len(poses)):
+            mine, read = owner == n, np.flatnonzero(plate_of == n)
+            texts = None
+            if len(read):
+                read_texts = [self.plate_texts[p] for p in plate[read]]
+                texts = TextObservations(read_texts, plate_range[read], plate_bearing[read])
+            observations = Observations(
+                self.object_embeddings[ids[mine]],
+                np.hypot(fx[mine], fy[mine]),
+                np.arctan2(fy[mine], fx[mine]),
+                [self.object_labels[i] for i in ids[mine]],
+                texts=texts,
+            )
+            scan = None if scans is None else scans[n][np.isfinite(scans[n, :, 0])]
+            out.append(FrameData(observations, scan))
+        return out
 
     def _march(self, origins: np.ndarray, storeys: np.ndarray, angles: np.ndarray, length: float | np.ndarray):
         """(N,) distance along each ray to the first occupied cell of its storey (`length` where none is hit)."""

@@ -40,6 +40,7 @@ from bimfactor.sim.simulate import (
     load_world_inputs,
     render_frame,
     sim_sequence_meta,
+    sim_sequence_name,
     simulate_sequence,
     world_obstacles,
 )
@@ -62,6 +63,15 @@ class _Steer:
     rows: list[LocalizerStep] = field(default_factory=list)
     goals: list[dict] = field(default_factory=list)
     first_suggestion: int | None = None
+    route: list[Frame] = field(default_factory=list)  # the passive route's frames, from the same start
+
+    def route_ahead(self) -> np.ndarray | None:
+        """(R, 3) the odometry poses of the route's next keyframes while the robot is still on the route (it has
+        not left it for a goal: its last frame is the route's), None once it has."""
+        k = len(self.frames) - 1
+        if k + 1 >= len(self.route) or not np.allclose(self.frames[k].gt_pose, self.route[k].gt_pose, atol=1e-9):
+            return None
+        return np.asarray([f.odom_pose for f in self.route[k + 1 :]], float)
 
     def on_keyframe(self, pose: np.ndarray, odom: np.ndarray, time_s: float, following: bool) -> np.ndarray | None:
         frame = render_frame(
@@ -75,7 +85,7 @@ class _Steer:
             return self._next_goal()
         # On the way: once nothing is to be told apart any more (one place holds the belief, or it converged, or it
         # spread out again), the goal is given up where the robot stands and it goes on with its route.
-        return None if self.localizer.suggest().goal_odom is not None else np.asarray(pose, float)
+        return None if self.localizer.suggest(self.route_ahead()).goal_odom is not None else np.asarray(pose, float)
 
     def on_arrival(self) -> np.ndarray | None:
         return self._next_goal()
@@ -83,7 +93,7 @@ class _Steer:
     def _next_goal(self) -> np.ndarray | None:
         """The localizer's suggestion as a goal in the true world: the odometry-frame goal carried by the true pose
         of the last keyframe (where the robot stands)."""
-        suggestion = self.localizer.suggest()
+        suggestion = self.localizer.suggest(self.route_ahead())
         if suggestion.goal_odom is None:
             return None
         last = self.frames[-1]
@@ -104,10 +114,12 @@ def active_route(
     repeat: int,
     twins: dict[int, Motion],
     loaded: tuple[BimPrior, SimWorld] | None = None,
+    route: list[Frame] | None = None,
 ) -> tuple[LocalizationRun, list[Frame], _Steer]:
     """One closed-loop run of route `trajectory` in the online variant `cfg.localization.variant`: the localizer's
     run, the frames it saw and the loop's record (goals, the keyframe of the first suggestion). `loaded`: the prior
-    and the seed's world, when the caller has them."""
+    and the seed's world, when the caller has them; `route`: the passive route's frames, whose next keyframes the
+    localizer scores as a candidate (`Localizer.suggest(route_odom)`) while the robot is on it."""
     if loaded is None:
         prior, model = load_world_inputs(prior_dir, cfg)
         loaded = prior, build_world(prior, model, cfg, cfg.seed)
@@ -116,7 +128,8 @@ def active_route(
     starts = sim.start_rooms(cfg.seed)
     storey = starts[trajectory % len(starts)][0]  # the route's storey, as `TrajectorySimulator.trajectory` picks it
     camera = RgbdCamera.from_config(world, cfg)
-    name = f"active-{Path(prior.source_file).stem}-t{trajectory}-s{cfg.seed}"
+    # The passive route's name: its perception draws the same as the passive run's while the frames are the same.
+    name = sim_sequence_name(prior, trajectory, cfg.seed)
     meta = sim_sequence_meta(name, prior, world, camera, {"trajectory_index": trajectory, "seed": cfg.seed})
     matcher = scan_matcher(prior, cfg) if cfg.localization.variant in GRAPH_VARIANTS else None
     localizer = Localizer(prior, meta, cfg, run_seed(cfg.seed, trajectory, repeat), matcher=matcher, twins=twins)
@@ -126,6 +139,7 @@ def active_route(
         prior.storeys[storey].storey.elevation_m,
         storey,
         np.random.default_rng([cfg.seed, trajectory, SENSOR_STREAM]),
+        route=list(route or []),
     )
     sim.trajectory(trajectory, cfg.seed, steer=steer)
     return localizer.run_of(steer.frames, steer.rows), steer.frames, steer
@@ -155,7 +169,9 @@ def active_runs(
     results = score_runs(cfg, prior, sim.frames, passive, window, trajectory, repeat, twins, matcher)
     # Each online variant drives its own loop: score the variants it yields on its own frames.
     for k, v in enumerate(online):
-        run, frames, _ = active_route(prior_dir, online_config(cfg, v), trajectory, repeat, twins, (prior, world))
+        run, frames, _ = active_route(
+            prior_dir, online_config(cfg, v), trajectory, repeat, twins, (prior, world), sim.frames
+        )
         served = [x for x in ev.variants if x in SERVED_BY.get(v, {v}) or (x == "smcl" and k == 0)]
         own = updated(cfg, {"evaluation.variants": served})
         results += score_runs(own, prior, frames, {v: run}, window, trajectory, repeat, twins, matcher, ACTIVE_SUFFIX)

@@ -90,7 +90,7 @@ def simulate_sequence(
         if i and storeys[i] != storeys[i - 1]:
             frames[-1].extras[STOREY_CHANGE] = float(floor[int(storeys[i])] - floor[int(storeys[i - 1])])
     meta = sim_sequence_meta(
-        f"sim-{Path(prior.source_file).stem}-t{trajectory_index}-s{seed}",
+        sim_sequence_name(prior, trajectory_index, seed),
         prior,
         world,
         camera,
@@ -175,6 +175,12 @@ def kidnap(first: list[Frame], second: list[Frame], at: int, resume_at: int) -> 
             )
         )
     return frames
+
+
+def sim_sequence_name(prior: BimPrior, trajectory_index: int, seed: int) -> str:
+    """The name of route `trajectory_index` of `seed`, which also seeds its sim perception's draws
+    (`perception.pipeline.sim_rng`): a closed loop on the same route and seeds draws what its frames would."""
+    return f"sim-{Path(prior.source_file).stem}-t{trajectory_index}-s{seed}"
 
 
 def sim_sequence_meta(name: str, prior: BimPrior, world: SimWorld, camera: RgbdCamera, extras: dict) -> SequenceMeta:
