@@ -241,9 +241,10 @@ class Suggester:
         keep = everywhere if everywhere.any() else np.isfinite(travel[:, 0])
         # Screen: each candidate's goal view alone, by the BIM's discrepancy beyond what the views already weighed
         # show; the best few, and the route, are then scored by the filter's own update over their whole way.
+        seen = se2_compose(se2_inverse(odom_pose), out.seen_odom)  # the views weighed, relative to the robot
+        weighed = self._discrepancy(seen, hyps, storeys).max(axis=0) if len(seen) else 0.0
         screen = np.zeros(len(relative))
-        weighed = self.weighed_evidence(hyps, storeys, odom_pose, seen_odom)
-        screen[keep] = information_gain(p, np.maximum(self._discrepancy(relative[keep], hyps, storeys) - weighed, 0))
+        screen[keep] = information_gain(p, np.maximum(self.views.discrepancy(poses[keep], storeys) - weighed, 0.0))
         expected_travel = np.where(np.isfinite(travel), travel, 0.0) @ p / np.maximum(np.isfinite(travel) @ p, 1e-12)
         keyframes = self._keyframes(relative, expected_travel)
         out.candidates_odom = se2_compose(odom_pose, relative[keep])
@@ -251,25 +252,25 @@ class Suggester:
         screened = np.where(keep & (screen >= MIN_GAIN_NATS), screen - cfg.cost_per_keyframe * keyframes, -np.inf)
         shortlist = np.argsort(-screened, kind="stable")[:RESCORED]
         shortlist = shortlist[np.isfinite(screened[shortlist])]
+        sampled = seen[::-SEEN_STRIDE][::-1]
+        taken = self.update_evidence(sampled, hyps, storeys).max(axis=0) if len(sampled) else 0.0
+
+        def beyond(views: np.ndarray) -> np.ndarray:
+            """(V, K, K) the filter's update from the views at (V, 3) relative poses, each beyond what a view taken
+            gave."""
+            return np.maximum(self.update_evidence(views, hyps, storeys) - taken, 0.0)
+
+        # A path's views are scored once for all the headings shortlisted at its end.
         spacing = self.cfg.localization.keyframe_distance_m
-        seen = se2_compose(se2_inverse(odom_pose), out.seen_odom[::-SEEN_STRIDE][::-1])
-        taken = self.update_evidence(seen, hyps, storeys).max(axis=0) if len(seen) else np.zeros((len(hyps),) * 2)
-
-        def gain_of(views: np.ndarray) -> float:
-            """IG of the views at (V, 3) relative poses by the filter's update, each beyond what a view taken gave."""
-            evidence = np.maximum(self.update_evidence(views, hyps, storeys) - taken, 0.0).sum(axis=0)
-            return float(information_gain(p, evidence[None])[0])
-
         paths = {int(c // HEADINGS): graph.plan(top.pose[:2], pred, int(positions[c // HEADINGS])) for c in shortlist}
+        ways = {n: beyond(se2_compose(to_robot, path_views(path, spacing))).sum(axis=0) for n, path in paths.items()}
         gains = np.full(len(relative), -np.inf)
-        for c in shortlist:
-            way = se2_compose(to_robot, path_views(paths[int(c // HEADINGS)], spacing))
-            views = np.vstack([way.reshape(-1, 3), relative[c][None]])
-            gains[c] = gain_of(views)
+        for c, goal in zip(shortlist, beyond(relative[shortlist]), strict=True):
+            gains[c] = float(information_gain(p, (ways[int(c // HEADINGS)] + goal)[None])[0])
         # The route's own next views: a candidate of no cost (the robot takes those keyframes anyway).
         route = self._route_ahead(odom_pose, route_odom)
         if len(route):
-            out.route_gain_nats = gain_of(route)
+            out.route_gain_nats = float(information_gain(p, beyond(route).sum(axis=0)[None])[0])
         informative = gains >= MIN_GAIN_NATS
         if not informative.any():
             out.reason = "no reachable view within the horizon tells the places apart"
@@ -289,18 +290,6 @@ class Suggester:
         out.path_odom = se2_compose(odom_pose, in_robot)[:, :2]
         return out
 
-    def weighed_evidence(
-        self, hyps: list[Hypothesis], storeys: np.ndarray, odom_pose: np.ndarray, seen_odom: np.ndarray | None
-    ) -> np.ndarray:
-        """(K, K) what the views already weighed tell between the places by the BIM's discrepancy: the most any of
-        them does (zeros without any). The filter weighed them and the places are still apart, so views like them
-        tell the filter nothing more."""
-        K = len(hyps)
-        if seen_odom is None or not len(seen_odom):
-            return np.zeros((K, K))
-        seen = se2_compose(se2_inverse(odom_pose), np.asarray(seen_odom, float).reshape(-1, 3))
-        return self._discrepancy(seen, hyps, storeys).max(axis=0)
-
     def _discrepancy(self, relative: np.ndarray, hyps: list[Hypothesis], storeys: np.ndarray) -> np.ndarray:
         """(N, K, K) the BIM's discrepancy (`ViewPredictor.discrepancy`) of the views at (N, 3) poses relative to the
         robot."""
@@ -313,6 +302,8 @@ class Suggester:
         measurement models averaged over `PLACE_SAMPLES` poses of the place's spread. Each model's term is taken at
         the chance its evidence is seen (the detector's recall, a plate's read chance; the scan always)."""
         K, V = len(hyps), len(relative)
+        if not V:
+            return np.zeros((0, K, K))
         offsets = np.stack([_spread_offsets(h) for h in hyps])  # (K, S, 3) in each place's frame
         S = offsets.shape[1]
         # The particles of every place after each view's motion: (V, K·S, 3), on their places' storeys.
