@@ -173,8 +173,9 @@ class Suggester:
         models: FilterModels | None = None,
     ) -> None:
         self.prior, self.cfg = prior, cfg
-        self.views = ViewPredictor(prior, visibility, cfg, meta)
         self.models = models or FilterModels.build(prior, visibility, cfg.smcl)  # the filter's, when it runs
+        field = None if self.models.scan is None else self.models.scan.field
+        self.views = ViewPredictor(prior, visibility, cfg, meta, field)
         self._graphs: dict[int, NavGraph] = {}
 
     def graph(self, storey: int) -> NavGraph:

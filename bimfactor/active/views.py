@@ -53,7 +53,12 @@ class ViewPredictor:
     """Predicted observations at poses of one prior, and the evidence they give between places."""
 
     def __init__(
-        self, prior: BimPrior, visibility: VisibilityTable, cfg: Config, meta: SequenceMeta | None = None
+        self,
+        prior: BimPrior,
+        visibility: VisibilityTable,
+        cfg: Config,
+        meta: SequenceMeta | None = None,
+        field: LikelihoodField | None = None,
     ) -> None:
         self.prior, self.visibility, self.grid = prior, visibility, prior.grid
         smcl = cfg.smcl
@@ -79,7 +84,7 @@ class ViewPredictor:
         self.plate_storey = np.asarray([p.storey_index for p in plates], np.int64)
         self.plate_near_m = plate_near_m(cfg, meta)
         self.occupied = np.stack([layers.occupied for layers in prior.storeys]).reshape(len(prior.storeys), -1)
-        self.field = LikelihoodField(prior, smcl.scan.sigma_m) if smcl.scan.enabled else None
+        self.field = field  # the filter's scan term's likelihood field; None without a scan term
         self.beams = np.deg2rad(np.arange(-smcl.semantic.fov_deg / 2, smcl.semantic.fov_deg / 2 + 1e-9, SCAN_BEAM_DEG))
         # Expected evidence of one object or plate one place shows and the other does not; the scan's 1/T_scan.
         self.object_nats = bernoulli_divergence(OBJECT_RECALL, OBJECT_FALSE)
